@@ -1,0 +1,20 @@
+# The two commands of the README:
+#   make run    set up, then run the whole pipeline on configs/default.yaml
+#   make test   set up, then run the default test suite
+CONFIG ?= configs/default.yaml
+
+.PHONY: setup run test bench clean
+setup:
+	./scripts/setup.sh
+
+run: setup
+	.venv/bin/bcsdf run $(CONFIG)
+
+test: setup
+	.venv/bin/python -m pytest -q
+
+bench: setup
+	.venv/bin/python -m pipeline.bench_fiber
+
+clean:
+	rm -rf artifacts

@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# One-time (idempotent) set-up: system libraries, a virtual environment in .venv,
+# and the project with the extras named in $BCSDF_EXTRAS (default: test).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+# Dr.Jit's LLVM backend needs LLVM >= 16 (the system's LLVM 15 aborts with
+# "Cannot select ... fmaximum"); Debian ships libllvm19.
+if ! ls /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1 && ! ls /usr/lib/libLLVM-19.so* >/dev/null 2>&1; then
+    echo "[setup] installing libllvm19 (Dr.Jit LLVM backend)"
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    export DEBIAN_FRONTEND=noninteractive
+    $SUDO apt-get install -y -q libllvm19 >/dev/null 2>&1 || {
+        $SUDO apt-get update -q >/dev/null && $SUDO apt-get install -y -q libllvm19 >/dev/null; }
+fi
+
+extras="${BCSDF_EXTRAS:-test}"
+stamp=".venv/.installed-${extras//,/-}"
+if [ ! -x .venv/bin/python ]; then
+    echo "[setup] creating .venv"
+    python3 -m venv .venv
+fi
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+    echo "[setup] installing the project with extras [$extras]"
+    # torch==2.13.0 is a CPU build on this machine's disk; pin it first so that the
+    # range in pyproject resolves to it instead of downloading a CUDA build.
+    if [[ "$extras" == *train* ]]; then .venv/bin/pip install -q "torch==2.13.0"; fi
+    .venv/bin/pip install -q -e ".[${extras}]"
+    touch "$stamp"
+fi
