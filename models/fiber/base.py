@@ -1,0 +1,239 @@
+"""The interface shared by all single-fiber models, and their tabulated form.
+
+Frame and normalization are DESIGN.md's: +y is the fiber axis, a direction ``w``
+(pointing away from the fiber, for both ``w_i`` and ``w_o``) has
+``sin(theta) = w.y`` and ``phi = atan2(w.z, w.x)``; ``f`` includes the cosine, so
+``integral f d omega_o`` is the albedo of the fiber per geometric hit.
+
+A single fiber is a circular cylinder, so ``f`` depends on the azimuths only through
+``dphi = phi_o - phi_i`` (forward scattering is ``dphi = pi``). Every model here is a
+sum of lobes
+
+    f(theta_i, theta_o, dphi, lambda) = sum_p M_p(theta_i, theta_o) N_p(theta_i, [theta_o,] dphi, lambda)
+
+with an analytic longitudinal lobe ``M_p`` (``integral M_p cos(theta_o) d theta_o = 1``)
+and a tabulated azimuthal part ``N_p``. Separable lobes (Mie, the ray model's R, TT,
+TRT, residual) keep ``N_p`` independent of theta_o, which lets a sharp longitudinal
+lobe and a finely resolved diffraction peak live in a table of a few megabytes. Dense
+lobes (measured data) carry a theta_o axis and ``M = 1``.
+
+Only ``theta_i >= 0`` is stored: ``N_p`` depends on theta_i through ``cos(theta_i)``
+only, and a dense lobe is mirror-symmetric along the axis,
+``N(-theta_i, theta_o) = N(theta_i, -theta_o)``. The sign of theta_i lives in ``M``
+(which also carries the cuticle tilt, which breaks that mirror symmetry).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .longitudinal import Longitudinal
+
+FORMAT = "bcsdf.fiber_table/1"
+
+
+@dataclass
+class Lobe:
+    """One term ``M(theta_i, theta_o) N(theta_i, theta_o?, dphi, lambda)``."""
+
+    name: str
+    longitudinal: Longitudinal
+    azimuthal: np.ndarray  # float32 [theta_i, theta_o or 1, phi, lambda]
+
+    @property
+    def dense(self) -> bool:
+        return self.azimuthal.shape[1] > 1
+
+
+def _linear(grid: np.ndarray, x: np.ndarray, periodic: bool = False):
+    """Indices and weights of linear interpolation on a sorted grid.
+
+    Periodic grids are uniform over ``[grid[0], grid[0] + 2 pi)``; other grids clamp
+    ``x`` to their range (a constant extension at the ends).
+    """
+    n = len(grid)
+    if n == 1:
+        z = np.zeros(x.shape, dtype=np.int64)
+        return z, z, np.zeros(x.shape)
+    if periodic:
+        step = 2 * np.pi / n
+        t = np.mod(x - grid[0], 2 * np.pi) / step
+        i0 = np.floor(t).astype(np.int64) % n
+        return i0, (i0 + 1) % n, t - np.floor(t)
+    x = np.clip(x, grid[0], grid[-1])
+    i0 = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, n - 2)
+    w = (x - grid[i0]) / (grid[i0 + 1] - grid[i0])
+    return i0, i0 + 1, w
+
+
+@dataclass
+class FiberTable:
+    """A single-fiber scattering function, tabulated as a sum of lobes.
+
+    Axes: ``theta_i`` (radians, ascending in [0, pi/2]), ``theta_o`` (radians, the
+    grid of dense lobes; may be a single 0 when there are none), ``phi`` (``dphi``
+    nodes, uniform over [-pi, pi), periodic) and ``wavelength`` (nm). ``meta`` holds
+    the model name, its parameters, energy and extinction.
+    """
+
+    theta_i: np.ndarray
+    theta_o: np.ndarray
+    phi: np.ndarray
+    wavelength: np.ndarray
+    lobes: list[Lobe]
+    meta: dict = field(default_factory=dict)
+
+    # -- evaluation --------------------------------------------------------
+    def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength) -> np.ndarray:
+        """``f`` at arbitrary arguments (broadcast), by multilinear interpolation of N.
+
+        theta outside [-pi/2, pi/2] is an error; wavelengths outside the table are
+        held at the nearest tabulated wavelength.
+        """
+        theta_i, phi_i, theta_o, phi_o, wavelength = np.broadcast_arrays(
+            *(np.asarray(a, dtype=np.float64) for a in (theta_i, phi_i, theta_o, phi_o, wavelength)))
+        check_theta(theta_i, "theta_i")
+        check_theta(theta_o, "theta_o")
+        mirror = np.where(theta_i < 0, -1.0, 1.0)
+        ti = _linear(self.theta_i, np.abs(theta_i))
+        to = _linear(self.theta_o, mirror * theta_o)
+        ph = _linear(self.phi, phi_o - phi_i, periodic=True)
+        wl = _linear(self.wavelength, wavelength)
+        zero = np.zeros(theta_i.shape, dtype=np.int64)
+        out = np.zeros(theta_i.shape)
+        for lobe in self.lobes:
+            N = lobe.azimuthal
+            o_axis = to if lobe.dense else (zero, zero, np.zeros(theta_i.shape))
+            acc = np.zeros(theta_i.shape)
+            for a, wa in ((ti[0], 1 - ti[2]), (ti[1], ti[2])):
+                for b, wb in ((o_axis[0], 1 - o_axis[2]), (o_axis[1], o_axis[2])):
+                    for c, wc in ((ph[0], 1 - ph[2]), (ph[1], ph[2])):
+                        for d, wd in ((wl[0], 1 - wl[2]), (wl[1], wl[2])):
+                            acc += (wa * wb * wc * wd) * N[a, b, c, d]
+            out += lobe.longitudinal(theta_i, theta_o) * acc
+        return out
+
+    # -- energy ------------------------------------------------------------
+    def energy(self) -> np.ndarray:
+        """Albedo per (theta_i node, wavelength): ``integral f d omega_o``.
+
+        Exact for the tabulated function: ``M`` integrates to one, ``N`` is
+        integrated with the periodic trapezoid rule (its own linear interpolant),
+        dense lobes also over theta_o with the cosine.
+        """
+        total = np.zeros((len(self.theta_i), len(self.wavelength)))
+        dphi = 2 * np.pi / len(self.phi)
+        for lobe in self.lobes:
+            per_theta_o = lobe.azimuthal.astype(np.float64).sum(axis=2) * dphi  # [ti, to, wl]
+            if lobe.dense:
+                w = _trapezoid_cos_weights(self.theta_o)
+                total += np.einsum("ioj,o->ij", per_theta_o, w)
+            else:
+                total += per_theta_o[:, 0, :]
+        return total
+
+    # -- storage -----------------------------------------------------------
+    def save(self, path) -> None:
+        """Write an ``.npz`` (atomically: temporary file, then rename)."""
+        from pipeline.io import atomic_path
+
+        arrays = {
+            "theta_i": self.theta_i, "theta_o": self.theta_o, "phi": self.phi,
+            "wavelength": self.wavelength,
+        }
+        lobes_meta = []
+        for k, lobe in enumerate(self.lobes):
+            arrays[f"lobe{k}"] = lobe.azimuthal.astype(np.float32)
+            lobes_meta.append({"name": lobe.name, "longitudinal": lobe.longitudinal.to_dict()})
+        header = {"format": FORMAT, "lobes": lobes_meta, "meta": self.meta}
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, header=np.array(json.dumps(header)), **arrays)
+
+    @classmethod
+    def load(cls, path) -> "FiberTable":
+        """Read a table written by :meth:`save`; a foreign or corrupt file is refused."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                header = json.loads(str(z["header"]))
+                if header.get("format") != FORMAT:
+                    raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
+                lobes = [Lobe(m["name"], Longitudinal(**m["longitudinal"]), z[f"lobe{k}"])
+                         for k, m in enumerate(header["lobes"])]
+                table = cls(z["theta_i"], z["theta_o"], z["phi"], z["wavelength"], lobes, header["meta"])
+        except (OSError, KeyError, ValueError, json.JSONDecodeError) as e:
+            raise ValueError(f"{path}: not a readable fiber table ({e}); re-run `bcsdf fiber`") from e
+        table.validate()
+        return table
+
+    def validate(self) -> None:
+        shape = (len(self.theta_i), None, len(self.phi), len(self.wavelength))
+        for lobe in self.lobes:
+            s = lobe.azimuthal.shape
+            if len(s) != 4 or s[0] != shape[0] or s[2:] != shape[2:] or s[1] not in (1, len(self.theta_o)):
+                raise ValueError(f"lobe {lobe.name!r} has shape {s}, inconsistent with the axes")
+            if not np.all(np.isfinite(lobe.azimuthal)) or np.any(lobe.azimuthal < 0):
+                raise ValueError(f"lobe {lobe.name!r} holds negative or non-finite values")
+
+
+def _trapezoid_cos_weights(theta: np.ndarray) -> np.ndarray:
+    """Weights of the trapezoid rule for ``integral g(theta) cos(theta) d theta``."""
+    w = np.zeros(len(theta))
+    d = np.diff(theta)
+    w[:-1] += d / 2
+    w[1:] += d / 2
+    return w * np.cos(theta)
+
+
+def check_theta(theta: np.ndarray, name: str) -> None:
+    if np.any(~np.isfinite(theta)) or np.any(np.abs(theta) > np.pi / 2 + 1e-12):
+        raise ValueError(f"{name} must lie in [-pi/2, pi/2] radians (got values up to "
+                         f"{np.nanmax(np.abs(theta)):.4g}); angles are radians, not degrees")
+
+
+def sphere_quadrature(n_theta: int = 256, n_phi: int = 512):
+    """Nodes and weights for ``integral g(theta, phi) cos(theta) d theta d phi``.
+
+    Gauss-Legendre in ``sin(theta)`` (so the cosine is absorbed exactly) times the
+    periodic trapezoid rule in phi.
+    """
+    u, wu = np.polynomial.legendre.leggauss(n_theta)  # u = sin(theta)
+    theta = np.arcsin(u)
+    phi = -np.pi + 2 * np.pi * (np.arange(n_phi) + 0.5) / n_phi
+    T, P = np.meshgrid(theta, phi, indexing="ij")
+    W = np.outer(wu, np.full(n_phi, 2 * np.pi / n_phi))
+    return T, P, W
+
+
+class FiberModel:
+    """Base class: a model evaluates ``f`` and tabulates itself.
+
+    Subclasses implement :meth:`tabulate` (the form the baker looks up) and may
+    override :meth:`eval` with a direct evaluation; the default evaluates the table.
+    """
+
+    name = "fiber"
+
+    def __init__(self, wavelength: np.ndarray):
+        self.wavelength = np.asarray(wavelength, dtype=np.float64)
+
+    def tabulate(self, theta_i: np.ndarray) -> FiberTable:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength) -> np.ndarray:
+        if not hasattr(self, "_table"):
+            self._table = self.tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
+        return self._table.eval(theta_i, phi_i, theta_o, phi_o, wavelength)
+
+    def energy(self, theta_i: float, wavelength: float, n_theta=256, n_phi=1024) -> float:
+        """``integral f d omega_o`` by quadrature over the sphere of :meth:`eval`."""
+        T, P, W = sphere_quadrature(n_theta, n_phi)
+        f = self.eval(theta_i, 0.0, T, P, wavelength)
+        return float(np.sum(f * W))
+
+    def extinction(self, theta_i: np.ndarray) -> np.ndarray | None:
+        """Extinction per geometric cross-section [theta_i, lambda], or None (ray optics: 1)."""
+        return None
