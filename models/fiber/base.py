@@ -26,6 +26,7 @@ only, and a dense lobe is mirror-symmetric along the axis,
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -164,7 +165,7 @@ class FiberTable:
                 lobes = [Lobe(m["name"], Longitudinal(**m["longitudinal"]), z[f"lobe{k}"])
                          for k, m in enumerate(header["lobes"])]
                 table = cls(z["theta_i"], z["theta_o"], z["phi"], z["wavelength"], lobes, header["meta"])
-        except (OSError, KeyError, ValueError, json.JSONDecodeError) as e:
+        except (OSError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
             raise ValueError(f"{path}: not a readable fiber table ({e}); re-run `bcsdf fiber`") from e
         table.validate()
         return table

@@ -55,8 +55,9 @@ __all__ = [
 # --------------------------------------------------------------------------
 
 def n_terms(xi: float) -> int:
-    """Number of terms (Wiscombe's criterion applied to ``xi = x sin(zeta)``)."""
-    return int(np.ceil(xi + 4.05 * xi ** (1.0 / 3.0) + 8))
+    """Number of terms: Wiscombe's ``xi + 4 xi^(1/3) + 2`` widened until the last
+    coefficients are below 1e-13 up to ``xi = 2000`` (``xi = x sin(zeta)``)."""
+    return int(np.ceil(xi + 6.0 * xi ** (1.0 / 3.0) + 8))
 
 
 def _recurrence_start(n_max: int, eta: complex) -> int:

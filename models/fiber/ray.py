@@ -21,6 +21,7 @@ fiber radius. The relative index is ``eta = n(lambda)`` (exterior index 1).
 from __future__ import annotations
 
 import numpy as np
+from scipy import special
 
 from .base import FiberModel, FiberTable, Lobe, check_theta
 from .longitudinal import Longitudinal
@@ -89,7 +90,7 @@ def Np(dphi, p, s, gamma_i, gamma_t):
     x = np.abs(x)
     e = np.exp(-x / s)
     logistic = e / (s * (1 + e) ** 2)
-    trim = 1 / (1 + np.exp(-np.pi / s)) - 1 / (1 + np.exp(np.pi / s))
+    trim = special.expit(np.pi / s) - special.expit(-np.pi / s)
     return logistic / trim
 
 

@@ -1,0 +1,171 @@
+"""One YAML config per scene, validated.
+
+Unknown keys, missing required keys and out-of-range values are refused with a
+message that names the key (``fiber.radius_um: must be > 0 (got -1)``). Every
+stage reads the same :class:`Config`; its hash goes into every artifact's metadata.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Literal, Optional, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+
+class ConfigError(ValueError):
+    """A config that cannot be used; the message says which key and why."""
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Wavelengths(Strict):
+    """The wavelengths the scene renders: ``count`` samples from start to stop (nm)."""
+
+    start_nm: float = Field(400.0, ge=200, le=2000)
+    stop_nm: float = Field(700.0, ge=200, le=2000)
+    count: int = Field(25, ge=1, le=1000)
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.count > 1 and self.stop_nm <= self.start_nm:
+            raise ValueError(f"stop_nm ({self.stop_nm}) must exceed start_nm ({self.start_nm})")
+        return self
+
+    def grid(self):
+        from models.spectrum import wavelength_grid
+        return wavelength_grid(self.start_nm, self.stop_nm, self.count)
+
+
+SpectralValue = Union[float, list[tuple[float, float]]]
+
+
+class IOR(Strict):
+    """Complex index ``n + ik``: Cauchy ``n = A + B / lambda_um^2``; ``k`` constant or [[nm, k], ...]."""
+
+    cauchy_a: float = Field(1.55, gt=1.0, le=4.0)
+    cauchy_b_um2: float = Field(0.0, ge=0.0, le=0.1)
+    k: SpectralValue = 0.0
+
+    @field_validator("k")
+    @classmethod
+    def _k_nonnegative(cls, v):
+        values = [v] if isinstance(v, (int, float)) else [k for _, k in v]
+        if any(k < 0 for k in values):
+            raise ValueError("the imaginary part k must be >= 0 (n + ik with k >= 0 absorbs)")
+        if not isinstance(v, (int, float)):
+            if any(not 200 <= nm <= 2000 for nm, _ in v):
+                raise ValueError("wavelengths of k must lie in 200..2000 nm")
+        return v
+
+
+class MieParams(Strict):
+    roughness_deg: float = Field(3.0, gt=0.0, le=45.0, description="std. dev. of the longitudinal lobe")
+    zeta_min_deg: float = Field(1.0, gt=0.0, le=10.0)
+    n_phi: Optional[int] = Field(None, ge=64, le=65536, description="azimuth samples (default: resolve diffraction)")
+
+
+class RayParams(Strict):
+    longitudinal_roughness: float = Field(0.3, gt=0.0, le=1.0)
+    azimuthal_roughness: float = Field(0.3, gt=0.0, le=1.0)
+    scale_tilt_deg: float = Field(2.0, ge=-15.0, le=15.0)
+    n_h: int = Field(256, ge=8, le=8192)
+    n_phi: int = Field(360, ge=36, le=65536)
+
+
+class TableParams(Strict):
+    path: str
+    format: Literal["xia2023", "npz"]
+    albedo: float = Field(1.0, gt=0.0, le=1.0)
+
+
+class PatternParams(Strict):
+    n_stripes_theta: int = Field(6, ge=1, le=90)
+    n_stripes_phi: int = Field(8, ge=1, le=180)
+    albedo: float = Field(1.0, gt=0.0, le=1.0)
+    n_phi: int = Field(720, ge=36, le=65536)
+
+
+class Fiber(Strict):
+    model: Literal["mie", "ray", "table", "grid", "isotropic"]
+    radius_um: float = Field(20.0, gt=0.0, le=1e4)
+    ior: IOR = IOR()
+    mie: MieParams = MieParams()
+    ray: RayParams = RayParams()
+    table: Optional[TableParams] = None
+    pattern: PatternParams = PatternParams()
+
+    @model_validator(mode="after")
+    def _table_given(self):
+        if self.model == "table" and self.table is None:
+            raise ValueError("model 'table' needs a 'table:' block with path and format")
+        return self
+
+
+class Tabulate(Strict):
+    theta_i_step_deg: float = Field(5.0, gt=0.0, le=90.0)
+
+    @field_validator("theta_i_step_deg")
+    @classmethod
+    def _divides_90(cls, v):
+        if abs(90.0 / v - round(90.0 / v)) > 1e-9:
+            raise ValueError(f"must divide 90 evenly (got {v})")
+        return v
+
+
+class Config(Strict):
+    name: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.-]+$")
+    wavelengths: Wavelengths = Wavelengths()
+    fiber: Fiber
+    tabulate: Tabulate = Tabulate()
+
+    def hash(self) -> str:
+        text = json.dumps(self.model_dump(mode="json"), sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _format_errors(err: ValidationError) -> str:
+    lines = []
+    for e in err.errors():
+        key = ".".join(str(p) for p in e["loc"] if not str(p).startswith(("function-", "tagged-union")))
+        msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key (check the spelling; see configs/default.yaml for the keys)"
+        elif e["type"] == "missing":
+            msg = "required key is missing"
+        elif "input" in e and not isinstance(e["input"], (dict, list)):
+            msg += f" (got {e['input']!r})"
+        lines.append(f"  {key or '<top level>'}: {msg}")
+    return "\n".join(lines)
+
+
+def load_config(path) -> Config:
+    """Read and validate a YAML config; raise :class:`ConfigError` naming every bad key."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({e})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys at the top level")
+    data.setdefault("name", path.stem)
+    try:
+        cfg = Config.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(f"{path}: invalid config\n{_format_errors(e)}") from None
+    if cfg.fiber.table is not None and cfg.fiber.model == "table":
+        table_path = Path(cfg.fiber.table.path)
+        if not table_path.is_absolute():  # relative to the config file
+            table_path = (path.parent / table_path).resolve()
+        if not table_path.exists():
+            raise ConfigError(f"{path}: fiber.table.path: {table_path} does not exist")
+        cfg = cfg.model_copy(update={"fiber": cfg.fiber.model_copy(
+            update={"table": cfg.fiber.table.model_copy(update={"path": str(table_path)})})})
+    return cfg

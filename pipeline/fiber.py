@@ -1,0 +1,146 @@
+"""Stage ``fiber``: tabulate the single-fiber model of a config and draw it.
+
+Writes, under ``artifacts/<name>/fiber/``:
+
+* ``fiber_table.npz``  the :class:`models.fiber.FiberTable` the baker looks up;
+* ``summary.json``     energy (albedo) and extinction per (theta_i, lambda), timing;
+* ``theta_i_XX.png``   f over (dphi, theta_o) at each tabulated theta_i, all
+  wavelengths combined into sRGB (CIE 1931, D65), log tone-mapped so that the
+  diffraction peak and the faint chromatic fringes show together;
+* ``energy.png``       albedo (and extinction ratio) against theta_i per wavelength.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from models import fiber as fiber_models
+from models.fiber.base import FiberTable, _linear
+from models.spectrum import spectrum_to_srgb
+
+from .io import atomic_path, write_text
+
+
+def run(cfg, out_root="artifacts") -> Path:
+    out = Path(out_root) / cfg.name / "fiber"
+    wl = cfg.wavelengths.grid()
+    theta_i = np.deg2rad(np.arange(0.0, 90.0 + 1e-9, cfg.tabulate.theta_i_step_deg))
+
+    # -- Tabulate ---------------------------------------------------------
+    t0 = time.perf_counter()
+    model = fiber_models.build(cfg.fiber, wl)
+    table = model.tabulate(theta_i)
+    seconds = time.perf_counter() - t0
+    table.meta.update(config_name=cfg.name, config_hash=cfg.hash(), config=cfg.model_dump(mode="json"))
+    table.validate()
+    table.save(out / "fiber_table.npz")
+
+    # -- Energy and extinction --------------------------------------------
+    energy = table.energy()
+    ext = model.extinction(table.theta_i)
+    summary = {
+        "model": cfg.fiber.model, "config_hash": cfg.hash(), "tabulate_seconds": seconds,
+        "theta_i_deg": np.rad2deg(table.theta_i).tolist(), "wavelength_nm": table.wavelength.tolist(),
+        "shape": {lobe.name: list(lobe.azimuthal.shape) for lobe in table.lobes},
+        "energy": energy.tolist(), "extinction_ratio": None if ext is None else ext.tolist(),
+    }
+    write_text(out / "summary.json", json.dumps(summary, indent=1))
+
+    # -- Pictures -----------------------------------------------------------
+    for i in range(len(table.theta_i)):
+        plot_slice(table, i, out / f"theta_i_{np.rad2deg(table.theta_i[i]):04.1f}.png")
+    plot_energy(table.theta_i, table.wavelength, energy, ext, out / "energy.png", cfg.fiber.model)
+    print(f"[fiber] {cfg.fiber.model}: {len(table.theta_i)} theta_i x {len(table.phi)} phi x "
+          f"{len(table.wavelength)} wavelengths in {seconds:.2f} s; albedo "
+          f"{energy.min():.4f}..{energy.max():.4f}; wrote {out}")
+    return out
+
+
+def slice_at_node(table: FiberTable, i: int, theta_o: np.ndarray) -> np.ndarray:
+    """``f[theta_o, phi, lambda]`` at the table's i-th theta_i, on its own phi grid."""
+    ti = table.theta_i[i]
+    f = np.zeros((len(theta_o), len(table.phi), len(table.wavelength)))
+    for lobe in table.lobes:
+        M = lobe.longitudinal(ti, theta_o)[:, None, None]
+        if lobe.dense:
+            a, b, w = _linear(table.theta_o, theta_o)
+            N = (1 - w)[:, None, None] * lobe.azimuthal[i, a] + w[:, None, None] * lobe.azimuthal[i, b]
+        else:
+            N = lobe.azimuthal[i, 0][None]
+        f += M * N
+    return f
+
+
+def tone_map(rgb: np.ndarray) -> np.ndarray:
+    """Log tone mapping on luminance, hue kept; sRGB-encoded in [0, 1]."""
+    import colour
+
+    rgb = np.maximum(rgb, 0.0)
+    Y = rgb @ np.array([0.2126, 0.7152, 0.0722])
+    positive = Y[Y > 0]
+    if positive.size == 0:
+        return np.zeros_like(rgb)
+    # Exposure at the bright band (not the lobe tails), log above it for the peak
+    Y0 = max(np.percentile(positive, 97), 1e-12 * positive.max())
+    Ymax = positive.max()
+    mapped = np.log1p(Y / Y0) / np.log1p(Ymax / Y0)
+    out = rgb * np.where(Y > 0, mapped / np.maximum(Y, 1e-300), 0.0)[..., None]
+    return np.clip(colour.cctf_encoding(np.clip(out, 0, 1)), 0, 1)
+
+
+def plot_slice(table: FiberTable, i: int, path: Path, max_columns: int = 1440) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    theta_o = np.linspace(-np.pi / 2, np.pi / 2, 361)
+    f = slice_at_node(table, i, theta_o)
+    # Average adjacent azimuth samples down to at most max_columns (keeps the energy)
+    group = int(np.ceil(len(table.phi) / max_columns))
+    n_cols = len(table.phi) // group
+    f = f[:, : n_cols * group].reshape(len(theta_o), n_cols, group, -1).mean(axis=2)
+    # Roll so that dphi runs over [0, 360): forward scattering (180) in the middle
+    f = np.roll(f, n_cols // 2, axis=1)
+    img = tone_map(spectrum_to_srgb(f, table.wavelength))
+    fig, ax = plt.subplots(figsize=(12, 4.2), dpi=120)
+    ax.imshow(img, origin="lower", aspect="auto", interpolation="nearest",
+              extent=(0, 360, -90, 90))
+    ax.set_xticks(np.arange(0, 361, 30))
+    ax.set_xlabel("dphi = phi_o - phi_i [deg]  (0: back to the light, 180: forward)")
+    ax.set_ylabel("theta_o [deg]")
+    ax.set_title(f"{table.meta.get('model', 'fiber')}: theta_i = {np.rad2deg(table.theta_i[i]):.1f} deg, "
+                 f"{len(table.wavelength)} wavelengths in sRGB (log tone map)")
+    fig.tight_layout()
+    _save_figure(fig, path)
+
+
+def plot_energy(theta_i, wavelength, energy, ext, path, model_name) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = 2 if ext is not None else 1
+    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4), dpi=110, squeeze=False)
+    cmap = plt.get_cmap("turbo")
+    for j, lam in enumerate(wavelength):
+        c = cmap(j / max(1, len(wavelength) - 1))
+        axes[0, 0].plot(np.rad2deg(theta_i), energy[:, j], color=c, lw=1)
+        if ext is not None:
+            axes[0, 1].plot(np.rad2deg(theta_i), ext[:, j], color=c, lw=1)
+    axes[0, 0].set(xlabel="theta_i [deg]", ylabel="albedo = integral f d omega_o", title=f"{model_name}: energy")
+    if ext is not None:
+        axes[0, 1].set(xlabel="theta_i [deg]", ylabel="Q_ext / sin(zeta)", title="extinction per geometric hit")
+    fig.tight_layout()
+    _save_figure(fig, path)
+
+
+def _save_figure(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
