@@ -1,0 +1,82 @@
+"""The `bcsdf` command: config validation, bad input, artifacts, and nothing lost."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from models.fiber.base import FiberTable
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def bcsdf(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=600)
+
+
+def write_config(path, **fiber):
+    cfg = {"wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
+           "fiber": {"model": "mie", "radius_um": 3.0, **fiber},
+           "tabulate": {"theta_i_step_deg": 30}}
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+@pytest.mark.parametrize("edit,key,words", [
+    (lambda c: c["fiber"].update(radius_um=-1), "fiber.radius_um", "greater than 0"),
+    (lambda c: c["wavelengths"].update(start_nm=100), "wavelengths.start_nm", "greater than or equal to 200"),
+    (lambda c: c["wavelengths"].update(stop_nm=2500), "wavelengths.stop_nm", "less than or equal to 2000"),
+    (lambda c: c["fiber"]["ior"].update(k=-0.01), "fiber.ior.k", "must be >= 0"),
+    (lambda c: c["fiber"].update(radiuss=3), "fiber.radiuss", "unknown key"),
+    (lambda c: c["fiber"].pop("model"), "fiber.model", "required"),
+    (lambda c: c["fiber"].update(model="wave"), "fiber.model", "mie"),
+    (lambda c: c["tabulate"].update(theta_i_step_deg=7), "tabulate.theta_i_step_deg", "divide 90"),
+    (lambda c: c["fiber"].update(model="table"), "fiber", "table"),
+])
+def test_bad_config_names_the_key(tmp_path, edit, key, words):
+    cfg = {"wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
+           "fiber": {"model": "mie", "radius_um": 3.0, "ior": {"k": 0.0}}, "tabulate": {"theta_i_step_deg": 30}}
+    edit(cfg)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    r = bcsdf("fiber", str(path), cwd=ROOT)
+    assert r.returncode == 2
+    assert key in r.stderr and words in r.stderr, r.stderr
+
+
+def test_missing_config_file(tmp_path):
+    r = bcsdf("fiber", str(tmp_path / "nope.yaml"), cwd=ROOT)
+    assert r.returncode == 2 and "does not exist" in r.stderr
+
+
+def test_fiber_stage_end_to_end_and_failure_keeps_artifacts(tmp_path):
+    cfg = write_config(tmp_path / "tiny.yaml", ior={"cauchy_a": 1.55, "k": 1e-3})
+    out = tmp_path / "art"
+    r = bcsdf("--artifacts", str(out), "run", str(cfg), cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    d = out / "tiny" / "fiber"
+    table = FiberTable.load(d / "fiber_table.npz")
+    summary = json.loads((d / "summary.json").read_text())
+    assert len(list(d.glob("theta_i_*.png"))) == 4 and (d / "energy.png").stat().st_size > 1000
+    E = np.asarray(summary["energy"])
+    assert np.all((E > 0) & (E < 1))  # absorbing fiber
+    assert table.meta["config_hash"] == summary["config_hash"]
+    before = (d / "fiber_table.npz").read_bytes()
+
+    # A table model pointing at a corrupt file fails cleanly and touches nothing
+    bad = tmp_path / "corrupt.npz"
+    bad.write_bytes(b"not a table")
+    cfg2 = tmp_path / "tiny2.yaml"
+    c = yaml.safe_load(cfg.read_text())
+    c["name"] = "tiny"
+    c["fiber"] = {"model": "table", "table": {"path": str(bad), "format": "npz"}}
+    cfg2.write_text(yaml.safe_dump(c))
+    r = bcsdf("--artifacts", str(out), "fiber", str(cfg2), cwd=ROOT)
+    assert r.returncode == 2 and "corrupt.npz" in r.stderr
+    assert (d / "fiber_table.npz").read_bytes() == before
+    assert not list(d.glob(".*.tmp"))
