@@ -1,7 +1,8 @@
 """``bcsdf``: one subcommand per pipeline stage, each driven by one config file.
 
     bcsdf fiber CONFIG     tabulate and draw the single-fiber model
-    bcsdf run CONFIG       every stage in order (for now: fiber)
+    bcsdf bake CONFIG      trace the bundle, write the ground-truth table
+    bcsdf run CONFIG       every stage in order (for now: fiber, bake)
 
 Errors in the config or the data print what is wrong and exit with status 2;
 artifacts from earlier runs are left as they were.
@@ -12,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-STAGES = ("fiber",)
+STAGES = ("fiber", "bake")
 
 
 def main(argv=None) -> int:
@@ -20,6 +21,7 @@ def main(argv=None) -> int:
     parser.add_argument("--artifacts", default="artifacts", help="output root (default: artifacts/)")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, help_ in (("fiber", "tabulate and draw the single-fiber model"),
+                        ("bake", "trace the bundle and write the ground-truth table"),
                         ("run", "run every stage in order")):
         p = sub.add_parser(name, help=help_)
         p.add_argument("config", help="YAML config, e.g. configs/default.yaml")
@@ -29,7 +31,8 @@ def main(argv=None) -> int:
 
     try:
         cfg = load_config(args.config)
-        stages = STAGES if args.command == "run" else (args.command,)
+        stages = [s for s in STAGES if s != "bake" or cfg.bundle is not None] \
+            if args.command == "run" else (args.command,)
         for stage in stages:
             _stage(stage).run(cfg, args.artifacts)
     except (ConfigError, ValueError, FileNotFoundError) as e:

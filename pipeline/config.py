@@ -16,6 +16,11 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 
+# Which config sections each stage's artifact depends on (its provenance hash)
+FIBER_SECTIONS = ("wavelengths", "fiber", "tabulate")
+BAKE_SECTIONS = FIBER_SECTIONS + ("bundle", "bake")
+
+
 class ConfigError(ValueError):
     """A config that cannot be used; the message says which key and why."""
 
@@ -118,14 +123,86 @@ class Tabulate(Strict):
         return v
 
 
+class BundleCfg(Strict):
+    """The fiber arrangement in the cross-section (radii from ``fiber.radius_um``)."""
+
+    arrangement: Literal["poisson", "file", "zhao2016"] = "poisson"
+    shape: Literal["circle", "ellipse"] = "circle"
+    radius_um: Optional[float] = Field(None, gt=0.0, le=1e5, description="circle radius")
+    semi_axes_um: Optional[tuple[float, float]] = Field(None, description="ellipse (major on x, minor on z)")
+    gap_um: float = Field(0.0, ge=0.0, le=1e4)
+    packing: Optional[float] = Field(None, gt=0.0, lt=0.91)
+    file: Optional[str] = None
+    yarn: Optional[str] = None
+    seed: int = Field(1, ge=0)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.arrangement == "zhao2016":
+            if not self.yarn:
+                raise ValueError("arrangement 'zhao2016' needs 'yarn' (e.g. 'Cotton 1')")
+            return self
+        if self.shape == "circle" and self.radius_um is None:
+            raise ValueError("a circular bundle needs 'radius_um'")
+        if self.shape == "ellipse":
+            if self.semi_axes_um is None:
+                raise ValueError("an elliptical bundle needs 'semi_axes_um: [a, b]'")
+            a, b = self.semi_axes_um
+            if not (a > 0 and b > 0):
+                raise ValueError(f"semi_axes_um must be positive (got {a}, {b})")
+        if self.arrangement == "file" and not self.file:
+            raise ValueError("arrangement 'file' needs 'file' (a CSV with x_um, z_um, r_um)")
+        return self
+
+    def semi_axes(self):
+        return (self.radius_um, self.radius_um) if self.shape == "circle" else tuple(self.semi_axes_um)
+
+
+class BakeCfg(Strict):
+    """The ground-truth path tracer (see models/baker.py)."""
+
+    estimator: Literal["fast", "thesis"] = "fast"
+    paths_per_phi_i: int = Field(1_000_000, ge=1)
+    batch_paths: int = Field(65536, ge=64, le=1 << 22)
+    theta_i_step_deg: float = Field(10.0, gt=0.0, le=90.0)
+    phi_i_step_deg: float = Field(15.0, gt=0.0, le=90.0, description="ellipse only")
+    n_theta_o: int = Field(36, ge=2, le=3600)
+    n_phi_o: int = Field(72, ge=4, le=7200)
+    max_bounces: int = Field(1000, ge=1, le=1_000_000)
+    rr_start: int = Field(8, ge=1)
+    seed: int = Field(1, ge=0)
+    variant: str = "llvm_ad_mono"
+    checkpoint_every_s: float = Field(20.0, gt=0.0)
+
+    @field_validator("theta_i_step_deg", "phi_i_step_deg")
+    @classmethod
+    def _divides_90(cls, v):
+        if abs(90.0 / v - round(90.0 / v)) > 1e-9:
+            raise ValueError(f"must divide 90 evenly (got {v})")
+        return v
+
+    @field_validator("n_theta_o", "n_phi_o")
+    @classmethod
+    def _even(cls, v):
+        if v % 2:
+            raise ValueError(f"must be even so that the symmetry mirrors map bins onto bins (got {v})")
+        return v
+
+
 class Config(Strict):
     name: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.-]+$")
     wavelengths: Wavelengths = Wavelengths()
     fiber: Fiber
     tabulate: Tabulate = Tabulate()
+    bundle: Optional[BundleCfg] = None
+    bake: BakeCfg = BakeCfg()
 
-    def hash(self) -> str:
-        text = json.dumps(self.model_dump(mode="json"), sort_keys=True)
+    def hash(self, *sections: str) -> str:
+        """Hash of the named sections (all of them by default), for artifact provenance."""
+        data = self.model_dump(mode="json")
+        if sections:
+            data = {k: data[k] for k in sections}
+        text = json.dumps(data, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -160,6 +237,9 @@ def load_config(path) -> Config:
         cfg = Config.model_validate(data)
     except ValidationError as e:
         raise ConfigError(f"{path}: invalid config\n{_format_errors(e)}") from None
+    if cfg.bundle is not None and cfg.bundle.file:
+        cfg = cfg.model_copy(update={"bundle": cfg.bundle.model_copy(
+            update={"file": str((path.parent / cfg.bundle.file).resolve())})})
     if cfg.fiber.table is not None and cfg.fiber.model == "table":
         table_path = Path(cfg.fiber.table.path)
         if not table_path.is_absolute():  # relative to the config file

@@ -20,9 +20,9 @@ import numpy as np
 
 from models import fiber as fiber_models
 from models.fiber.base import FiberTable, _linear
-from models.spectrum import spectrum_to_srgb
-
-from .io import atomic_path, write_text
+from .config import FIBER_SECTIONS
+from .io import write_text
+from .plots import save_figure, spectral_image
 
 
 def run(cfg, out_root="artifacts") -> Path:
@@ -35,7 +35,8 @@ def run(cfg, out_root="artifacts") -> Path:
     model = fiber_models.build(cfg.fiber, wl)
     table = model.tabulate(theta_i)
     seconds = time.perf_counter() - t0
-    table.meta.update(config_name=cfg.name, config_hash=cfg.hash(), config=cfg.model_dump(mode="json"))
+    table.meta.update(config_name=cfg.name, config_hash=cfg.hash(*FIBER_SECTIONS),
+                      config=cfg.model_dump(mode="json"))
     table.validate()
     table.save(out / "fiber_table.npz")
 
@@ -43,7 +44,7 @@ def run(cfg, out_root="artifacts") -> Path:
     energy = table.energy()
     ext = model.extinction(table.theta_i)
     summary = {
-        "model": cfg.fiber.model, "config_hash": cfg.hash(), "tabulate_seconds": seconds,
+        "model": cfg.fiber.model, "config_hash": cfg.hash(*FIBER_SECTIONS), "tabulate_seconds": seconds,
         "theta_i_deg": np.rad2deg(table.theta_i).tolist(), "wavelength_nm": table.wavelength.tolist(),
         "shape": {lobe.name: list(lobe.azimuthal.shape) for lobe in table.lobes},
         "energy": energy.tolist(), "extinction_ratio": None if ext is None else ext.tolist(),
@@ -75,28 +76,7 @@ def slice_at_node(table: FiberTable, i: int, theta_o: np.ndarray) -> np.ndarray:
     return f
 
 
-def tone_map(rgb: np.ndarray) -> np.ndarray:
-    """Log tone mapping on luminance, hue kept; sRGB-encoded in [0, 1]."""
-    import colour
-
-    rgb = np.maximum(rgb, 0.0)
-    Y = rgb @ np.array([0.2126, 0.7152, 0.0722])
-    positive = Y[Y > 0]
-    if positive.size == 0:
-        return np.zeros_like(rgb)
-    # Exposure at the bright band (not the lobe tails), log above it for the peak
-    Y0 = max(np.percentile(positive, 97), 1e-12 * positive.max())
-    Ymax = positive.max()
-    mapped = np.log1p(Y / Y0) / np.log1p(Ymax / Y0)
-    out = rgb * np.where(Y > 0, mapped / np.maximum(Y, 1e-300), 0.0)[..., None]
-    return np.clip(colour.cctf_encoding(np.clip(out, 0, 1)), 0, 1)
-
-
 def plot_slice(table: FiberTable, i: int, path: Path, max_columns: int = 1440) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     theta_o = np.linspace(-np.pi / 2, np.pi / 2, 361)
     f = slice_at_node(table, i, theta_o)
     # Average adjacent azimuth samples down to at most max_columns (keeps the energy)
@@ -105,17 +85,9 @@ def plot_slice(table: FiberTable, i: int, path: Path, max_columns: int = 1440) -
     f = f[:, : n_cols * group].reshape(len(theta_o), n_cols, group, -1).mean(axis=2)
     # Roll so that dphi runs over [0, 360): forward scattering (180) in the middle
     f = np.roll(f, n_cols // 2, axis=1)
-    img = tone_map(spectrum_to_srgb(f, table.wavelength))
-    fig, ax = plt.subplots(figsize=(12, 4.2), dpi=120)
-    ax.imshow(img, origin="lower", aspect="auto", interpolation="nearest",
-              extent=(0, 360, -90, 90))
-    ax.set_xticks(np.arange(0, 361, 30))
-    ax.set_xlabel("dphi = phi_o - phi_i [deg]  (0: back to the light, 180: forward)")
-    ax.set_ylabel("theta_o [deg]")
-    ax.set_title(f"{table.meta.get('model', 'fiber')}: theta_i = {np.rad2deg(table.theta_i[i]):.1f} deg, "
-                 f"{len(table.wavelength)} wavelengths in sRGB (log tone map)")
-    fig.tight_layout()
-    _save_figure(fig, path)
+    spectral_image(f, table.wavelength, path,
+                   f"{table.meta.get('model', 'fiber')}: theta_i = {np.rad2deg(table.theta_i[i]):.1f} deg, "
+                   f"{len(table.wavelength)} wavelengths in sRGB (log tone map)")
 
 
 def plot_energy(theta_i, wavelength, energy, ext, path, model_name) -> None:
@@ -135,12 +107,4 @@ def plot_energy(theta_i, wavelength, energy, ext, path, model_name) -> None:
     if ext is not None:
         axes[0, 1].set(xlabel="theta_i [deg]", ylabel="Q_ext / sin(zeta)", title="extinction per geometric hit")
     fig.tight_layout()
-    _save_figure(fig, path)
-
-
-def _save_figure(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)

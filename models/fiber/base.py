@@ -96,26 +96,50 @@ class FiberTable:
         """
         theta_i, phi_i, theta_o, phi_o, wavelength = np.broadcast_arrays(
             *(np.asarray(a, dtype=np.float64) for a in (theta_i, phi_i, theta_o, phi_o, wavelength)))
+        f = self.eval_spectrum(theta_i, theta_o, phi_o - phi_i)  # [..., n_lambda]
+        l0, l1, w = _linear(self.wavelength, wavelength)
+        take = lambda idx: np.take_along_axis(f, idx[..., None], axis=-1)[..., 0]  # noqa: E731
+        return (1 - w) * take(l0) + w * take(l1)
+
+    def eval_spectrum(self, theta_i, theta_o, dphi, lambda_index=None) -> np.ndarray:
+        """``f`` at every tabulated wavelength: shape ``broadcast(...) + (n_lambda,)``.
+
+        With ``lambda_index`` (an integer array broadcast like the angles) only that
+        wavelength is gathered, and the result has no wavelength axis.
+        """
+        theta_i, theta_o, dphi = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
+                                                       for a in (theta_i, theta_o, dphi)))
         check_theta(theta_i, "theta_i")
         check_theta(theta_o, "theta_o")
         mirror = np.where(theta_i < 0, -1.0, 1.0)
         ti = _linear(self.theta_i, np.abs(theta_i))
         to = _linear(self.theta_o, mirror * theta_o)
-        ph = _linear(self.phi, phi_o - phi_i, periodic=True)
-        wl = _linear(self.wavelength, wavelength)
+        ph = _linear(self.phi, dphi, periodic=True)
         zero = np.zeros(theta_i.shape, dtype=np.int64)
-        out = np.zeros(theta_i.shape)
+        if lambda_index is None:
+            out, expand, pick = np.zeros(theta_i.shape + (len(self.wavelength),)), (..., None), ()
+        else:
+            out, expand, pick = np.zeros(theta_i.shape), ..., (np.broadcast_to(lambda_index, theta_i.shape),)
         for lobe in self.lobes:
             N = lobe.azimuthal
             o_axis = to if lobe.dense else (zero, zero, np.zeros(theta_i.shape))
-            acc = np.zeros(theta_i.shape)
+            acc = np.zeros_like(out)
             for a, wa in ((ti[0], 1 - ti[2]), (ti[1], ti[2])):
                 for b, wb in ((o_axis[0], 1 - o_axis[2]), (o_axis[1], o_axis[2])):
                     for c, wc in ((ph[0], 1 - ph[2]), (ph[1], ph[2])):
-                        for d, wd in ((wl[0], 1 - wl[2]), (wl[1], wl[2])):
-                            acc += (wa * wb * wc * wd) * N[a, b, c, d]
-            out += lobe.longitudinal(theta_i, theta_o) * acc
+                        acc += (wa * wb * wc)[expand] * N[(a, b, c) + pick]
+            out += lobe.longitudinal(theta_i, theta_o)[expand] * acc
         return out
+
+    def albedo(self, theta_i) -> np.ndarray:
+        """``integral f d omega_o`` at arbitrary theta_i: [..., n_lambda].
+
+        Exact for the interpolated table: ``f`` is linear in theta_i between nodes and
+        every ``M`` integrates to one for any theta_i.
+        """
+        i0, i1, w = _linear(self.theta_i, np.abs(np.asarray(theta_i, dtype=np.float64)))
+        E = self.energy()
+        return (1 - w)[..., None] * E[i0] + w[..., None] * E[i1]
 
     # -- energy ------------------------------------------------------------
     def energy(self) -> np.ndarray:

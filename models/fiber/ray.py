@@ -159,7 +159,9 @@ class RayFiber(FiberModel):
             N[:, i, 0] = self.azimuthal(ti, phi[:, None], self.eta[None, :], self.sigma_a[None, :])
         names = ["R", "TT", "TRT", "residual"]
         lobes = [Lobe(names[p], m, N[p]) for p, m in enumerate(self.lobes())]
-        meta = {"model": self.name, **self.params, "eta": self.eta.tolist(), "sigma_a": self.sigma_a.tolist()}
+        meta = {"model": self.name, **self.params, "eta": self.eta.tolist(), "sigma_a": self.sigma_a.tolist(),
+                # cuticle tilt breaks the mirror symmetry along the axis
+                "mirror_symmetric": self.params["scale_tilt_deg"] == 0}
         return FiberTable(theta_i, np.zeros(1), phi, self.wavelength.copy(), lobes, meta)
 
     def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength):

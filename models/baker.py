@@ -1,0 +1,359 @@
+"""Wavefront path tracer through a bundle of parallel fibers (the ground truth).
+
+Fibers are parallel and infinite, so a path's geometry lives in the cross-section:
+rays are cast horizontally (in the x-z plane) against Mitsuba ``cylinder`` shapes, and
+the longitude and the wavelength change only the path's weight. At every hit an
+outgoing direction is chosen, the weight is multiplied by
+``f(theta_in, theta_out, dphi) cos(theta_out) / pdf(theta_out, dphi)``, and the path
+leaves the fiber from its surface at a lateral offset ``h r`` (``h`` uniform in
+[-1, 1]) along the side vector ``y x d_out``. It ends when its ray escapes (tallied in
+the bin of its direction), when Russian roulette stops it, or at the bounce cap (its
+weight is reported as *lost*).
+
+Estimators
+==========
+
+``thesis``  the thesis's scheme and the baseline: one wavelength and one theta_i per
+            path (assigned round-robin), outgoing direction uniform in
+            (theta_o, phi_o), fixed bounce cap, no roulette.
+``fast``    one geometric path carries every wavelength and every theta_i. The first
+            bounce samples from the mixture of the fiber's proposals over all incident
+            theta_i (so the same direction is valid for each, with weight
+            ``A[theta_i, lambda] = f cos / pdf_mix``); later bounces importance-sample
+            the fiber at the path's own longitude. The weight factorizes as
+            ``A[theta_i, lambda] * B[lambda]``, so a path stores only ``B`` and the
+            first bounce, and ``A`` is evaluated once, when the path ends.
+
+Tallies (per incident azimuth phi_i, normalized by the paths entering the bounding
+width ``2 R_b``): the summed weights and squared weights per output bin, the
+passthrough count, the absorbed weight (expected loss ``1 - albedo`` at every
+bounce) and the lost weight.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .bundle import Bundle
+from .fiber.base import FiberTable
+from .fiber.sampling import FiberSampler
+
+
+@dataclass
+class BakeSpec:
+    """What to tabulate and how. Angles in radians, wavelengths from the fiber table."""
+
+    theta_i: np.ndarray                # incident longitudes (nodes)
+    phi_i: np.ndarray                  # incident azimuths (nodes)
+    n_theta_o: int = 36                # bins over [-pi/2, pi/2]
+    n_phi_o: int = 72                  # bins over [-pi, pi)
+    relative_phi: bool = True          # tabulate phi_o - phi_i (rotation-invariant bundles)
+    estimator: str = "fast"
+    max_bounces: int = 1000
+    rr_start: int = 8                  # fast: Russian roulette from this bounce on
+
+    def __post_init__(self):
+        self.theta_i = np.atleast_1d(np.asarray(self.theta_i, dtype=np.float64))
+        self.phi_i = np.atleast_1d(np.asarray(self.phi_i, dtype=np.float64))
+        if self.estimator not in ("fast", "thesis"):
+            raise ValueError(f"estimator {self.estimator!r}: use 'fast' or 'thesis'")
+        if self.max_bounces < 1:
+            raise ValueError(f"the bounce cap must be at least 1 (got {self.max_bounces})")
+        if np.any(np.abs(self.theta_i) > np.pi / 2):
+            raise ValueError("theta_i must lie in [-pi/2, pi/2] radians")
+
+    @property
+    def theta_o_edges(self):
+        return np.linspace(-np.pi / 2, np.pi / 2, self.n_theta_o + 1)
+
+    @property
+    def phi_o_edges(self):
+        return np.linspace(-np.pi, np.pi, self.n_phi_o + 1)
+
+    def bin_solid_angle(self):
+        """Solid angle of each (phi_o, theta_o) bin: [n_phi_o, n_theta_o]."""
+        return np.outer(np.diff(self.phi_o_edges), np.diff(np.sin(self.theta_o_edges)))
+
+
+@dataclass
+class Tally:
+    """Running sums of one bake; adding two tallies merges batches."""
+
+    sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
+    sum_sq: np.ndarray
+    absorbed: np.ndarray   # [phi_i, theta_i, lambda]
+    lost: np.ndarray
+    paths: np.ndarray      # [phi_i] paths launched (entering the bounding width)
+    passthrough: np.ndarray  # [phi_i]
+    vertices: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def zeros(cls, spec: BakeSpec, n_lambda: int):
+        shape = (len(spec.phi_i), len(spec.theta_i))
+        return cls(np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
+                   np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
+                   np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
+                   np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)))
+
+    def add(self, other: "Tally") -> None:
+        for name in ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough"):
+            getattr(self, name).__iadd__(getattr(other, name))
+        self.vertices += other.vertices
+
+    def arrays(self) -> dict:
+        return {k: getattr(self, k) for k in ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough")} | {
+            "vertices": np.array(self.vertices)}
+
+    @classmethod
+    def from_arrays(cls, a) -> "Tally":
+        return cls(*(np.array(a[k]) for k in ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough")),
+                   int(a["vertices"]))
+
+
+# ------------------------------------------------------------------------------
+# Geometry: Mitsuba cylinders, horizontal rays
+# ------------------------------------------------------------------------------
+
+class BundleScene:
+    """The bundle as a Mitsuba scene of cylinders along y; casts 2D rays."""
+
+    def __init__(self, bundle: Bundle):
+        import mitsuba as mi
+
+        self.bundle = bundle
+        half = 1e3 * bundle.bounding_radius  # long enough: rays stay at y = 0
+        shapes = {f"fiber_{k}": {"type": "cylinder", "p0": [float(x), -half, float(z)],
+                                 "p1": [float(x), half, float(z)], "radius": float(r)}
+                  for k, ((x, z), r) in enumerate(zip(bundle.centers, bundle.radii))}
+        self.scene = mi.load_dict({"type": "scene", **shapes})
+        # Mitsuba numbers shapes in the order it stores them; map back by position
+        order = []
+        for shape in self.scene.shapes():
+            bbox = shape.bbox()
+            order.append(((bbox.min.x + bbox.max.x) / 2, (bbox.min.z + bbox.max.z) / 2))
+        order = np.array(order, dtype=np.float64).reshape(-1, 2)
+        from scipy.spatial import cKDTree
+        _, self.shape_to_fiber = cKDTree(bundle.centers).query(order)
+
+    def cast(self, origin: np.ndarray, phi: np.ndarray):
+        """First hit of rays from ``origin[n, 2]`` (x, z) along azimuth ``phi``.
+
+        Returns ``(hit, fiber)``: a mask and the fiber index (-1 where missed).
+        """
+        import drjit as dr
+        import mitsuba as mi
+
+        n = len(phi)
+        if n == 0:
+            return np.zeros(0, bool), np.zeros(0, np.int64)
+        o = mi.Point3f(origin[:, 0].astype(np.float32), np.zeros(n, np.float32), origin[:, 1].astype(np.float32))
+        d = mi.Vector3f(np.cos(phi).astype(np.float32), np.zeros(n, np.float32), np.sin(phi).astype(np.float32))
+        pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=False)
+        t = pi.t.numpy()
+        index = pi.shape_index.numpy().astype(np.int64)
+        dr.sync_thread()
+        hit = np.isfinite(t) & (index < len(self.shape_to_fiber))
+        fiber = np.where(hit, self.shape_to_fiber[np.where(hit, index, 0)], -1)
+        return hit, fiber
+
+    def exit_point(self, fiber: np.ndarray, phi_out: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Where light leaving ``fiber`` along ``phi_out`` with offset ``h`` starts (on the surface)."""
+        c = self.bundle.centers[fiber]
+        r = self.bundle.radii[fiber]
+        d = np.stack([np.cos(phi_out), np.sin(phi_out)], -1)
+        side = np.stack([d[:, 1], -d[:, 0]], -1)  # y x d, in (x, z)
+        along = np.sqrt(np.maximum(0.0, 1 - h**2))
+        # a hair beyond the surface so that the next cast cannot re-hit this fiber at t ~ 0
+        return c + r[:, None] * (h[:, None] * side + (along + 1e-4)[:, None] * d)
+
+    def entry(self, phi_i: float, t: np.ndarray):
+        """Rays of light arriving from azimuth ``phi_i`` (w_i), offsets ``t`` across 2 R_b."""
+        Rb = self.bundle.bounding_radius
+        phi_travel = phi_i + np.pi
+        d = np.array([np.cos(phi_travel), np.sin(phi_travel)])
+        side = np.array([-d[1], d[0]])
+        origin = -2 * Rb * d[None, :] + t[:, None] * side[None, :]
+        return origin, np.full(len(t), phi_travel)
+
+
+# ------------------------------------------------------------------------------
+# The tracer
+# ------------------------------------------------------------------------------
+
+class Baker:
+    """Traces batches of paths; see the module docstring for the estimators."""
+
+    def __init__(self, bundle: Bundle, fiber: FiberTable, spec: BakeSpec):
+        self.bundle, self.fiber, self.spec = bundle, fiber, spec
+        self.geometry = BundleScene(bundle)
+        self.sampler = FiberSampler(fiber)
+        self.n_lambda = len(fiber.wavelength)
+        self._albedo_nodes = fiber.energy()
+
+    def _albedo(self, theta):
+        from .fiber.base import _linear
+        i0, i1, w = _linear(self.fiber.theta_i, np.abs(theta))
+        return (1 - w)[:, None] * self._albedo_nodes[i0] + w[:, None] * self._albedo_nodes[i1]
+
+    def _bin(self, phi_travel, theta, phi_i):
+        spec = self.spec
+        phi = phi_travel - phi_i if spec.relative_phi else phi_travel
+        phi = np.mod(phi + np.pi, 2 * np.pi) - np.pi
+        a = np.clip(((phi + np.pi) / (2 * np.pi) * spec.n_phi_o).astype(np.int64), 0, spec.n_phi_o - 1)
+        b = np.clip(np.searchsorted(spec.theta_o_edges, theta, side="right") - 1, 0, spec.n_theta_o - 1)
+        return a * spec.n_theta_o + b
+
+    def trace(self, phi_index: int, n_paths: int, seed) -> Tally:
+        rng = np.random.default_rng(seed)
+        tally = Tally.zeros(self.spec, self.n_lambda)
+        phi_i = self.spec.phi_i[phi_index]
+        Rb = self.bundle.bounding_radius
+        # stratified offsets across the bounding width
+        t = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
+        origin, phi_t = self.geometry.entry(phi_i, t)
+        hit, fiber = self.geometry.cast(origin, phi_t)
+        tally.paths[phi_index] = n_paths
+        tally.passthrough[phi_index] = np.sum(~hit)
+        tally.vertices += n_paths
+        if self.spec.estimator == "fast":
+            self._trace_fast(tally, phi_index, phi_t[hit], fiber[hit], rng)
+        else:
+            # one (theta_i, lambda) per launched path, round robin from a random start;
+            # weights scaled so that each combination is normalized by its own paths
+            n_combo = len(self.spec.theta_i) * self.n_lambda
+            combo = (rng.integers(n_combo) + np.arange(n_paths)) % n_combo
+            scale = n_paths / np.maximum(np.bincount(combo, minlength=n_combo), 1)
+            self._trace_thesis(tally, phi_index, phi_t[hit], fiber[hit], combo[hit], scale[combo[hit]], rng)
+        return tally
+
+    # -- fast ----------------------------------------------------------------
+    def _trace_fast(self, tally, phi_index, phi_t, fiber, rng):
+        spec, theta_nodes = self.spec, self.spec.theta_i
+        n_ti = len(theta_nodes)
+        n = len(phi_t)
+        phi_i = spec.phi_i[phi_index]
+
+        # Phase 1: the first bounce, from the mixture over every incident theta_i
+        j = rng.integers(n_ti, size=n)
+        theta1, dphi1 = self.sampler.sample(theta_nodes[j], rng.uniform(size=(5, n)))
+        pdf_mix = np.mean([self.sampler.pdf(np.full(n, t), theta1, dphi1) for t in theta_nodes], axis=0)
+        # every hit path loses 1 - albedo(theta_i) at its first fiber (expected value)
+        tally.absorbed[phi_index] += n * (1 - self._albedo(theta_nodes))
+        phi_t = phi_t + np.pi + dphi1
+        theta = theta1.copy()
+        B = np.ones((n, self.n_lambda))
+        absorbed_rest = np.zeros((n, self.n_lambda))
+        origin = self.geometry.exit_point(fiber, phi_t, rng.uniform(-1, 1, n))
+        alive = np.arange(n)
+        depth = 1
+        ended_escape, ended_cap = [], []
+
+        # Phase 2: bounce until every path has escaped, been stopped, or hit the cap
+        while len(alive):
+            hit, fib = self.geometry.cast(origin, phi_t)
+            tally.vertices += len(alive)
+            ended_escape.append((alive[~hit], self._bin(phi_t[~hit], theta[~hit], phi_i)))
+            alive, origin, phi_t, theta, fib = alive[hit], origin[hit], phi_t[hit], theta[hit], fib[hit]
+            if depth >= spec.max_bounces:
+                ended_cap.append(alive)
+                break
+            depth += 1
+            m = len(alive)
+            theta_in = -theta
+            theta_out, dphi = self.sampler.sample(theta_in, rng.uniform(size=(5, m)))
+            pdf = self.sampler.pdf(theta_in, theta_out, dphi)
+            f = self.fiber.eval_spectrum(theta_in, theta_out, dphi)
+            absorbed_rest[alive] += B[alive] * (1 - self._albedo(theta_in))
+            B[alive] *= f * (np.cos(theta_out) / np.maximum(pdf, 1e-300))[:, None]
+            if depth > spec.rr_start:
+                q = np.minimum(1.0, B[alive].max(axis=1))
+                survive = rng.uniform(size=m) < q
+                B[alive[survive]] /= q[survive, None]
+                keep = survive
+            else:
+                keep = np.ones(m, bool)
+            alive, theta_out, dphi, fib, phi_t = alive[keep], theta_out[keep], dphi[keep], fib[keep], phi_t[keep]
+            theta = theta_out
+            phi_t = phi_t + np.pi + dphi
+            origin = self.geometry.exit_point(fib, phi_t, rng.uniform(-1, 1, len(alive)))
+
+        # Phase 3: finalize. A[path, theta_i, lambda] is evaluated once per path.
+        idx_esc = np.concatenate([e[0] for e in ended_escape]) if ended_escape else np.zeros(0, int)
+        bins = np.concatenate([e[1] for e in ended_escape]) if ended_escape else np.zeros(0, int)
+        capped = np.concatenate(ended_cap) if ended_cap else np.zeros(0, int)
+        n_bins = spec.n_phi_o * spec.n_theta_o
+        sums = np.zeros((n_bins, n_ti, self.n_lambda))
+        sums_sq = np.zeros_like(sums)
+        escaped = np.zeros(n, bool)
+        escaped[idx_esc] = True
+        bin_of = np.zeros(n, np.int64)
+        bin_of[idx_esc] = bins
+        is_capped = np.zeros(n, bool)
+        is_capped[capped] = True
+        for lo in range(0, n, 8192):
+            sl = slice(lo, min(n, lo + 8192))
+            A = self.fiber.eval_spectrum(theta_nodes[None, :], theta1[sl, None], dphi1[sl, None])
+            A *= (np.cos(theta1[sl]) / np.maximum(pdf_mix[sl], 1e-300))[:, None, None]
+            tally.absorbed[phi_index] += np.einsum("pjl,pl->jl", A, absorbed_rest[sl])
+            W = A * B[sl, None, :]
+            tally.lost[phi_index] += W[is_capped[sl]].sum(axis=0)
+            e = escaped[sl]
+            if np.any(e):
+                _scatter_add(sums, bin_of[sl][e], W[e])
+                _scatter_add(sums_sq, bin_of[sl][e], W[e] ** 2)
+        shape = (spec.n_phi_o, spec.n_theta_o, n_ti, self.n_lambda)
+        tally.sum[phi_index] += sums.reshape(shape).transpose(2, 0, 1, 3)
+        tally.sum_sq[phi_index] += sums_sq.reshape(shape).transpose(2, 0, 1, 3)
+
+    # -- thesis ----------------------------------------------------------------
+    def _trace_thesis(self, tally, phi_index, phi_t, fiber, combo, w, rng):
+        spec = self.spec
+        n_ti, n_l = len(spec.theta_i), self.n_lambda
+        n = len(phi_t)
+        phi_i = spec.phi_i[phi_index]
+        j, lam = np.divmod(combo, n_l)
+        theta_in = spec.theta_i[j]  # longitude of w_i at the first fiber
+        alive = np.arange(n)
+        depth = 0
+        esc_idx, esc_bin, esc_w = [], [], []
+        while True:
+            # scatter at the current fiber: uniform in (theta_out, dphi), pdf 1 / (2 pi^2)
+            depth += 1
+            m = len(alive)
+            theta_out = rng.uniform(-np.pi / 2, np.pi / 2, m)
+            dphi = rng.uniform(-np.pi, np.pi, m)
+            f = self.fiber.eval_spectrum(theta_in, theta_out, dphi, lambda_index=lam[alive])
+            alb = self._albedo(theta_in)[np.arange(m), lam[alive]]
+            np.add.at(tally.absorbed[phi_index], (j[alive], lam[alive]), w * (1 - alb))
+            w = w * f * np.cos(theta_out) * 2 * np.pi**2
+            phi_t = phi_t + np.pi + dphi
+            origin = self.geometry.exit_point(fiber, phi_t, rng.uniform(-1, 1, m))
+            hit, fiber = self.geometry.cast(origin, phi_t)
+            tally.vertices += m
+            esc_idx.append(alive[~hit])
+            esc_bin.append(self._bin(phi_t[~hit], theta_out[~hit], phi_i))
+            esc_w.append(w[~hit])
+            alive, w, phi_t, fiber, theta_out = alive[hit], w[hit], phi_t[hit], fiber[hit], theta_out[hit]
+            theta_in = -theta_out
+            if len(alive) == 0:
+                break
+            if depth >= spec.max_bounces:
+                np.add.at(tally.lost[phi_index], (j[alive], lam[alive]), w)
+                break
+        idx, bins, ws = (np.concatenate(a) for a in (esc_idx, esc_bin, esc_w))
+        n_bins = spec.n_phi_o * spec.n_theta_o
+        flat = (j[idx] * n_bins + bins) * n_l + lam[idx]
+        size = n_ti * n_bins * n_l
+        shape = (n_ti, spec.n_phi_o, spec.n_theta_o, n_l)
+        tally.sum[phi_index] += np.bincount(flat, ws, size).reshape(shape)
+        tally.sum_sq[phi_index] += np.bincount(flat, ws**2, size).reshape(shape)
+
+
+def _scatter_add(target, rows, values):
+    """``target[rows[k]] += values[k]`` for 2D+ values, as one bincount."""
+    inner = int(np.prod(values.shape[1:]))
+    flat = (rows[:, None] * inner + np.arange(inner)[None, :]).ravel()
+    target.reshape(-1)[:] += np.bincount(flat, values.reshape(-1), target.size)

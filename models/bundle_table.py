@@ -1,0 +1,178 @@
+"""The baked bundle scattering function: one self-describing ``.npz`` per bake.
+
+``S(phi_i, theta_i, phi_o, theta_o, lambda)`` in 1/sr, normalized over the rays that
+enter the bundle's bounding width ``2 R_b``: a bin's value is its summed path weight
+over (rays x bin solid angle). With ``P_pass(phi_i)`` (rays touching no fiber),
+``absorbed`` and ``lost`` (weight dropped at the bounce cap), per (phi_i, theta_i,
+lambda)::
+
+    sum_bins S * solid_angle + P_pass + absorbed + lost = 1
+
+Axes and bins (radians, nm):
+
+=============  =================================================================
+``phi_i``      incident azimuth nodes (one node 0 for a circle: rotation reduced)
+``theta_i``    incident longitude nodes (>= 0 when the mirror reduction is used)
+``phi_o``      bins with ``phi_o_edges`` over [-pi, pi); ``phi_o - phi_i`` when
+               ``meta["reductions"]["phi_o"] == "relative"``
+``theta_o``    bins with ``theta_o_edges`` over [-pi/2, pi/2]
+``lambda``     the fiber table's wavelengths
+=============  =================================================================
+
+Reductions (``meta["reductions"]``): ``theta_i: "mirror"`` (S(-ti, -to) = S(ti, to),
+parallel untilted fibers), ``phi_i: "rotation"`` (circle) or ``"mirror_xz"``
+(ellipse: phi_i in [0, 90 deg]), ``phi_o: "relative" | "absolute"``.
+:meth:`BundleTable.expanded` undoes the theta and ellipse reductions.
+
+Example::
+
+    from models.bundle_table import BundleTable
+    t = BundleTable.load("artifacts/default/bake/bundle_table.npz", expand=True)
+    t.values.shape   # (phi_i, theta_i, phi_o, theta_o, lambda)
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FORMAT = "bcsdf.bundle_table/1"
+ARRAYS = ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost",
+          "phi_i", "theta_i", "phi_o_edges", "theta_o_edges", "wavelength")
+
+
+@dataclass
+class BundleTable:
+    values: np.ndarray              # [phi_i, theta_i, phi_o, theta_o, lambda] float32, 1/sr
+    stderr: np.ndarray              # same shape: standard error of each value
+    passthrough: np.ndarray         # [phi_i]
+    passthrough_stderr: np.ndarray  # [phi_i]
+    absorbed: np.ndarray            # [phi_i, theta_i, lambda]
+    lost: np.ndarray                # [phi_i, theta_i, lambda]
+    phi_i: np.ndarray
+    theta_i: np.ndarray
+    phi_o_edges: np.ndarray
+    theta_o_edges: np.ndarray
+    wavelength: np.ndarray
+    meta: dict = field(default_factory=dict)
+
+    # -- derived axes --------------------------------------------------------
+    @property
+    def phi_o(self):
+        return 0.5 * (self.phi_o_edges[1:] + self.phi_o_edges[:-1])
+
+    @property
+    def theta_o(self):
+        return 0.5 * (self.theta_o_edges[1:] + self.theta_o_edges[:-1])
+
+    @property
+    def solid_angle(self):
+        """[phi_o, theta_o] solid angle of each output bin."""
+        return np.outer(np.diff(self.phi_o_edges), np.diff(np.sin(self.theta_o_edges)))
+
+    @property
+    def scattered(self):
+        """``integral S d omega_o`` per (phi_i, theta_i, lambda)."""
+        return np.einsum("abpql,pq->abl", self.values.astype(np.float64), self.solid_angle)
+
+    def energy_balance(self) -> dict:
+        """Scattered, passthrough, absorbed, lost, and their total, per (phi_i, theta_i, lambda)."""
+        p = np.broadcast_to(self.passthrough[:, None, None], self.absorbed.shape)
+        s = self.scattered
+        return {"scattered": s, "passthrough": p, "absorbed": self.absorbed, "lost": self.lost,
+                "total": s + p + self.absorbed + self.lost}
+
+    # -- storage -------------------------------------------------------------
+    def save(self, path) -> None:
+        from pipeline.io import atomic_path
+
+        arrays = {k: getattr(self, k) for k in ARRAYS}
+        arrays["values"] = arrays["values"].astype(np.float32)
+        arrays["stderr"] = arrays["stderr"].astype(np.float32)
+        header = {"format": FORMAT, "meta": self.meta}
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, header=np.array(json.dumps(header)), **arrays)
+
+    @classmethod
+    def load(cls, path, expand: bool = False) -> "BundleTable":
+        """Read a bundle table; ``expand=True`` undoes the theta_i and ellipse reductions."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                header = json.loads(str(z["header"]))
+                if header.get("format") != FORMAT:
+                    raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
+                table = cls(**{k: z[k] for k in ARRAYS}, meta=header["meta"])
+        except (OSError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
+            raise ValueError(f"{path}: not a readable bundle table ({e}); re-run `bcsdf bake`") from e
+        table.validate()
+        return table.expanded() if expand else table
+
+    def validate(self) -> None:
+        shape = (len(self.phi_i), len(self.theta_i), len(self.phi_o_edges) - 1,
+                 len(self.theta_o_edges) - 1, len(self.wavelength))
+        if self.values.shape != shape or self.stderr.shape != shape:
+            raise ValueError(f"values have shape {self.values.shape}, the axes give {shape}")
+        for name in ("values", "stderr", "passthrough", "absorbed", "lost"):
+            a = getattr(self, name)
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"{name} holds NaN or Inf")
+
+    # -- symmetry ------------------------------------------------------------
+    def expanded(self) -> "BundleTable":
+        """Undo ``theta_i: mirror`` and ``phi_i: mirror_xz``; rotation stays reduced."""
+        t = self
+        red = dict(self.meta.get("reductions", {}))
+        if red.get("theta_i") == "mirror":
+            t = t._mirror_theta()
+            red["theta_i"] = None
+        if red.get("phi_i") == "mirror_xz":
+            t = t._mirror_phi()
+            red["phi_i"] = None
+        t.meta = dict(t.meta, reductions=red)
+        return t
+
+    def _replace(self, **kw):
+        data = {k: getattr(self, k) for k in ARRAYS} | {"meta": dict(self.meta)}
+        data.update(kw)
+        return BundleTable(**data)
+
+    def _mirror_theta(self):
+        # S(-ti, to) = S(ti, -to): flip the theta_o bins (edges are symmetric)
+        pos = self.theta_i > 0
+        order = np.argsort(np.concatenate([-self.theta_i[pos][::-1], self.theta_i]))
+        cat = lambda a, axis, flip=None: np.concatenate(  # noqa: E731
+            [np.flip(np.take(a, np.where(pos)[0][::-1], axis=axis), flip) if flip is not None
+             else np.take(a, np.where(pos)[0][::-1], axis=axis), a], axis=axis)
+        return self._replace(
+            theta_i=np.concatenate([-self.theta_i[pos][::-1], self.theta_i])[order],
+            values=cat(self.values, 1, 3), stderr=cat(self.stderr, 1, 3),
+            absorbed=cat(self.absorbed, 1), lost=cat(self.lost, 1))
+
+    def _mirror_phi(self):
+        """Ellipse: from phi_i in [0, pi/2] to [0, 2 pi) by the x and z mirrors.
+
+        A mirror ``T`` of the cross-section (``phi -> -phi``, ``pi - phi``, ``phi + pi``)
+        maps the bundle onto itself, so ``S(T phi_i, phi_o) = S(phi_i, T^-1 phi_o)``;
+        with uniform phi_o bins of even count, ``T^-1`` maps bin centres to centres.
+        """
+        n = len(self.phi_o_edges) - 1
+        step = 2 * np.pi / n
+        mirrors = [(lambda p: p, lambda p: p), (lambda p: np.pi - p, lambda p: np.pi - p),
+                   (lambda p: np.pi + p, lambda p: p - np.pi), (lambda p: -p, lambda p: -p)]
+        rows = {}
+        for forward, inverse in mirrors:
+            source_bin = np.floor(np.mod(inverse(self.phi_o) + np.pi, 2 * np.pi) / step).astype(int) % n
+            for a, p in enumerate(self.phi_i):
+                q = round(float(np.mod(forward(p), 2 * np.pi)), 12)
+                rows.setdefault(q, (a, source_bin))
+        phis = sorted(rows)
+        pick = lambda arr, per_bin: np.stack([  # noqa: E731
+            arr[rows[q][0]][:, rows[q][1]] if per_bin else arr[rows[q][0]] for q in phis])
+        return self._replace(phi_i=np.array(phis), values=pick(self.values, True), stderr=pick(self.stderr, True),
+                             absorbed=pick(self.absorbed, False), lost=pick(self.lost, False),
+                             passthrough=pick(self.passthrough, False),
+                             passthrough_stderr=pick(self.passthrough_stderr, False))

@@ -1,0 +1,218 @@
+"""Stage ``bake``: trace the bundle and write the ground-truth table.
+
+Reads ``artifacts/<name>/fiber/fiber_table.npz`` (refused if it was made from other
+``wavelengths/fiber/tabulate`` settings) and writes under ``artifacts/<name>/bake/``:
+
+* ``bundle_table.npz``  the :class:`models.bundle_table.BundleTable`;
+* ``arrangement.png``   the fibers and the bounding shape;
+* ``slices/phi_i_XX_theta_i_YY.png``  the table per incident direction, in sRGB;
+* ``energy.png``        scattered, passthrough, absorbed and lost against theta_i;
+* ``summary.json``      timing, path and vertex counts, energy balance;
+* ``checkpoint.npz``    while baking: the running sums. Interrupting the bake and
+  running it again continues from the last checkpoint and gives the same table as an
+  uninterrupted run (batches have fixed seeds and are summed in order).
+
+The Mitsuba variant (``bake.variant``) is chosen here, at the entry point.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from models import bundle as bundles
+from models.baker import Baker, BakeSpec, Tally
+from models.bundle_table import BundleTable
+from models.fiber.base import FiberTable
+
+from .config import BAKE_SECTIONS, FIBER_SECTIONS
+from .io import atomic_path, write_text
+from .plots import save_figure, spectral_image
+
+
+def build_bundle(cfg) -> bundles.Bundle:
+    b, r = cfg.bundle, cfg.fiber.radius_um
+    if b.arrangement == "zhao2016":
+        return bundles.zhao2016(b.yarn, r, seed=b.seed, name=f"{cfg.name} ({b.yarn})")
+    if b.arrangement == "file":
+        return bundles.from_file(b.file, b.semi_axes(), name=cfg.name)
+    return bundles.poisson(b.semi_axes(), r, gap=b.gap_um, packing=b.packing, seed=b.seed, name=cfg.name)
+
+
+def load_fiber_table(cfg, out_root) -> FiberTable:
+    path = Path(out_root) / cfg.name / "fiber" / "fiber_table.npz"
+    if not path.exists():
+        raise ValueError(f"{path} does not exist; run `bcsdf fiber {cfg.name}` (or `bcsdf run`) first")
+    table = FiberTable.load(path)
+    if table.meta.get("config_hash") != cfg.hash(*FIBER_SECTIONS):
+        raise ValueError(f"{path} was made from different fiber settings than this config; "
+                         "re-run `bcsdf fiber` with this config")
+    return table
+
+
+def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
+    """Incident directions and bins, after the symmetry reductions the scene allows."""
+    c = cfg.bake
+    mirror_theta = bool(fiber.meta.get("mirror_symmetric", True))
+    step = np.deg2rad(c.theta_i_step_deg)
+    theta_i = np.arange(0 if mirror_theta else -np.pi / 2, np.pi / 2 + 1e-9, step)
+    if bundle.is_circle:
+        phi_i, phi_reduction = np.zeros(1), "rotation"
+    else:
+        phi_i, phi_reduction = np.deg2rad(np.arange(0, 90 + 1e-9, c.phi_i_step_deg)), "mirror_xz"
+    spec = BakeSpec(theta_i, phi_i, c.n_theta_o, c.n_phi_o, relative_phi=bundle.is_circle,
+                    estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start)
+    reductions = {"theta_i": "mirror" if mirror_theta else None, "phi_i": phi_reduction,
+                  "phi_o": "relative" if bundle.is_circle else "absolute"}
+    return spec, reductions
+
+
+def run(cfg, out_root="artifacts", stop_after=None) -> Path:
+    """Bake; ``stop_after`` batches simulates an interruption (the checkpoint stays)."""
+    import mitsuba as mi
+    from tqdm import tqdm
+
+    if cfg.bundle is None:
+        raise ValueError("this config has no 'bundle:' section; add one to bake")
+    mi.set_variant(cfg.bake.variant)
+    out = Path(out_root) / cfg.name / "bake"
+    fiber = load_fiber_table(cfg, out_root)
+    bundle = build_bundle(cfg)
+    bundle.plot(out / "arrangement.png")
+    spec, reductions = make_spec(cfg, bundle, fiber)
+    baker = Baker(bundle, fiber, spec)
+
+    # -- Work list: fixed batches with fixed seeds, so that resuming is exact --------
+    c = cfg.bake
+    n_batches = int(np.ceil(c.paths_per_phi_i / c.batch_paths))
+    work = [(a, k) for a in range(len(spec.phi_i)) for k in range(n_batches)]
+    sizes = [min(c.batch_paths, c.paths_per_phi_i - k * c.batch_paths) for _, k in work]
+    key = cfg.hash(*BAKE_SECTIONS)
+    ckpt = out / "checkpoint.npz"
+    tally, done, elapsed = Tally.zeros(spec, len(fiber.wavelength)), 0, 0.0
+    if ckpt.exists():
+        try:
+            with np.load(ckpt, allow_pickle=False) as z:
+                if str(z["key"]) == key:
+                    tally, done, elapsed = Tally.from_arrays(z), int(z["done"]), float(z["elapsed"])
+                    print(f"[bake] resuming from checkpoint: {done}/{len(work)} batches done")
+                else:
+                    print("[bake] checkpoint is from other settings; starting over")
+        except Exception as e:  # a torn checkpoint cannot happen (atomic), but be safe
+            print(f"[bake] unreadable checkpoint ({e}); starting over")
+
+    def save_checkpoint():
+        with atomic_path(ckpt) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, key=np.array(key), done=np.array(done), elapsed=np.array(elapsed),
+                         **tally.arrays())
+
+    # -- Trace ---------------------------------------------------------------
+    last_save = time.perf_counter()
+    with tqdm(total=sum(sizes), initial=sum(sizes[:done]), unit="path", unit_scale=True,
+              desc=f"bake {c.estimator}") as bar:
+        while done < len(work):
+            if stop_after is not None and done >= stop_after:
+                save_checkpoint()
+                return out
+            a, k = work[done]
+            t0 = time.perf_counter()
+            tally.add(baker.trace(a, sizes[done], np.random.SeedSequence([c.seed, a, k])))
+            elapsed += time.perf_counter() - t0
+            done += 1
+            bar.update(sizes[done - 1])
+            bar.set_postfix(vertices=f"{tally.vertices:.3g}")
+            if time.perf_counter() - last_save > c.checkpoint_every_s:
+                save_checkpoint()
+                last_save = time.perf_counter()
+
+    # -- Table -----------------------------------------------------------------
+    table = tally_to_table(tally, spec, fiber, reductions)
+    table.meta.update(config_name=cfg.name, config_hash=key, config=cfg.model_dump(mode="json"),
+                      fiber_model=cfg.fiber.model, estimator=c.estimator, seed=c.seed,
+                      samples_per_phi_i=c.paths_per_phi_i, vertices=int(tally.vertices),
+                      bake_seconds=elapsed, n_fibers=len(bundle.radii),
+                      packing_fraction=bundle.packing_fraction, bounding_radius_um=bundle.bounding_radius,
+                      variant=c.variant, code_version=_code_version())
+    table.save(out / "bundle_table.npz")
+    balance = table.energy_balance()
+    summary = {"config_hash": key, "bake_seconds": elapsed, "paths": int(tally.paths.sum()),
+               "vertices": int(tally.vertices), "vertices_per_second": tally.vertices / max(elapsed, 1e-9),
+               "n_fibers": len(bundle.radii), "packing_fraction": bundle.packing_fraction,
+               "passthrough": table.passthrough.tolist(),
+               **{k: float(np.mean(v)) for k, v in balance.items()},
+               "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1)))}
+    write_text(out / "summary.json", json.dumps(summary, indent=1))
+    plot_table(table, out / "slices")
+    plot_balance(table, out / "energy.png")
+    ckpt.unlink(missing_ok=True)
+    print(f"[bake] {c.estimator}: {tally.paths.sum():.3g} paths, {tally.vertices:.3g} vertices in "
+          f"{elapsed:.1f} s ({summary['vertices_per_second'] / 1e6:.2f} M vertices/s); passthrough "
+          f"{table.passthrough.mean():.3f}; energy total {np.mean(balance['total']):.4f}; wrote {out}")
+    return out
+
+
+def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: dict) -> BundleTable:
+    n = tally.paths[:, None, None, None, None]
+    omega = spec.bin_solid_angle()[None, None, :, :, None]
+    mean = tally.sum / n
+    var = np.maximum(tally.sum_sq / n - mean**2, 0.0) / n
+    p = tally.passthrough / tally.paths
+    return BundleTable(
+        values=(mean / omega).astype(np.float32), stderr=(np.sqrt(var) / omega).astype(np.float32),
+        passthrough=p, passthrough_stderr=np.sqrt(p * (1 - p) / tally.paths),
+        absorbed=tally.absorbed / tally.paths[:, None, None], lost=tally.lost / tally.paths[:, None, None],
+        phi_i=spec.phi_i, theta_i=spec.theta_i, phi_o_edges=spec.phi_o_edges,
+        theta_o_edges=spec.theta_o_edges, wavelength=fiber.wavelength.copy(),
+        meta={"reductions": reductions, "units": {"angles": "rad", "wavelength": "nm", "values": "1/sr"}})
+
+
+def plot_table(table: BundleTable, folder: Path) -> None:
+    relative = table.meta["reductions"]["phi_o"] == "relative"
+    n_phi = len(table.phi_o)
+    for a, phi_i in enumerate(table.phi_i):
+        for j, theta_i in enumerate(table.theta_i):
+            f = table.values[a, j].transpose(1, 0, 2)  # [theta_o, phi_o, lambda]
+            if relative:  # dphi over [0, 360): forward (180) in the middle
+                f = np.roll(f, n_phi // 2, axis=1)
+                xlabel, extent = "dphi = phi_o - phi_i [deg]  (0: back to the light, 180: forward)", (0, 360, -90, 90)
+            else:
+                xlabel, extent = "phi_o [deg] (bundle frame)", (-180, 180, -90, 90)
+            name = f"phi_i_{np.rad2deg(phi_i):05.1f}_theta_i_{np.rad2deg(theta_i):+05.1f}.png"
+            spectral_image(f, table.wavelength, folder / name,
+                           f"bundle: phi_i = {np.rad2deg(phi_i):.0f} deg, theta_i = {np.rad2deg(theta_i):.0f} deg, "
+                           f"passthrough {table.passthrough[a]:.3f}", xlabel=xlabel, extent=extent)
+
+
+def plot_balance(table: BundleTable, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bal = table.energy_balance()
+    fig, ax = plt.subplots(figsize=(6.5, 4.2), dpi=110)
+    t = np.rad2deg(table.theta_i)
+    parts = [("scattered", "#4c72b0"), ("passthrough", "#bbbbbb"), ("absorbed", "#c44e52"), ("lost", "#dd8452")]
+    base = np.zeros(len(t))
+    for name, color in parts:
+        v = bal[name].mean(axis=(0, 2))  # over phi_i and wavelengths
+        ax.fill_between(t, base, base + v, color=color, label=name, step=None, alpha=0.9)
+        base = base + v
+    ax.plot(t, base, "k--", lw=1, label="total")
+    ax.set(xlabel="theta_i [deg]", ylabel="fraction of light entering 2 R_b", ylim=(0, max(1.05, base.max() * 1.02)),
+           title="energy balance (mean over phi_i and wavelengths)")
+    ax.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def _code_version() -> str:
+    import subprocess
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, timeout=5).stdout.strip() or "unknown"
+    except Exception:
+        return "unknown"
