@@ -115,21 +115,21 @@ class FiberTable:
         ti = _linear(self.theta_i, np.abs(theta_i))
         to = _linear(self.theta_o, mirror * theta_o)
         ph = _linear(self.phi, dphi, periodic=True)
-        zero = np.zeros(theta_i.shape, dtype=np.int64)
         if lambda_index is None:
-            out, expand, pick = np.zeros(theta_i.shape + (len(self.wavelength),)), (..., None), ()
+            out, expand, pick = np.zeros(theta_i.shape + (len(self.wavelength),), np.float32), (..., None), ()
         else:
-            out, expand, pick = np.zeros(theta_i.shape), ..., (np.broadcast_to(lambda_index, theta_i.shape),)
+            out, expand, pick = np.zeros(theta_i.shape, np.float32), ..., (np.broadcast_to(lambda_index, theta_i.shape),)
         for lobe in self.lobes:
             N = lobe.azimuthal
-            o_axis = to if lobe.dense else (zero, zero, np.zeros(theta_i.shape))
+            # separable lobes have no theta_o axis: 4 corners, not 8
+            o_corners = ((to[0], 1 - to[2]), (to[1], to[2])) if lobe.dense else ((0, 1.0),)
             acc = np.zeros_like(out)
             for a, wa in ((ti[0], 1 - ti[2]), (ti[1], ti[2])):
-                for b, wb in ((o_axis[0], 1 - o_axis[2]), (o_axis[1], o_axis[2])):
+                for b, wb in o_corners:
                     for c, wc in ((ph[0], 1 - ph[2]), (ph[1], ph[2])):
-                        acc += (wa * wb * wc)[expand] * N[(a, b, c) + pick]
-            out += lobe.longitudinal(theta_i, theta_o)[expand] * acc
-        return out
+                        acc += (wa * wb * wc).astype(np.float32)[expand] * N[(a, b, c) + pick]
+            out += lobe.longitudinal(theta_i, theta_o).astype(np.float32)[expand] * acc
+        return out.astype(np.float64)
 
     def albedo(self, theta_i) -> np.ndarray:
         """``integral f d omega_o`` at arbitrary theta_i: [..., n_lambda].
