@@ -3,7 +3,7 @@
 #   make test   set up, then run the default test suite
 CONFIG ?= configs/default.yaml
 
-.PHONY: setup run test bench clean
+.PHONY: setup run test bench bench-bake clean
 setup:
 	./scripts/setup.sh
 
@@ -15,6 +15,9 @@ test: setup
 
 bench: setup
 	.venv/bin/python -m pipeline.bench_fiber
+
+bench-bake: setup
+	.venv/bin/python -m pipeline.bench_bake
 
 clean:
 	rm -rf artifacts

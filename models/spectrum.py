@@ -28,10 +28,11 @@ def spectral_values(spec, wavelength_nm) -> np.ndarray:
 def spectrum_to_srgb(values: np.ndarray, wavelength_nm: np.ndarray) -> np.ndarray:
     """Linear sRGB of spectra ``values[..., n_lambda]`` seen under D65.
 
-    Each spectrum is treated as a reflectance-like factor: XYZ = sum f S_D65 cmf dl,
-    normalized so that f = 1 at every wavelength gives Y = 1 (white). With a single
-    wavelength the result is that wavelength's grey level (Y), since colour needs more
-    than one sample.
+    Each spectrum is treated as a reflectance-like factor and reconstructed piecewise
+    linearly between its samples (held constant beyond the first and last), then
+    integrated against the CIE 1931 2-degree observer and D65 on their own 1 nm grid.
+    So a flat spectrum is exactly white (Y = 1, D65 chromaticity) at any sampling, even
+    three wavelengths. A single wavelength gives that wavelength's grey level.
     """
     import colour
 
@@ -41,10 +42,10 @@ def spectrum_to_srgb(values: np.ndarray, wavelength_nm: np.ndarray) -> np.ndarra
         return np.repeat(values, 3, axis=-1)
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
     d65 = colour.SDS_ILLUMINANTS["D65"]
-    xyz_bar = np.stack([np.interp(wl, cmfs.wavelengths, cmfs.values[:, k]) for k in range(3)], -1)
-    s = np.interp(wl, d65.wavelengths, d65.values)
-    dl = np.gradient(wl)
-    weights = xyz_bar * (s * dl)[:, None]  # (n_lambda, 3)
+    fine = cmfs.wavelengths
+    s = np.interp(fine, d65.wavelengths, d65.values)
+    # hat basis of linear interpolation: basis[f, k] = interpolant of the k-th unit spectrum
+    basis = np.stack([np.interp(fine, wl, np.eye(len(wl))[k]) for k in range(len(wl))], -1)
+    weights = basis.T @ (cmfs.values * (s * np.gradient(fine))[:, None])  # (n_lambda, 3)
     weights /= weights[:, 1].sum()
-    xyz = values @ weights
-    return colour.XYZ_to_sRGB(xyz, apply_cctf_encoding=False)
+    return colour.XYZ_to_sRGB(values @ weights, apply_cctf_encoding=False)

@@ -1,0 +1,116 @@
+"""The `bake` stage: resumable, refuses bad input clearly, finite at the extremes."""
+
+import numpy as np
+import pytest
+import yaml
+
+from models.baker import Baker, BakeSpec
+from models.bundle import Bundle, poisson
+from models.bundle_table import BundleTable
+from models.fiber.patterns import PatternFiber
+from pipeline import bake as bake_stage
+from pipeline import fiber as fiber_stage
+from pipeline.config import ConfigError, load_config
+from tests.test_cli import ROOT, bcsdf
+
+
+def config(tmp_path, name="b", **bake):
+    cfg = {"name": name,
+           "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
+           "fiber": {"model": "ray", "radius_um": 20.0, "ior": {"k": 2e-4},
+                     "ray": {"scale_tilt_deg": 0.0, "n_h": 32, "n_phi": 90}},
+           "tabulate": {"theta_i_step_deg": 15},
+           "bundle": {"arrangement": "poisson", "shape": "ellipse", "semi_axes_um": [160, 100], "seed": 2},
+           "bake": {"paths_per_phi_i": 20_000, "batch_paths": 4096, "theta_i_step_deg": 30,
+                    "phi_i_step_deg": 45, "n_theta_o": 12, "n_phi_o": 24, **bake}}
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return load_config(path)
+
+
+def test_resume_gives_the_same_table(tmp_path, mi_llvm):
+    cfg = config(tmp_path)
+    fiber_stage.run(cfg, tmp_path / "a")
+    fiber_stage.run(cfg, tmp_path / "b")
+    bake_stage.run(cfg, tmp_path / "a")
+    # interrupted after 3 of 15 batches, then run again: continues from the checkpoint
+    bake_stage.run(cfg, tmp_path / "b", stop_after=3)
+    assert (tmp_path / "b" / "b" / "bake" / "checkpoint.npz").exists()
+    assert not (tmp_path / "b" / "b" / "bake" / "bundle_table.npz").exists()
+    bake_stage.run(cfg, tmp_path / "b")
+    ta = BundleTable.load(tmp_path / "a" / "b" / "bake" / "bundle_table.npz")
+    tb = BundleTable.load(tmp_path / "b" / "b" / "bake" / "bundle_table.npz")
+    assert np.array_equal(ta.values, tb.values) and np.array_equal(ta.stderr, tb.stderr)
+    assert np.array_equal(ta.passthrough, tb.passthrough)
+    assert not (tmp_path / "b" / "b" / "bake" / "checkpoint.npz").exists()
+    # the table describes itself and expands its reductions
+    assert ta.meta["reductions"] == {"theta_i": "mirror", "phi_i": "mirror_xz", "phi_o": "absolute"}
+    full = BundleTable.load(tmp_path / "a" / "b" / "bake" / "bundle_table.npz", expand=True)
+    assert len(full.phi_i) == 8 and np.allclose(np.rad2deg(full.theta_i), [-90, -60, -30, 0, 30, 60, 90])
+    # mirror in z: S(-phi_i, -phi_o) = S(phi_i, phi_o)
+    a45, a315 = np.argmin(abs(full.phi_i - np.pi / 4)), np.argmin(abs(full.phi_i - 7 * np.pi / 4))
+    assert np.array_equal(full.values[a315], full.values[a45][:, ::-1])
+    # mirror along the axis: S(-theta_i, -theta_o) = S(theta_i, theta_o)
+    assert np.array_equal(full.values[:, 2], full.values[:, 4][:, :, ::-1])
+    pictures = list((tmp_path / "a" / "b" / "bake" / "slices").glob("*.png"))
+    assert len(pictures) == 3 * 4 and (tmp_path / "a" / "b" / "bake" / "energy.png").exists()
+
+
+def test_bake_refuses_a_fiber_table_from_other_settings(tmp_path, mi_llvm):
+    cfg = config(tmp_path, name="c")
+    fiber_stage.run(cfg, tmp_path)
+    other = config(tmp_path, name="c", estimator="thesis")  # bake settings only: fiber table still valid
+    bake_stage.load_fiber_table(other, tmp_path)
+    changed = cfg.model_copy(update={"fiber": cfg.fiber.model_copy(update={"radius_um": 10.0})})
+    with pytest.raises(ValueError, match="re-run `bcsdf fiber`"):
+        bake_stage.load_fiber_table(changed, tmp_path)
+
+
+@pytest.mark.parametrize("make,match", [
+    (lambda: Bundle([[0, 0], [30, 0]], 20, (100, 100)), "overlap"),
+    (lambda: Bundle([[90, 0]], 20, (100, 100)), "leave the bound"),
+    (lambda: Bundle(np.zeros((0, 2)), 20, (100, 100)), "no fibers"),
+    (lambda: Bundle([[0, 0]], 20, (10, 10)), "larger than the bundle"),
+    (lambda: poisson((15, 15), 20), "does not fit"),
+    (lambda: poisson((100, 100), 20, gap=300), "empty"),
+    (lambda: poisson((100, 100), 20, packing=0.85), "not reachable"),
+])
+def test_bad_bundles_are_refused(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_bounce_cap_zero_refused(tmp_path):
+    path = tmp_path / "cap.yaml"
+    cfg = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())
+    cfg["bake"]["max_bounces"] = 0
+    path.write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ConfigError, match="bake.max_bounces"):
+        load_config(path)
+    r = bcsdf("bake", str(path), cwd=ROOT)
+    assert r.returncode == 2 and "max_bounces" in r.stderr
+    with pytest.raises(ValueError, match="bounce cap"):
+        BakeSpec([0.0], [0.0], max_bounces=0)
+
+
+def test_bake_without_fiber_table_says_what_to_run(tmp_path):
+    cfg = config(tmp_path, name="nofiber")
+    (tmp_path / "nofiber.yaml").write_text((tmp_path / "nofiber.yaml").read_text())
+    r = bcsdf("--artifacts", str(tmp_path / "empty"), "bake", str(tmp_path / "nofiber.yaml"), cwd=ROOT)
+    assert r.returncode == 2 and "bcsdf fiber" in r.stderr
+
+
+@pytest.mark.parametrize("estimator", ["fast", "thesis"])
+def test_extremes_are_finite(mi_llvm, estimator):
+    """Touching fibers, grazing incidence, directions along the axis, a dense lossless bundle."""
+    wl = np.array([500.0])
+    iso = PatternFiber(wl, "isotropic").tabulate(np.deg2rad(np.arange(0, 91, 10.0)))
+    r = 20.0
+    touching = Bundle([[-r, 0], [r, 0], [0, 2 * r * np.sqrt(0.75) * 1.0000001]], r, (3 * r, 3 * r))
+    spec = BakeSpec(np.deg2rad([0.0, 89.9, 90.0]), [0.0], 12, 16, estimator=estimator, max_bounces=3000)
+    for bundle in (touching, poisson((150, 150), 20, seed=9)):
+        tally = Baker(bundle, iso, spec).trace(0, 20_000, 1)
+        table = bake_stage.tally_to_table(tally, spec, iso, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
+        table.validate()  # finite everywhere
+        assert np.all(table.values >= 0)
+        assert np.allclose(table.energy_balance()["total"], 1, atol=0.05)
