@@ -2,7 +2,9 @@
 
     bcsdf fiber CONFIG     tabulate and draw the single-fiber model
     bcsdf bake CONFIG      trace the bundle, write the ground-truth table
-    bcsdf run CONFIG       every stage in order (for now: fiber, bake)
+    bcsdf train CONFIG     fit the MLP sizes of the config to the baked table
+    bcsdf export CONFIG    write each trained model as ONNX and as plain weights
+    bcsdf run CONFIG       every stage in order (for now: fiber, bake, train, export)
 
 Errors in the config or the data print what is wrong and exit with status 2;
 artifacts from earlier runs are left as they were.
@@ -13,7 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-STAGES = ("fiber", "bake")
+STAGES = ("fiber", "bake", "train", "export")
 
 
 def main(argv=None) -> int:
@@ -22,6 +24,8 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     for name, help_ in (("fiber", "tabulate and draw the single-fiber model"),
                         ("bake", "trace the bundle and write the ground-truth table"),
+                        ("train", "fit the neural models to the baked table"),
+                        ("export", "write the models as ONNX and plain weights"),
                         ("run", "run every stage in order")):
         p = sub.add_parser(name, help=help_)
         p.add_argument("config", help="YAML config, e.g. configs/default.yaml")
@@ -31,11 +35,11 @@ def main(argv=None) -> int:
 
     try:
         cfg = load_config(args.config)
-        stages = [s for s in STAGES if s != "bake" or cfg.bundle is not None] \
+        stages = [s for s in STAGES if s == "fiber" or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
         for stage in stages:
             _stage(stage).run(cfg, args.artifacts)
-    except (ConfigError, ValueError, FileNotFoundError) as e:
+    except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
         print(f"bcsdf {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

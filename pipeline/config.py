@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 # Which config sections each stage's artifact depends on (its provenance hash)
 FIBER_SECTIONS = ("wavelengths", "fiber", "tabulate")
 BAKE_SECTIONS = FIBER_SECTIONS + ("bundle", "bake")
+TRAIN_SECTIONS = BAKE_SECTIONS + ("train",)
 
 
 class ConfigError(ValueError):
@@ -189,6 +190,33 @@ class BakeCfg(Strict):
         return v
 
 
+class TrainCfg(Strict):
+    """Neural compression of the bundle table (see pipeline/train.py)."""
+
+    models: dict[str, list[int]] = Field(default_factory=lambda: {
+        "small": [32, 32], "medium": [64, 64, 64], "large": [128, 128, 128]})
+    epochs: int = Field(300, ge=1, le=100_000)
+    batch_size: int = Field(4096, ge=16, le=1 << 20)
+    lr: float = Field(3e-3, gt=0.0, le=1.0)
+    patience: int = Field(40, ge=1)
+    val_fraction: float = Field(0.1, gt=0.0, lt=0.9)
+    sigma_floor: float = Field(0.02, gt=0.0, le=1.0, description="log-space noise floor of the loss weights")
+    seed: int = Field(0, ge=0)
+    threads: int = Field(2, ge=1, le=256)
+
+    @field_validator("models")
+    @classmethod
+    def _sizes(cls, v):
+        if not v:
+            raise ValueError("at least one model size is needed, e.g. {small: [32, 32]}")
+        for name, hidden in v.items():
+            if not name.replace("_", "").isalnum():
+                raise ValueError(f"model name {name!r} must be alphanumeric")
+            if not hidden or any(h < 1 or h > 4096 for h in hidden):
+                raise ValueError(f"model {name!r}: hidden widths must be 1..4096 (got {hidden})")
+        return v
+
+
 class Config(Strict):
     name: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.-]+$")
     wavelengths: Wavelengths = Wavelengths()
@@ -196,6 +224,7 @@ class Config(Strict):
     tabulate: Tabulate = Tabulate()
     bundle: Optional[BundleCfg] = None
     bake: BakeCfg = BakeCfg()
+    train: TrainCfg = TrainCfg()
 
     def hash(self, *sections: str) -> str:
         """Hash of the named sections (all of them by default), for artifact provenance."""

@@ -14,7 +14,7 @@ if ! ls /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1 && ! ls /usr/lib/libLLVM-19.so
         $SUDO apt-get update -q >/dev/null && $SUDO apt-get install -y -q libllvm19 >/dev/null; }
 fi
 
-extras="${BCSDF_EXTRAS:-test}"
+extras="${BCSDF_EXTRAS:-train,onnx,test}"
 stamp=".venv/.installed-${extras//,/-}"
 if [ ! -x .venv/bin/python ]; then
     echo "[setup] creating .venv"
@@ -24,7 +24,7 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     echo "[setup] installing the project with extras [$extras]"
     # torch==2.13.0 is a CPU build on this machine's disk; pin it first so that the
     # range in pyproject resolves to it instead of downloading a CUDA build.
-    if [[ "$extras" == *train* ]]; then .venv/bin/pip install -q "torch==2.13.0"; fi
+    if [[ "$extras" == *train* || "$extras" == *test* ]]; then .venv/bin/pip install -q "torch==2.13.0"; fi
     .venv/bin/pip install -q -e ".[${extras}]"
     touch "$stamp"
 fi

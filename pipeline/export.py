@@ -1,0 +1,71 @@
+"""Stage ``export``: each trained model to ONNX and to plain weights for Dr.Jit.
+
+Writes under ``artifacts/<name>/export/<model>/``:
+
+* ``model.onnx``   raw angles ``[batch, 4] = (phi_i, theta_i, phi_o, theta_o)`` in
+  radians -> ``S [batch, n_lambda]`` in 1/sr, encoding and output transform inside the
+  graph, batch axis dynamic, checked by ``onnx.checker``; its metadata
+  (``bcsdf_spec``) holds the encoding, output transform, wavelengths, table hash and
+  symmetry reductions. Runs on onnxruntime alone.
+* ``weights.npz``  the same network as arrays ``W0, b0, W1, b1, ...`` (float32, ``W``
+  shaped [out, in]) with the same metadata, for :class:`mitsuba_ext.neural.DrJitMLP`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from models.neural import NeuralSpec, make_export_module, make_torch_model
+
+from .config import TRAIN_SECTIONS
+from .io import atomic_path
+
+
+def run(cfg, out_root="artifacts") -> Path:
+    import onnx
+    import torch
+
+    out = Path(out_root) / cfg.name / "export"
+    for name in cfg.train.models:
+        ckpt_path = Path(out_root) / cfg.name / "train" / name / "model.pt"
+        if not ckpt_path.exists():
+            raise ValueError(f"{ckpt_path} does not exist; run `bcsdf train` with this config first")
+        ckpt = torch.load(ckpt_path, weights_only=True)
+        spec = NeuralSpec.from_dict(ckpt["spec"])
+        if spec.config_hash != cfg.hash(*TRAIN_SECTIONS):
+            raise ValueError(f"{ckpt_path} was trained with different settings; re-run `bcsdf train`")
+        mlp = make_torch_model(spec)
+        mlp.load_state_dict(ckpt["state"])
+        module = make_export_module(spec, mlp).eval()
+        d = out / name
+        meta = json.dumps(spec.to_dict())
+
+        # -- ONNX --------------------------------------------------------------
+        with atomic_path(d / "model.onnx") as tmp:
+            torch.onnx.export(module, (torch.zeros(8, 4),), tmp, input_names=["angles"], output_names=["S"],
+                              dynamic_axes={"angles": {0: "batch"}, "S": {0: "batch"}}, opset_version=17,
+                              dynamo=False)
+            model = onnx.load(tmp)
+            model.doc_string = ("Bundle scattering function S(phi_i, theta_i, phi_o, theta_o) in 1/sr, one "
+                                "output per wavelength; inputs in radians")
+            entry = model.metadata_props.add()
+            entry.key, entry.value = "bcsdf_spec", meta
+            onnx.checker.check_model(model)
+            onnx.save(model, tmp)
+
+        # -- plain weights -------------------------------------------------------
+        linears = [m for m in mlp if isinstance(m, torch.nn.Linear)]
+        arrays = {}
+        for k, lin in enumerate(linears):
+            arrays[f"W{k}"] = lin.weight.detach().numpy().astype(np.float32)
+            arrays[f"b{k}"] = lin.bias.detach().numpy().astype(np.float32)
+        with atomic_path(d / "weights.npz") as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, spec=np.array(meta), **arrays)
+        size = sum(a.nbytes for a in arrays.values())
+        print(f"[export] {name}: {d / 'model.onnx'} ({(d / 'model.onnx').stat().st_size} bytes), "
+              f"weights {size} bytes")
+    return out

@@ -1,0 +1,167 @@
+"""Stage ``train``: fit each MLP size of ``train.models`` to the baked table (CPU PyTorch).
+
+For every model name, writes under ``artifacts/<name>/train/<model>/``:
+
+* ``model.pt``      the weights and the :class:`models.neural.NeuralSpec`;
+* ``loss.png``      training and validation loss per epoch;
+* ``summary.json``  held-out errors, the noise ratio, time, parameter count.
+
+The loss is a weighted MSE in log space, ``y = log(1 + S / s0)``: each bin and
+wavelength is weighted by ``1 / (sigma_y^2 + sigma_floor^2)`` where ``sigma_y`` is the
+table's own standard error carried into log space, so Monte Carlo noise is not learned
+as signal. A random ``val_fraction`` of the bins (all wavelengths of a bin together)
+is held out for early stopping and for the report. Same table and seed: same weights.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from models.bundle_table import BundleTable
+from models.neural import NeuralSpec, make_torch_model, table_dataset
+
+from .config import BAKE_SECTIONS, TRAIN_SECTIONS
+from .io import atomic_path, write_text
+from .plots import save_figure
+
+
+def load_bundle_table(cfg, out_root) -> tuple[BundleTable, Path]:
+    path = Path(out_root) / cfg.name / "bake" / "bundle_table.npz"
+    if not path.exists():
+        raise ValueError(f"{path} does not exist; run `bcsdf bake` (or `bcsdf run`) with this config first")
+    table = BundleTable.load(path, expand=True)
+    if table.meta.get("config_hash") != cfg.hash(*BAKE_SECTIONS):
+        raise ValueError(f"{path} was baked from different settings than this config; re-run `bcsdf bake`")
+    return table, path
+
+
+def file_hash(path) -> str:
+    import hashlib
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def energy_bins(S: np.ndarray, fraction: float = 0.9) -> np.ndarray:
+    """Flat indices of the largest values of ``S`` that hold ``fraction`` of its sum."""
+    e = S.ravel()
+    order = np.argsort(e)[::-1]
+    k = int(np.searchsorted(np.cumsum(e[order]) / max(e.sum(), 1e-300), fraction)) + 1
+    return order[:k]
+
+
+def split_bins(n_bins: int, val_fraction: float, seed: int):
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(n_bins)
+    n_val = max(1, int(round(val_fraction * n_bins)))
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+def run(cfg, out_root="artifacts") -> Path:
+    import torch
+    from tqdm import tqdm
+
+    c = cfg.train
+    torch.set_num_threads(c.threads)
+    torch.use_deterministic_algorithms(True)
+    table, table_path = load_bundle_table(cfg, out_root)
+    relative = table.meta["reductions"]["phi_o"] == "relative"
+    positive = table.values[table.values > 0]
+    s0 = float(np.mean(positive)) if positive.size else 1.0
+    y_top = float(np.log1p(table.values.max() / s0))
+    out = Path(out_root) / cfg.name / "train"
+    train_idx = val_idx = None
+    for name, hidden in c.models.items():
+        spec = NeuralSpec(relative_phi=relative, hidden=list(hidden), s0=s0, y_max=1.5 * y_top + 1.0,
+                          wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
+                          config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"])
+        x, y, sigma_y, S, E = table_dataset(table, spec)
+        if train_idx is None:
+            train_idx, val_idx = split_bins(len(x), c.val_fraction, c.seed)
+        w = 1.0 / (sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
+        w = (w / w[train_idx].mean()).astype(np.float32)
+
+        torch.manual_seed(c.seed)
+        model = make_torch_model(spec)
+        X, Y, W = (torch.from_numpy(a) for a in (x, y, w))
+        opt = torch.optim.Adam(model.parameters(), lr=c.lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, c.epochs)
+        gen = torch.Generator().manual_seed(c.seed)
+        tr = torch.from_numpy(train_idx)
+        va = torch.from_numpy(val_idx)
+
+        def loss_on(idx):
+            with torch.no_grad():
+                return float((W[idx] * (model(X[idx]) - Y[idx]) ** 2).mean())
+
+        history, best, best_state, since = [], np.inf, None, 0
+        t0 = time.perf_counter()
+        with tqdm(range(c.epochs), desc=f"train {name}", unit="epoch") as bar:
+            for epoch in bar:
+                perm = tr[torch.randperm(len(tr), generator=gen)]
+                for lo in range(0, len(perm), c.batch_size):
+                    b = perm[lo: lo + c.batch_size]
+                    loss = (W[b] * (model(X[b]) - Y[b]) ** 2).mean()
+                    opt.zero_grad()
+                    loss.backward()
+                    opt.step()
+                train_loss, val_loss = loss_on(tr), loss_on(va)
+                if not (np.isfinite(train_loss) and np.isfinite(val_loss)):
+                    raise FloatingPointError(f"training {name} diverged at epoch {epoch} (loss {train_loss}); "
+                                             "lower train.lr")
+                sched.step()
+                history.append((train_loss, val_loss))
+                bar.set_postfix(train=f"{train_loss:.4g}", val=f"{val_loss:.4g}")
+                if val_loss < best * (1 - 1e-4):
+                    best, since = val_loss, 0
+                    best_state = {k: v.clone() for k, v in model.state_dict().items()}
+                else:
+                    since += 1
+                    if since >= c.patience:
+                        break
+        seconds = time.perf_counter() - t0
+        model.load_state_dict(best_state)
+
+        # -- held-out errors, in linear space against the table -----------------
+        with torch.no_grad():
+            y_pred = model(X[va]).numpy().astype(np.float64)
+        S_pred = s0 * np.expm1(np.clip(y_pred, 0, spec.y_max))
+        S_val, E_val = S[val_idx], E[val_idx]
+        core = energy_bins(S_val)
+        metrics = {
+            "val_weighted_loss": best,
+            "relative_l1": float(np.abs(S_pred - S_val).sum() / max(S_val.sum(), 1e-300)),
+            "log_mae": float(np.mean(np.abs(y_pred - y[val_idx]))),
+            # rms of (model - table) / table standard error over the bins holding 90% of
+            # the held-out energy: 1 means the model is as close as the table's own noise
+            "noise_ratio": float(np.sqrt(np.mean(((S_pred - S_val).ravel()[core] / E_val.ravel()[core]) ** 2))),
+            "table_noise_l1": float(np.sqrt(2 / np.pi) * E_val.sum() / max(S_val.sum(), 1e-300)),
+            "epochs": len(history), "train_seconds": seconds,
+            "parameters": int(sum(p.numel() for p in model.parameters())),
+        }
+        d = out / name
+        with atomic_path(d / "model.pt") as tmp:
+            torch.save({"spec": spec.to_dict(), "state": model.state_dict(), "metrics": metrics}, tmp)
+        write_text(d / "summary.json", json.dumps(metrics, indent=1))
+        plot_loss(history, d / "loss.png", name)
+        print(f"[train] {name} {hidden}: {metrics['parameters']} parameters, {len(history)} epochs in "
+              f"{seconds:.1f} s; held-out relative L1 {metrics['relative_l1']:.3%}, error / table noise "
+              f"{metrics['noise_ratio']:.2f}")
+    return out
+
+
+def plot_loss(history, path, name) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h = np.asarray(history)
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    ax.semilogy(h[:, 0], label="train")
+    ax.semilogy(h[:, 1], label="validation (held-out bins)")
+    ax.set(xlabel="epoch", ylabel="weighted MSE of log(1 + S/s0)", title=f"model {name}")
+    ax.legend()
+    fig.tight_layout()
+    save_figure(fig, path)
