@@ -97,14 +97,14 @@ class DrJitMLP:
         half_pi = float(np.pi / 2)
         ti = dr.clip(theta_i, -half_pi, half_pi)
         to = dr.clip(theta_o, -half_pi, half_pi)
-        sin_ti = dr.sin(ti)
-        cone = (2 * self.spec.cone_scale) * dr.sin(0.5 * (to + ti)) * dr.cos(0.5 * (to - ti))
+        sin_ti, cos_ti = dr.sincos(ti)
+        head = [sin_ti, cos_ti, self.spec.cone_scale * (to + ti)]
         if self.spec.relative_phi:
             s, c = dr.sincos(phi_o - phi_i)
-            return [sin_ti, cone, c, s]
+            return head + [c, s]
         si, ci = dr.sincos(phi_i)
         so, co = dr.sincos(phi_o)
-        return [sin_ti, cone, ci, si, co, so]
+        return head + [ci, si, co, so]
 
     def eval(self, phi_i, theta_i, phi_o, theta_o) -> list:
         """``S`` at every table wavelength: a list of ``n_lambda`` Dr.Jit arrays."""

@@ -176,3 +176,57 @@ class BundleTable:
                              absorbed=pick(self.absorbed, False), lost=pick(self.lost, False),
                              passthrough=pick(self.passthrough, False),
                              passthrough_stderr=pick(self.passthrough_stderr, False))
+
+
+# ------------------------------------------------------------------------------
+# Lookup: nearest and multilinear, numpy (the Dr.Jit twin is mitsuba_ext/table.py)
+# ------------------------------------------------------------------------------
+
+def lookup_axes(table: BundleTable):
+    """The four lookup axes of a table: ``(grid, periodic)`` for phi_i, theta_i, phi_o, theta_o.
+
+    Values sit at ``phi_i`` and ``theta_i`` nodes and at output bin centres; azimuths
+    are periodic, longitudes are clamped to the first and last node or centre.
+    """
+    return [(table.phi_i, True), (table.theta_i, False), (table.phi_o, True), (table.theta_o, False)]
+
+
+def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "linear") -> np.ndarray:
+    """``S`` at arbitrary directions (radians, broadcast), all wavelengths: [..., n_lambda].
+
+    The table must be expanded (``BundleTable.load(..., expand=True)``); relative tables
+    take ``phi_o - phi_i`` on their output axis.
+    """
+    from models.fiber.base import _linear
+
+    if table.meta.get("reductions", {}).get("theta_i") == "mirror" or \
+            table.meta.get("reductions", {}).get("phi_i") == "mirror_xz":
+        raise ValueError("lookup needs an expanded table: BundleTable.load(path, expand=True)")
+    phi_i, theta_i, phi_o, theta_o = np.broadcast_arrays(*(np.asarray(a, np.float64)
+                                                           for a in (phi_i, theta_i, phi_o, theta_o)))
+    if table.meta["reductions"]["phi_o"] == "relative":
+        phi_o = phi_o - phi_i
+    coords = [phi_i, theta_i, phi_o, theta_o]
+    idx = []
+    for (grid, periodic), x in zip(lookup_axes(table), coords):
+        if periodic and len(grid) > 1:
+            # periodic grids here are uniform with their first node at grid[0]
+            i0, i1, w = _linear(grid, x, periodic=True)
+        else:
+            i0, i1, w = _linear(grid, np.clip(x, -np.pi / 2, np.pi / 2) if not periodic else x)
+        idx.append((i0, i1, w))
+    V = table.values
+    if mode == "nearest":
+        sel = tuple(np.where(w < 0.5, i0, i1) for i0, i1, w in idx)
+        return V[sel].astype(np.float64)
+    if mode != "linear":
+        raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")
+    out = np.zeros(phi_i.shape + (len(table.wavelength),))
+    for corner in range(16):
+        pick, weight = [], np.ones(phi_i.shape)
+        for axis, (i0, i1, w) in enumerate(idx):
+            hi = (corner >> axis) & 1
+            pick.append(i1 if hi else i0)
+            weight = weight * (w if hi else 1 - w)
+        out += weight[..., None] * V[tuple(pick)]
+    return out

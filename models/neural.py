@@ -6,16 +6,17 @@ training and export use. Encoding of a query ``(phi_i, theta_i, phi_o, theta_o)`
 in radians (any values: angles wrap, theta is clamped to [-pi/2, pi/2]):
 
 * rotation-invariant bundle (``phi_o`` relative in the table): features
-  ``[sin theta_i, c (sin theta_o + sin theta_i), cos dphi, sin dphi]`` with
+  ``[sin theta_i, cos theta_i, c (theta_o + theta_i), cos dphi, sin dphi]`` with
   ``dphi = phi_o - phi_i``;
-* otherwise ``[sin theta_i, c (sin theta_o + sin theta_i), cos phi_i, sin phi_i,
+* otherwise ``[sin theta_i, cos theta_i, c (theta_o + theta_i), cos phi_i, sin phi_i,
   cos phi_o, sin phi_o]``.
 
-``sin theta_o + sin theta_i`` is the distance from the specular cone (evaluated as
-``2 sin((to + ti) / 2) cos((to - ti) / 2)``, which does not cancel near the cone): parallel fibers
-keep all light near ``theta_o = -theta_i``, so the table is a narrow ridge along it.
-Giving that coordinate directly (scaled by ``c = cone_scale``) instead of
-``sin theta_o`` cut the held-out error of a 3 x 64 model by a third.
+``theta_o + theta_i`` is the angular distance from the specular cone: parallel fibers
+keep all light near ``theta_o = -theta_i``, so the table is a narrow ridge along it, of
+about constant angular width. Given that coordinate directly (scaled by
+``c = cone_scale``), a 3 x 64 model's held-out error fell from 21% to 11% and its worst
+albedo error from 20% to 6% (the sine form ``sin theta_o + sin theta_i`` narrows the
+ridge like ``cos theta`` at grazing angles, where the fit failed).
 
 The MLP (ReLU hidden layers) returns one value per table wavelength in log space:
 ``y = log(1 + S / s0)``; the output transform is ``S = s0 * expm1(clip(y, 0, y_max))``
@@ -50,7 +51,7 @@ class NeuralSpec:
 
     @property
     def n_inputs(self) -> int:
-        return 4 if self.relative_phi else 6
+        return 5 if self.relative_phi else 7
 
     @property
     def n_outputs(self) -> int:
@@ -70,12 +71,12 @@ def encode_numpy(spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> np.ndarray
     """Feature matrix [n, n_inputs] (float32) of the encoding above."""
     ti = np.clip(theta_i, -np.pi / 2, np.pi / 2)
     to = np.clip(theta_o, -np.pi / 2, np.pi / 2)
-    cone = spec.cone_scale * 2 * np.sin(0.5 * (to + ti)) * np.cos(0.5 * (to - ti))
+    head = [np.sin(ti), np.cos(ti), spec.cone_scale * (to + ti)]
     if spec.relative_phi:
         d = np.asarray(phi_o) - np.asarray(phi_i)
-        cols = [np.sin(ti), cone, np.cos(d), np.sin(d)]
+        cols = head + [np.cos(d), np.sin(d)]
     else:
-        cols = [np.sin(ti), cone, np.cos(phi_i), np.sin(phi_i), np.cos(phi_o), np.sin(phi_o)]
+        cols = head + [np.cos(phi_i), np.sin(phi_i), np.cos(phi_o), np.sin(phi_o)]
     return np.stack(np.broadcast_arrays(*cols), -1).astype(np.float32)
 
 
@@ -133,13 +134,12 @@ def make_export_module(spec: NeuralSpec, mlp):
             phi_i, theta_i, phi_o, theta_o = angles.unbind(-1)
             ti = torch.clamp(theta_i, -np.pi / 2, np.pi / 2)
             to = torch.clamp(theta_o, -np.pi / 2, np.pi / 2)
-            cone = spec.cone_scale * 2 * torch.sin(0.5 * (to + ti)) * torch.cos(0.5 * (to - ti))
+            head = [torch.sin(ti), torch.cos(ti), spec.cone_scale * (to + ti)]
             if spec.relative_phi:
                 d = phi_o - phi_i
-                feats = [torch.sin(ti), cone, torch.cos(d), torch.sin(d)]
+                feats = head + [torch.cos(d), torch.sin(d)]
             else:
-                feats = [torch.sin(ti), cone, torch.cos(phi_i), torch.sin(phi_i),
-                         torch.cos(phi_o), torch.sin(phi_o)]
+                feats = head + [torch.cos(phi_i), torch.sin(phi_i), torch.cos(phi_o), torch.sin(phi_o)]
             y = torch.clamp(self.mlp(torch.stack(feats, -1)), 0.0, spec.y_max)
             return spec.s0 * stable_expm1(torch, y)
 

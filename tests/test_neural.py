@@ -180,7 +180,7 @@ def test_absolute_phi_encoding_for_ellipses(tmp_path, mi_llvm):
     export_stage.run(cfg, tmp_path)
     A = query_set(2000)
     on = OnnxMLP(tmp_path / "e" / "export" / "tiny" / "model.onnx")
-    assert on.spec.n_inputs == 6
+    assert on.spec.n_inputs == 7
     out = DrJitMLP(tmp_path / "e" / "export" / "tiny" / "weights.npz").eval(*(mi_llvm.Float(a) for a in A.T))
     dr.eval(out)
     assert np.allclose(np.stack([o.numpy() for o in out], -1), on.eval(*A.T), rtol=1e-5, atol=1e-5 * on.spec.s0)

@@ -1,0 +1,214 @@
+"""Error against run time (``make bench-neural``): the table and every model size.
+
+For the baked table (nearest and multilinear lookup, numpy and Dr.Jit) and each
+trained model (PyTorch, onnxruntime, Dr.Jit), on the same queries:
+
+* error against the ground-truth table on the held-out bins (the training split's
+  validation bins, at their centres): relative L1 (energy-weighted), log-space mean
+  absolute error of ``log(1 + S/s0)``, the worst bin (largest absolute error over the
+  table's peak), and the albedo error: the largest relative error of
+  ``integral S d omega_o`` over (phi_i, theta_i, lambda), from every output bin;
+* cost: nanoseconds per query at a batch of 1M random directions (all wavelengths per
+  query), best of 3, and bytes of storage.
+
+Prints a table, writes ``error_vs_time.png`` (marker area ~ bytes) and
+``error_vs_time.json`` under ``artifacts/<name>/report/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _best_of(fn, repeat=3):
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", default="configs/default.yaml")
+    parser.add_argument("--artifacts", default="artifacts")
+    parser.add_argument("--queries", type=int, default=1_000_000)
+    args = parser.parse_args(argv)
+    os.environ.setdefault("TQDM_DISABLE", "1")
+
+    import drjit as dr
+    import mitsuba as mi
+    import torch
+
+    from mitsuba_ext.neural import DrJitMLP, OnnxMLP, check_compatible
+    from mitsuba_ext.table import DrJitTable
+    from models.bundle_table import lookup
+    from models.neural import NeuralSpec, make_export_module, make_torch_model
+    from pipeline.config import load_config
+    from pipeline.train import file_hash, load_bundle_table, split_bins
+
+    cfg = load_config(args.config)
+    mi.set_variant(cfg.bake.variant)
+    torch.set_num_threads(2)
+    table, table_path = load_bundle_table(cfg, args.artifacts)
+    n_l = len(table.wavelength)
+
+    # -- queries: held-out bin centres (errors) and 1M random directions (cost) ------
+    PI, TI, PO, TO = np.meshgrid(table.phi_i, table.theta_i, table.phi_o, table.theta_o, indexing="ij")
+    if table.meta["reductions"]["phi_o"] == "relative":
+        PO = PO + PI
+    grid = [a.ravel() for a in (PI, TI, PO, TO)]
+    truth = table.values.reshape(-1, n_l).astype(np.float64)
+    _, val = split_bins(len(truth), cfg.train.val_fraction, cfg.train.seed)
+    omega = np.broadcast_to(table.solid_angle[None, None, :, :], table.values.shape[:4]).ravel()
+    scattered = table.scattered  # [phi_i, theta_i, lambda]
+    s0 = float(np.mean(table.values[table.values > 0]))
+    rng = np.random.default_rng(0)
+    n = args.queries
+    rand = [rng.uniform(-np.pi, np.pi, n), rng.uniform(-np.pi / 2, np.pi / 2, n),
+            rng.uniform(-np.pi, np.pi, n), rng.uniform(-np.pi / 2, np.pi / 2, n)]
+    rand32 = [a.astype(np.float32) for a in rand]
+
+    def errors(predict):
+        """predict(list of 4 arrays) -> [n, n_lambda]; evaluated on every bin centre."""
+        pred = predict([g.astype(np.float32) for g in grid]).astype(np.float64)
+        p, t = pred[val], truth[val]
+        albedo = (pred * omega[:, None]).reshape(table.values.shape[:2] + (-1, n_l)).sum(axis=2)
+        return {
+            "relative_l1": float(np.abs(p - t).sum() / t.sum()),
+            "log_mae": float(np.mean(np.abs(np.log1p(p / s0) - np.log1p(t / s0)))),
+            "worst_bin": float(np.max(np.abs(p - t)) / truth.max()),
+            "albedo_error": float(np.max(np.abs(albedo - scattered) / np.maximum(scattered, 1e-12))),
+        }
+
+    rows = []
+
+    def report(name, backend, nbytes, predict, timed):
+        err = errors(predict)
+        seconds = _best_of(timed)
+        rows.append({"method": name, "backend": backend, "bytes": int(nbytes),
+                     "ns_per_query": seconds / n * 1e9, **err})
+        r = rows[-1]
+        print(f"{name:14s} {backend:11s} {r['bytes']:>10d} {r['ns_per_query']:9.1f} {r['relative_l1']:9.2%} "
+              f"{r['log_mae']:8.4f} {r['worst_bin']:9.2%} {r['albedo_error']:9.2%}", flush=True)
+
+    print(f"table {table_path}: {table.values.shape} float32 = {table.values.astype(np.float32).nbytes} bytes; "
+          f"{len(val)} held-out bins; cost at a batch of {n} queries x {n_l} wavelengths")
+    print(f"{'method':14s} {'backend':11s} {'bytes':>10s} {'ns/query':>9s} {'rel. L1':>9s} {'log MAE':>8s} "
+          f"{'worst bin':>9s} {'albedo':>9s}")
+
+    # -- the table ------------------------------------------------------------------
+    dt = DrJitTable(table, mi.Float)
+
+    def drjit_table(mode):
+        def run(q):
+            out = dt.eval(*(mi.Float(a) for a in q), mode=mode)
+            dr.eval(out)
+            return np.stack([o.numpy() for o in out], -1)
+        qs = [mi.Float(a) for a in rand32]
+        dr.eval(qs)
+
+        def timed():
+            out = dt.eval(*qs, mode=mode)
+            dr.eval(out)
+            dr.sync_thread()
+        return run, timed
+
+    for mode in ("nearest", "linear"):
+        report(f"table {mode}", "numpy", dt.nbytes, lambda q, m=mode: lookup(table, *q, mode=m),
+               lambda m=mode: lookup(table, *rand, mode=m))
+        run, timed = drjit_table(mode)
+        report(f"table {mode}", "drjit", dt.nbytes, run, timed)
+
+    # -- the models -------------------------------------------------------------------
+    export_root = Path(args.artifacts) / cfg.name / "export"
+    for name in cfg.train.models:
+        ckpt = torch.load(Path(args.artifacts) / cfg.name / "train" / name / "model.pt", weights_only=True)
+        spec = NeuralSpec.from_dict(ckpt["spec"])
+        check_compatible(spec, table_hash=file_hash(table_path), wavelength=table.wavelength)
+        mlp = make_torch_model(spec)
+        mlp.load_state_dict(ckpt["state"])
+        module = make_export_module(spec, mlp).eval()
+        nbytes = sum(p.numel() * 4 for p in mlp.parameters())
+
+        def torch_eval(q, module=module):
+            with torch.no_grad():
+                return module(torch.from_numpy(np.stack(q, -1).astype(np.float32))).numpy()
+        report(f"mlp {name}", "pytorch", nbytes, torch_eval, lambda f=torch_eval: f(rand32))
+
+        onnx = OnnxMLP(export_root / name / "model.onnx", threads=2)
+        report(f"mlp {name}", "onnxruntime", nbytes, lambda q, m=onnx: m.eval(*q), lambda m=onnx: m.eval(*rand32))
+
+        jit = DrJitMLP(export_root / name / "weights.npz")
+        qs = [mi.Float(a) for a in rand32]
+        dr.eval(qs)
+
+        def jit_run(q, jit=jit):
+            out = jit.eval(*(mi.Float(a) for a in q))
+            dr.eval(out)
+            return np.stack([o.numpy() for o in out], -1)
+
+        def jit_timed(jit=jit):
+            out = jit.eval(*qs)
+            dr.eval(out)
+            dr.sync_thread()
+        jit_timed()  # compile once; the kernel cache serves the timed runs
+        report(f"mlp {name}", "drjit", nbytes, jit_run, jit_timed)
+
+    out = Path(args.artifacts) / cfg.name / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    noise_l1 = float(np.sqrt(2 / np.pi) * table.stderr.reshape(-1, n_l)[val].sum() / truth[val].sum())
+    print(f"the table's own Monte Carlo noise on these bins: relative L1 {noise_l1:.2%}")
+    (out / "error_vs_time.json").write_text(json.dumps({"rows": rows, "table_noise_l1": noise_l1}, indent=1))
+    plot(rows, noise_l1, out / "error_vs_time.png")
+    table_bytes = rows[0]["bytes"]
+    lin_jit = next(r for r in rows if r["method"] == "table linear" and r["backend"] == "drjit")
+    for r in rows:
+        if r["method"].startswith("mlp") and r["backend"] == "drjit":
+            print(f"{r['method']}: {table_bytes / r['bytes']:.0f}x smaller than the float32 table, albedo error "
+                  f"{r['albedo_error']:.2%}, Dr.Jit cost {r['ns_per_query'] / lin_jit['ns_per_query']:.2f}x the "
+                  f"multilinear Dr.Jit table lookup")
+    print(f"wrote {out / 'error_vs_time.png'}")
+
+
+def plot(rows, noise_l1, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .plots import save_figure
+
+    fig, ax = plt.subplots(figsize=(7.5, 5), dpi=110)
+    markers = {"numpy": "s", "drjit": "o", "pytorch": "^", "onnxruntime": "D"}
+    methods = sorted({r["method"] for r in rows})
+    colors = {m: plt.get_cmap("tab10")(k) for k, m in enumerate(methods)}
+    top = max(r["bytes"] for r in rows)
+    for r in rows:
+        err = max(r["relative_l1"], 1e-4)  # the table is its own reference: plot at the floor
+        ax.scatter(r["ns_per_query"], err, s=30 + 600 * np.sqrt(r["bytes"] / top), marker=markers[r["backend"]],
+                   color=colors[r["method"]], alpha=0.75, edgecolors="k", linewidths=0.5)
+    ax.axhline(noise_l1, color="0.4", ls="--", lw=1)
+    ax.text(ax.get_xlim()[0] * 1.2 if ax.get_xlim()[0] > 0 else 1, noise_l1 * 1.08,
+            "the table's own Monte Carlo noise", fontsize=8, color="0.3")
+    ax.text(1.2 * min(r["ns_per_query"] for r in rows), 1.4e-4,
+            "table lookups: the reference itself (plotted at 1e-4)", fontsize=8, color="0.3")
+    for m in methods:
+        ax.scatter([], [], color=colors[m], label=m)
+    for b, mk in markers.items():
+        ax.scatter([], [], color="0.5", marker=mk, label=b)
+    ax.set(xscale="log", yscale="log", xlabel="cost [ns per query, all wavelengths, batch 1M]",
+           ylabel="relative L1 error on held-out bins", title="error against run time (marker area ~ bytes)")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+if __name__ == "__main__":
+    main()
