@@ -3,7 +3,7 @@
 #   make test   set up, then run the default test suite
 CONFIG ?= configs/default.yaml
 
-.PHONY: setup run test bench bench-bake clean
+.PHONY: setup run test bench bench-bake bench-neural clean
 setup:
 	./scripts/setup.sh
 
@@ -18,6 +18,9 @@ bench: setup
 
 bench-bake: setup
 	.venv/bin/python -m pipeline.bench_bake
+
+bench-neural: run
+	.venv/bin/python -m pipeline.bench_neural
 
 clean:
 	rm -rf artifacts
