@@ -42,7 +42,13 @@ def main(argv=None):
     parser.add_argument("--queries", type=int, default=1_000_000)
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
+    from pipeline.config import load_config
 
+    measure(load_config(args.config), args.artifacts, args.queries)
+
+
+def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
+    """Run the whole comparison; print it, write the PNG and JSON, return the rows."""
     import drjit as dr
     import mitsuba as mi
     import torch
@@ -51,13 +57,11 @@ def main(argv=None):
     from mitsuba_ext.table import DrJitTable
     from models.bundle_table import lookup
     from models.neural import NeuralSpec, make_export_module, make_torch_model
-    from pipeline.config import load_config
     from pipeline.train import file_hash, load_bundle_table, split_bins
 
-    cfg = load_config(args.config)
     mi.set_variant(cfg.bake.variant)
     torch.set_num_threads(2)
-    table, table_path = load_bundle_table(cfg, args.artifacts)
+    table, table_path = load_bundle_table(cfg, artifacts)
     n_l = len(table.wavelength)
 
     # -- queries: held-out bin centres (errors) and 1M random directions (cost) ------
@@ -71,7 +75,7 @@ def main(argv=None):
     scattered = table.scattered  # [phi_i, theta_i, lambda]
     s0 = float(np.mean(table.values[table.values > 0]))
     rng = np.random.default_rng(0)
-    n = args.queries
+    n = queries
     rand = [rng.uniform(-np.pi, np.pi, n), rng.uniform(-np.pi / 2, np.pi / 2, n),
             rng.uniform(-np.pi, np.pi, n), rng.uniform(-np.pi / 2, np.pi / 2, n)]
     rand32 = [a.astype(np.float32) for a in rand]
@@ -128,9 +132,9 @@ def main(argv=None):
         report(f"table {mode}", "drjit", dt.nbytes, run, timed)
 
     # -- the models -------------------------------------------------------------------
-    export_root = Path(args.artifacts) / cfg.name / "export"
+    export_root = Path(artifacts) / cfg.name / "export"
     for name in cfg.train.models:
-        ckpt = torch.load(Path(args.artifacts) / cfg.name / "train" / name / "model.pt", weights_only=True)
+        ckpt = torch.load(Path(artifacts) / cfg.name / "train" / name / "model.pt", weights_only=True)
         spec = NeuralSpec.from_dict(ckpt["spec"])
         check_compatible(spec, table_hash=file_hash(table_path), wavelength=table.wavelength)
         mlp = make_torch_model(spec)
@@ -162,7 +166,7 @@ def main(argv=None):
         jit_timed()  # compile once; the kernel cache serves the timed runs
         report(f"mlp {name}", "drjit", nbytes, jit_run, jit_timed)
 
-    out = Path(args.artifacts) / cfg.name / "report"
+    out = Path(artifacts) / cfg.name / "report"
     out.mkdir(parents=True, exist_ok=True)
     noise_l1 = float(np.sqrt(2 / np.pi) * table.stderr.reshape(-1, n_l)[val].sum() / truth[val].sum())
     print(f"the table's own Monte Carlo noise on these bins: relative L1 {noise_l1:.2%}")
@@ -176,6 +180,7 @@ def main(argv=None):
                   f"{r['albedo_error']:.2%}, Dr.Jit cost {r['ns_per_query'] / lin_jit['ns_per_query']:.2f}x the "
                   f"multilinear Dr.Jit table lookup")
     print(f"wrote {out / 'error_vs_time.png'}")
+    return {"rows": rows, "table_noise_l1": noise_l1, "queries": n}
 
 
 def plot(rows, noise_l1, path):

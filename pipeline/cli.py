@@ -4,7 +4,8 @@
     bcsdf bake CONFIG      trace the bundle, write the ground-truth table
     bcsdf train CONFIG     fit the MLP sizes of the config to the baked table
     bcsdf export CONFIG    write each trained model as ONNX and as plain weights
-    bcsdf run CONFIG       every stage in order (for now: fiber, bake, train, export)
+    bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
+    bcsdf run CONFIG       every stage in order
 
 Errors in the config or the data print what is wrong and exit with status 2;
 artifacts from earlier runs are left as they were.
@@ -15,7 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-STAGES = ("fiber", "bake", "train", "export")
+STAGES = ("fiber", "bake", "train", "export", "report")
 
 
 def main(argv=None) -> int:
@@ -26,6 +27,7 @@ def main(argv=None) -> int:
                         ("bake", "trace the bundle and write the ground-truth table"),
                         ("train", "fit the neural models to the baked table"),
                         ("export", "write the models as ONNX and plain weights"),
+                        ("report", "write the HTML report"),
                         ("run", "run every stage in order")):
         p = sub.add_parser(name, help=help_)
         p.add_argument("config", help="YAML config, e.g. configs/default.yaml")
@@ -35,7 +37,7 @@ def main(argv=None) -> int:
 
     try:
         cfg = load_config(args.config)
-        stages = [s for s in STAGES if s == "fiber" or cfg.bundle is not None] \
+        stages = [s for s in STAGES if s in ("fiber", "report") or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
         for stage in stages:
             _stage(stage).run(cfg, args.artifacts)

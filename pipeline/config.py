@@ -217,6 +217,10 @@ class TrainCfg(Strict):
         return v
 
 
+class ReportCfg(Strict):
+    queries: int = Field(200_000, ge=1000, le=10_000_000, description="batch size of the timings")
+
+
 class Config(Strict):
     name: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.-]+$")
     wavelengths: Wavelengths = Wavelengths()
@@ -225,6 +229,7 @@ class Config(Strict):
     bundle: Optional[BundleCfg] = None
     bake: BakeCfg = BakeCfg()
     train: TrainCfg = TrainCfg()
+    report: ReportCfg = ReportCfg()
 
     def hash(self, *sections: str) -> str:
         """Hash of the named sections (all of them by default), for artifact provenance."""

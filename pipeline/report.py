@@ -1,0 +1,204 @@
+"""Stage ``report``: one self-contained HTML page with its PNGs beside it.
+
+``artifacts/<name>/report/index.html`` shows, for one config: the fiber model, the
+bundle arrangement, table slices, the energy balance, the neural models against the
+table (slices and error maps), error against run time, the exact versions and the
+config. Every picture is copied next to the page, so the folder can be sent as is.
+Parts of the pipeline that have not run (or do not exist yet) are said to be missing,
+not silently dropped.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import shutil
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .io import write_text
+from .plots import save_figure, spectral_image
+
+PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
+
+
+def run(cfg, out_root="artifacts") -> Path:
+    root = Path(out_root) / cfg.name
+    out = root / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    sections = []
+
+    # -- fiber -----------------------------------------------------------------
+    fiber = root / "fiber"
+    if (fiber / "summary.json").exists():
+        s = json.loads((fiber / "summary.json").read_text())
+        E = np.asarray(s["energy"])
+        pics = sorted(fiber.glob("theta_i_*.png"))
+        chosen = [p for p in pics if p.name in ("theta_i_00.0.png", "theta_i_30.0.png", "theta_i_60.0.png")] or pics[:3]
+        body = (f"<p>Model <b>{html.escape(s['model'])}</b>, {len(s['theta_i_deg'])} incident longitudes x "
+                f"{len(s['wavelength_nm'])} wavelengths, tabulated in {s['tabulate_seconds']:.2f} s; albedo "
+                f"{E.min():.4f} .. {E.max():.4f}.</p>")
+        body += "".join(_img(out, p, f"fiber, {p.stem}") for p in chosen + [fiber / "energy.png"])
+        sections.append(("Single-fiber model", body))
+    else:
+        sections.append(("Single-fiber model", _missing("bcsdf fiber")))
+
+    # -- bake --------------------------------------------------------------------
+    bake = root / "bake"
+    if (bake / "summary.json").exists():
+        s = json.loads((bake / "summary.json").read_text())
+        body = (f"<p>{s['n_fibers']} fibers, packing {s['packing_fraction']:.3f}; {s['paths']:,} paths, "
+                f"{s['vertices']:,} vertices in {s['bake_seconds']:.1f} s. Energy (mean over incidence and "
+                f"wavelength): scattered {s['scattered']:.4f}, passthrough {np.mean(s['passthrough']):.4f}, "
+                f"absorbed {s['absorbed']:.4f}, lost {s['lost']:.4f}, total {s['total']:.4f} (largest "
+                f"deviation from 1 of any incidence and wavelength: {s['max_abs_energy_error']:.4f}).</p>")
+        slices = sorted((bake / "slices").glob("*.png"))
+        chosen = [p for p in slices if "theta_i_+30.0" in p.name or "theta_i_+60.0" in p.name][:4] or slices[:2]
+        body += "".join(_img(out, p, p.stem) for p in [bake / "arrangement.png", *chosen, bake / "energy.png"])
+        sections.append(("Bundle and baked table", body))
+    else:
+        sections.append(("Bundle and baked table", _missing("bcsdf bake")))
+
+    # -- neural ------------------------------------------------------------------
+    train = root / "train"
+    if cfg.bundle is not None and (root / "export").exists():
+        rows = []
+        for name in cfg.train.models:
+            p = train / name / "summary.json"
+            if p.exists():
+                m = json.loads(p.read_text())
+                rows.append(f"<tr><td>{name}</td><td>{cfg.train.models[name]}</td><td>{m['parameters']}</td>"
+                            f"<td>{m['epochs']}</td><td>{m['train_seconds']:.1f}</td><td>{m['relative_l1']:.2%}</td>"
+                            f"<td>{m['table_noise_l1']:.2%}</td><td>{m['noise_ratio']:.2f}</td></tr>")
+        body = ("<table><tr><th>model</th><th>hidden</th><th>parameters</th><th>epochs</th><th>train s</th>"
+                "<th>held-out rel. L1</th><th>table noise L1</th><th>error / table noise</th></tr>"
+                + "".join(rows) + "</table>")
+        body += "".join(_img(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
+                        if (train / n / "loss.png").exists())
+        body += compare_slices(cfg, out_root, out)
+        from .bench_neural import measure
+
+        result = measure(cfg, out_root, cfg.report.queries)
+        body += (f"<p>Error against run time ({result['queries']:,} queries per timing; the table's own Monte "
+                 f"Carlo noise: relative L1 {result['table_noise_l1']:.2%}).</p>")
+        body += _img(out, out / "error_vs_time.png", "error against run time")
+        body += _rows_table(result["rows"])
+        sections.append(("Neural compression", body))
+    else:
+        sections.append(("Neural compression", _missing("bcsdf train && bcsdf export")))
+
+    sections.append(("Renders and FLIP maps", "<p>Not part of this pipeline yet (the Mitsuba plugin is "
+                                               "still to come).</p>"))
+    sections.append(("Numerical stability", "<p>Not part of this pipeline yet (<code>bcsdf stability</code> "
+                                            "is still to come).</p>"))
+
+    # -- versions and config ---------------------------------------------------------
+    versions = "".join(f"<tr><td>{p}</td><td>{_version(p)}</td></tr>" for p in PACKAGES)
+    from .bake import _code_version
+    sections.append(("Versions and config",
+                     f"<p>code {_code_version()}, config hash {cfg.hash()}</p><table>{versions}</table>"
+                     f"<pre>{html.escape(yaml.safe_dump(cfg.model_dump(mode='json'), sort_keys=False))}</pre>"))
+
+    page = _page(cfg.name, sections)
+    write_text(out / "index.html", page)
+    print(f"[report] wrote {out / 'index.html'}")
+    return out
+
+
+def compare_slices(cfg, out_root, out) -> str:
+    """Table against each model at two incidences: sRGB slices and a relative error map."""
+    import drjit as dr
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import mitsuba as mi
+
+    from mitsuba_ext.neural import DrJitMLP
+    from pipeline.train import load_bundle_table
+
+    mi.set_variant(cfg.bake.variant)
+    table, _ = load_bundle_table(cfg, out_root)
+    relative = table.meta["reductions"]["phi_o"] == "relative"
+    name = list(cfg.train.models)[-1] if len(cfg.train.models) < 2 else list(cfg.train.models)[1]
+    mlp = DrJitMLP(Path(out_root) / cfg.name / "export" / name / "weights.npz")
+    body = f"<p>Table against model <b>{name}</b> (Dr.Jit evaluator) at bin centres.</p>"
+    for target in (30.0, 60.0):
+        j = int(np.argmin(np.abs(np.rad2deg(table.theta_i) - target)))
+        PO, TO = np.meshgrid(table.phi_o, table.theta_o, indexing="ij")
+        phi_i = float(table.phi_i[0])
+        po = PO + phi_i if relative else PO
+        S = mlp.eval(mi.Float(np.full(PO.size, phi_i, np.float32)),
+                     mi.Float(np.full(PO.size, table.theta_i[j], np.float32)),
+                     mi.Float(po.ravel().astype(np.float32)), mi.Float(TO.ravel().astype(np.float32)))
+        dr.eval(S)
+        pred = np.stack([s.numpy() for s in S], -1).reshape(PO.shape + (-1,))
+        ref = table.values[0, j].astype(np.float64)
+        tag = f"{int(target):02d}"
+        extent = (0, 360, -90, 90) if relative else (-180, 180, -90, 90)
+        roll = len(table.phi_o) // 2 if relative else 0
+        for label, data in (("table", ref), ("model", pred)):
+            spectral_image(np.roll(data.transpose(1, 0, 2), roll, axis=1), table.wavelength,
+                           out / f"compare_{label}_{tag}.png",
+                           f"{label}: theta_i = {np.rad2deg(table.theta_i[j]):.0f} deg", extent=extent)
+        err = np.abs(pred - ref).mean(-1) / max(ref.mean(-1).max(), 1e-30)
+        fig, ax = plt.subplots(figsize=(12, 3.6), dpi=110)
+        im = ax.imshow(np.roll(err.T, roll, axis=1), origin="lower", aspect="auto", extent=extent, cmap="magma")
+        fig.colorbar(im, ax=ax, label="|model - table| / table peak (mean over wavelengths)")
+        xlabel = "dphi = phi_o - phi_i [deg]" if relative else "phi_o [deg] (bundle frame)"
+        ax.set(xlabel=xlabel, ylabel="theta_o [deg]", title=f"error map, theta_i = {target:.0f} deg")
+        fig.tight_layout()
+        save_figure(fig, out / f"compare_error_{tag}.png")
+        body += "".join(f'<img src="compare_{k}_{tag}.png" alt="{k} {tag}">' for k in ("table", "model", "error"))
+    return body
+
+
+def _img(out: Path, src: Path, alt: str) -> str:
+    if not src.exists():
+        return f"<p class=missing>missing picture: {html.escape(str(src))}</p>"
+    dst = out / (src.parent.name + "_" + src.name if src.parent != out else src.name)
+    if src.resolve() != dst.resolve():
+        shutil.copyfile(src, dst)
+    return f'<img src="{html.escape(dst.name)}" alt="{html.escape(alt)}">'
+
+
+def _missing(command: str) -> str:
+    return f"<p class=missing>Not run yet: <code>{html.escape(command)}</code>.</p>"
+
+
+def _rows_table(rows) -> str:
+    head = ("<tr><th>method</th><th>backend</th><th>bytes</th><th>ns/query</th><th>rel. L1</th><th>log MAE</th>"
+            "<th>worst bin</th><th>albedo error</th></tr>")
+    body = "".join(f"<tr><td>{r['method']}</td><td>{r['backend']}</td><td>{r['bytes']}</td>"
+                   f"<td>{r['ns_per_query']:.1f}</td><td>{r['relative_l1']:.2%}</td><td>{r['log_mae']:.4f}</td>"
+                   f"<td>{r['worst_bin']:.2%}</td><td>{r['albedo_error']:.2%}</td></tr>" for r in rows)
+    return f"<table>{head}{body}</table>"
+
+
+def _version(package: str) -> str:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def _page(name: str, sections) -> str:
+    toc = "".join(f'<li><a href="#s{k}">{html.escape(t)}</a></li>' for k, (t, _) in enumerate(sections))
+    body = "".join(f'<section id="s{k}"><h2>{html.escape(t)}</h2>{b}</section>' for k, (t, b) in enumerate(sections))
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>bcsdf report: {html.escape(name)}</title>
+<style>
+body {{ font: 15px/1.45 system-ui, sans-serif; max-width: 1200px; margin: 2em auto; padding: 0 1em; color: #222; }}
+img {{ max-width: 100%; display: block; margin: 0.6em 0; border: 1px solid #ddd; }}
+table {{ border-collapse: collapse; margin: 0.8em 0; font-size: 13px; }}
+td, th {{ border: 1px solid #ccc; padding: 2px 8px; text-align: right; }}
+th {{ background: #f3f3f3; }} pre {{ background: #f7f7f7; padding: 1em; overflow: auto; font-size: 12px; }}
+.missing {{ color: #a33; }}
+</style></head><body>
+<h1>Fiber bundle scattering: {html.escape(name)}</h1>
+<ol>{toc}</ol>
+{body}
+</body></html>
+"""

@@ -1,0 +1,44 @@
+"""The whole pipeline on a tiny config, end to end, and its report."""
+
+import re
+import subprocess
+import sys
+
+import numpy as np
+import yaml
+
+from tests.test_cli import ROOT
+
+TINY = {
+    "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
+    "fiber": {"model": "mie", "radius_um": 3.0, "ior": {"k": 1e-3}, "mie": {"roughness_deg": 5.0}},
+    "tabulate": {"theta_i_step_deg": 15},
+    "bundle": {"shape": "circle", "radius_um": 20.0, "seed": 1},
+    "bake": {"paths_per_phi_i": 20000, "batch_paths": 8192, "theta_i_step_deg": 30, "n_theta_o": 12,
+             "n_phi_o": 16},
+    "train": {"models": {"s": [8], "m": [16, 16]}, "epochs": 20, "batch_size": 256},
+    "report": {"queries": 5000},
+}
+
+
+def test_run_writes_every_stage_and_a_complete_report(tmp_path):
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(TINY))
+    art = tmp_path / "art"
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "--artifacts", str(art), "run", str(cfg)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    root = art / "tiny"
+    for f in ("fiber/fiber_table.npz", "bake/bundle_table.npz", "train/m/model.pt", "export/m/model.onnx",
+              "export/s/weights.npz", "report/index.html", "report/error_vs_time.png"):
+        assert (root / f).exists(), f
+    page = (root / "report" / "index.html").read_text()
+    images = re.findall(r'<img src="([^"]+)"', page)
+    assert len(images) >= 12
+    for name in images:
+        assert (root / "report" / name).stat().st_size > 1000, name
+    assert "missing picture" not in page and "Not run yet" not in page
+    for word in ("Single-fiber model", "Bundle and baked table", "Neural compression", "Versions and config",
+                 "mitsuba"):
+        assert word in page
+    assert np.isfinite(float(re.search(r"total ([0-9.]+)", page).group(1)))
