@@ -201,6 +201,7 @@ class TrainCfg(Strict):
     patience: int = Field(40, ge=1)
     val_fraction: float = Field(0.1, gt=0.0, lt=0.9)
     sigma_floor: float = Field(0.02, gt=0.0, le=1.0, description="log-space noise floor of the loss weights")
+    albedo_weight: float = Field(0.1, ge=0.0, le=100.0, description="weight of the energy term of the loss")
     seed: int = Field(0, ge=0)
     threads: int = Field(2, ge=1, le=256)
 
