@@ -5,7 +5,9 @@
     bcsdf train CONFIG     fit the MLP sizes of the config to the baked table
     bcsdf export CONFIG    write each trained model as ONNX and as plain weights
     bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
-    bcsdf run CONFIG       every stage in order
+    bcsdf run CONFIG       every stage in order, skipping those that are up to date
+                           (their config sections unchanged since they last ran; --force
+                           reruns all; code changes are tracked by DVC, see dvc.yaml)
 
 Errors in the config or the data print what is wrong and exit with status 2;
 artifacts from earlier runs are left as they were.
@@ -31,6 +33,8 @@ def main(argv=None) -> int:
                         ("run", "run every stage in order")):
         p = sub.add_parser(name, help=help_)
         p.add_argument("config", help="YAML config, e.g. configs/default.yaml")
+        if name == "run":
+            p.add_argument("--force", action="store_true", help="rerun stages that are up to date")
     args = parser.parse_args(argv)
 
     from .config import ConfigError, load_config
@@ -40,7 +44,11 @@ def main(argv=None) -> int:
         stages = [s for s in STAGES if s in ("fiber", "report") or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
         for stage in stages:
+            if args.command == "run" and not args.force and _up_to_date(cfg, stage, args.artifacts):
+                print(f"[run] {stage}: up to date, skipped")
+                continue
             _stage(stage).run(cfg, args.artifacts)
+            _stamp(cfg, stage, args.artifacts)
     except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
         print(f"bcsdf {args.command}: error: {e}", file=sys.stderr)
         return 2
@@ -48,6 +56,31 @@ def main(argv=None) -> int:
         print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
         return 130
     return 0
+
+
+def _stage_hash(cfg, stage):
+    from .config import BAKE_SECTIONS, FIBER_SECTIONS, TRAIN_SECTIONS
+
+    sections = {"fiber": FIBER_SECTIONS, "bake": BAKE_SECTIONS, "train": TRAIN_SECTIONS,
+                "export": TRAIN_SECTIONS}.get(stage)
+    return None if sections is None else cfg.hash(*sections)  # the report always runs
+
+
+def _stamp_path(cfg, stage, root):
+    from pathlib import Path
+    return Path(root) / cfg.name / stage / ".stage_hash"
+
+
+def _up_to_date(cfg, stage, root) -> bool:
+    h, path = _stage_hash(cfg, stage), _stamp_path(cfg, stage, root)
+    return h is not None and path.exists() and path.read_text().strip() == h
+
+
+def _stamp(cfg, stage, root) -> None:
+    from .io import write_text
+    h = _stage_hash(cfg, stage)
+    if h is not None:
+        write_text(_stamp_path(cfg, stage, root), h + "\n")
 
 
 def _stage(name):

@@ -42,3 +42,28 @@ def test_run_writes_every_stage_and_a_complete_report(tmp_path):
                  "mitsuba"):
         assert word in page
     assert np.isfinite(float(re.search(r"total ([0-9.]+)", page).group(1)))
+
+
+def test_run_skips_up_to_date_stages_and_reruns_what_changed(tmp_path):
+    cfg = tmp_path / "tiny.yaml"
+    data = dict(TINY, train={"models": {"s": [8]}, "epochs": 5, "batch_size": 256})
+    cfg.write_text(yaml.safe_dump(data))
+    art = tmp_path / "art"
+
+    def run(*extra):
+        r = subprocess.run([sys.executable, "-m", "pipeline.cli", "--artifacts", str(art), "run", str(cfg), *extra],
+                           cwd=ROOT, capture_output=True, text=True, timeout=900)
+        assert r.returncode == 0, r.stderr[-2000:]
+        return r.stdout
+    run()
+    table_mtime = (art / "tiny" / "bake" / "bundle_table.npz").stat().st_mtime_ns
+    out = run()
+    for stage in ("fiber", "bake", "train", "export"):
+        assert f"[run] {stage}: up to date, skipped" in out
+    # a training parameter changes: train, export and report rerun, the bake does not
+    data["train"]["epochs"] = 6
+    cfg.write_text(yaml.safe_dump(data))
+    out = run()
+    assert "[run] bake: up to date" in out and "[train]" in out and "[export]" in out and "[report]" in out
+    assert (art / "tiny" / "bake" / "bundle_table.npz").stat().st_mtime_ns == table_mtime
+    assert "[bake]" in run("--force")
