@@ -23,6 +23,9 @@ Estimators
             the fiber at the path's own longitude. The weight factorizes as
             ``A[theta_i, lambda] * B[lambda]``, so a path stores only ``B`` and the
             first bounce, and ``A`` is evaluated once, when the path ends.
+            Bounces 2.. run in Dr.Jit, one fused kernel per bounce (ray cast,
+            sampling, pdf, spectral value, weight, roulette), with the paths compacted
+            after each; the first bounce and the final tally are numpy.
 
 Tallies (per incident azimuth phi_i, normalized by the paths entering the bounding
 width ``2 R_b``): the summed weights and squared weights per output bin, the
@@ -39,6 +42,10 @@ import numpy as np
 from .bundle import Bundle
 from .fiber.base import FiberTable
 from .fiber.sampling import FiberSampler
+
+
+# how a path of the fast estimator ended
+ESCAPED, CAPPED, STOPPED = 1, 2, 3
 
 
 @dataclass
@@ -243,47 +250,19 @@ class Baker:
         # every hit path loses 1 - albedo(theta_i) at its first fiber (expected value)
         tally.absorbed[phi_index] += n * (1 - self._albedo(theta_nodes))
         phi_t = phi_t + np.pi + dphi1
-        theta = theta1.copy()
-        B = np.ones((n, self.n_lambda))
-        absorbed_rest = np.zeros((n, self.n_lambda))
         origin = self.geometry.exit_point(fiber, phi_t, rng.uniform(-1, 1, n))
-        alive = np.arange(n)
-        depth = 1
-        ended_escape, ended_cap = [], []
 
-        # Phase 2: bounce until every path has escaped, been stopped, or hit the cap
-        while len(alive):
-            hit, fib = self.geometry.cast(origin, phi_t)
-            tally.vertices += len(alive)
-            ended_escape.append((alive[~hit], self._bin(phi_t[~hit], theta[~hit], phi_i)))
-            alive, origin, phi_t, theta, fib = alive[hit], origin[hit], phi_t[hit], theta[hit], fib[hit]
-            if depth >= spec.max_bounces:
-                ended_cap.append(alive)
-                break
-            depth += 1
-            m = len(alive)
-            theta_in = -theta
-            theta_out, dphi = self.sampler.sample(theta_in, rng.uniform(size=(5, m)))
-            pdf = self.sampler.pdf(theta_in, theta_out, dphi)
-            f = self.fiber.eval_spectrum(theta_in, theta_out, dphi)
-            absorbed_rest[alive] += B[alive] * (1 - self._albedo(theta_in))
-            B[alive] *= f * (np.cos(theta_out) / np.maximum(pdf, 1e-300))[:, None]
-            if depth > spec.rr_start:
-                q = np.minimum(1.0, B[alive].max(axis=1))
-                survive = rng.uniform(size=m) < q
-                B[alive[survive]] /= q[survive, None]
-                keep = survive
-            else:
-                keep = np.ones(m, bool)
-            alive, theta_out, dphi, fib, phi_t = alive[keep], theta_out[keep], dphi[keep], fib[keep], phi_t[keep]
-            theta = theta_out
-            phi_t = phi_t + np.pi + dphi
-            origin = self.geometry.exit_point(fib, phi_t, rng.uniform(-1, 1, len(alive)))
+        # Phase 2: bounce in Dr.Jit until every path has escaped, been stopped, or hit the cap
+        final = self._bounce_loop(origin, phi_t, theta1, phi_i, int(rng.integers(2**62)))
+        tally.vertices += final["vertices"]
+        status, bins = final["status"], final["bin"]
+        B, absorbed_rest = final["B"], final["R"]
+        B[status == STOPPED] = 0.0  # roulette victims and failed samples carry no weight on
+        idx_esc = np.flatnonzero(status == ESCAPED)
+        bins = bins[idx_esc]
+        capped = np.flatnonzero(status == CAPPED)
 
         # Phase 3: finalize. A[path, theta_i, lambda] is evaluated once per path.
-        idx_esc = np.concatenate([e[0] for e in ended_escape]) if ended_escape else np.zeros(0, int)
-        bins = np.concatenate([e[1] for e in ended_escape]) if ended_escape else np.zeros(0, int)
-        capped = np.concatenate(ended_cap) if ended_cap else np.zeros(0, int)
         n_bins = spec.n_phi_o * spec.n_theta_o
         sums = np.zeros((n_bins, n_ti, self.n_lambda))
         sums_sq = np.zeros_like(sums)
@@ -307,6 +286,127 @@ class Baker:
         shape = (spec.n_phi_o, spec.n_theta_o, n_ti, self.n_lambda)
         tally.sum[phi_index] += sums.reshape(shape).transpose(2, 0, 1, 3)
         tally.sum_sq[phi_index] += sums_sq.reshape(shape).transpose(2, 0, 1, 3)
+
+    def _bounce_loop(self, origin, phi_t, theta, phi_i, seed) -> dict:
+        """Bounces 2.. of the fast estimator, one fused Dr.Jit kernel per bounce.
+
+        Paths are compacted after every bounce. Each ends ESCAPED (with its output bin),
+        CAPPED (bounce cap) or STOPPED (Russian roulette); its spectral weight ``B`` and the
+        weight it lost to absorption after the first bounce, ``R``, are scattered into
+        per-path arrays and returned as numpy. Random numbers come from a PCG32 stream per
+        path and bounce, so compaction and checkpointing do not change them.
+        """
+        import drjit as dr
+        import mitsuba as mi
+
+        spec, fib, L = self.spec, self._drjit_fiber(), self.n_lambda
+        Float, UInt = mi.Float, mi.UInt32
+        n = len(theta)
+        geo = self.geometry
+        centers_x = Float(self.bundle.centers[:, 0].astype(np.float32))
+        centers_z = Float(self.bundle.centers[:, 1].astype(np.float32))
+        radii = Float(self.bundle.radii.astype(np.float32))
+        shape_to_fiber = UInt(geo.shape_to_fiber.astype(np.uint32))
+
+        pid = dr.arange(UInt, n)
+        ox, oz = Float(origin[:, 0].astype(np.float32)), Float(origin[:, 1].astype(np.float32))
+        phi = Float(np.mod(phi_t, 2 * np.pi).astype(np.float32))
+        th = Float(theta.astype(np.float32))
+        B = [dr.full(Float, 1.0, n) for _ in range(L)]
+        R = [dr.zeros(Float, n) for _ in range(L)]
+        out_B = [dr.zeros(Float, n) for _ in range(L)]
+        out_R = [dr.zeros(Float, n) for _ in range(L)]
+        out_status = dr.zeros(UInt, n)
+        out_bin = dr.zeros(UInt, n)
+        vertices, depth = 0, 1
+        two_pi = 2 * np.pi
+        # values that change between calls are opaque, so that the kernels are compiled once
+        phi_i_opaque = dr.opaque(Float, float(phi_i))
+
+        def finish(mask, code, bins=None):
+            dr.scatter(out_status, UInt(code), pid, mask)
+            for l in range(L):
+                dr.scatter(out_B[l], B[l], pid, mask)
+                dr.scatter(out_R[l], R[l], pid, mask)
+            if bins is not None:
+                dr.scatter(out_bin, bins, pid, mask)
+
+        while dr.width(pid) > 0:
+            m = dr.width(pid)
+            vertices += m
+            sp, cp = dr.sincos(phi)
+            ray = mi.Ray3f(mi.Point3f(ox, 0.0, oz), mi.Vector3f(cp, 0.0, sp))
+            hit_info = geo.scene.ray_intersect_preliminary(ray, coherent=False)
+            hit = hit_info.is_valid()
+            # escaped: tally bin of the travel direction (relative to phi_i for circles)
+            rel = phi - phi_i_opaque if spec.relative_phi else phi
+            rel = rel - two_pi * dr.floor((rel + np.pi) * (1 / two_pi))
+            a = dr.clip(UInt(dr.floor((rel + np.pi) * (spec.n_phi_o / two_pi))), 0, spec.n_phi_o - 1)
+            b = dr.clip(UInt(dr.floor((th + np.pi / 2) * (spec.n_theta_o / np.pi))), 0, spec.n_theta_o - 1)
+            finish(~hit, ESCAPED, a * spec.n_theta_o + b)
+            if depth >= spec.max_bounces:
+                finish(hit, CAPPED)
+                dr.eval(out_status, out_bin, out_B, out_R)
+                break
+            depth += 1
+
+            # scatter at the fiber that was hit
+            rng = mi.PCG32(size=m, initstate=dr.opaque(mi.UInt64, (seed + depth) % 2**63), initseq=mi.UInt64(pid))
+            u = [rng.next_float32() for _ in range(5)]
+            theta_in = -th
+            theta_out, dphi = fib.sample(theta_in, u)
+            pdf = fib.pdf(theta_in, theta_out, dphi)
+            f = fib.eval_spectrum(theta_in, theta_out, dphi)
+            alb = fib.albedo(theta_in)
+            scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
+            valid = hit & (pdf > 0)
+            for l in range(L):
+                R[l] = R[l] + B[l] * (1 - alb[l])
+                B[l] = B[l] * f[l] * scale
+            if depth > spec.rr_start:
+                q = B[0]
+                for l in range(1, L):
+                    q = dr.maximum(q, B[l])
+                q = dr.minimum(q, 1.0)
+                survive = rng.next_float32() < q
+                for l in range(L):
+                    B[l] = B[l] / dr.maximum(q, 1e-30)
+            else:
+                survive = dr.full(mi.Bool, True, m)
+            finish(hit & ~(valid & survive), STOPPED)
+            alive = valid & survive
+
+            # leave the fiber from its surface, offset h across it
+            k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, hit)
+            phi = phi + np.pi + dphi
+            phi = phi - two_pi * dr.floor(phi * (1 / two_pi))
+            s_o, c_o = dr.sincos(phi)
+            h = 2 * rng.next_float32() - 1
+            r = dr.gather(Float, radii, k, hit)
+            along = dr.safe_sqrt(1 - h * h) + 1e-4
+            ox = dr.gather(Float, centers_x, k, hit) + r * (h * s_o + along * c_o)
+            oz = dr.gather(Float, centers_z, k, hit) + r * (-h * c_o + along * s_o)
+            th = theta_out
+
+            # one kernel evaluates the whole bounce; then compact the surviving paths
+            dr.eval(alive, ox, oz, phi, th, B, R, out_status, out_bin, out_B, out_R)
+            idx = dr.compress(alive)
+            pid, ox, oz, phi, th = (dr.gather(type(x), x, idx) for x in (pid, ox, oz, phi, th))
+            B = [dr.gather(Float, x, idx) for x in B]
+            R = [dr.gather(Float, x, idx) for x in R]
+            dr.eval(pid, ox, oz, phi, th, B, R)
+
+        return {"status": out_status.numpy(), "bin": out_bin.numpy().astype(np.int64),
+                "B": np.stack([x.numpy() for x in out_B], -1).astype(np.float64),
+                "R": np.stack([x.numpy() for x in out_R], -1).astype(np.float64), "vertices": vertices}
+
+    def _drjit_fiber(self):
+        if getattr(self, "_dj_fiber", None) is None:
+            import mitsuba as mi
+
+            from .fiber.sampling_drjit import DrJitFiber
+            self._dj_fiber = DrJitFiber(self.fiber, self.sampler, mi.Float)
+        return self._dj_fiber
 
     # -- thesis ----------------------------------------------------------------
     def _trace_thesis(self, tally, phi_index, phi_t, fiber, combo, w, rng):
