@@ -244,9 +244,19 @@ class Baker:
         phi_i = spec.phi_i[phi_index]
 
         # Phase 1: the first bounce, from the mixture over every incident theta_i
+        import drjit as dr
+        import mitsuba as mi
+
+        twin = self._drjit_fiber()
         j = rng.integers(n_ti, size=n)
-        theta1, dphi1 = self.sampler.sample(theta_nodes[j], rng.uniform(size=(5, n)))
-        pdf_mix = np.mean([self.sampler.pdf(np.full(n, t), theta1, dphi1) for t in theta_nodes], axis=0)
+        u = rng.uniform(size=(5, n))
+        theta1_d, dphi1_d = twin.sample(mi.Float(theta_nodes[j].astype(np.float32)), [mi.Float(a) for a in u])
+        pdf_mix_d = twin.pdf(dr.full(mi.Float, float(theta_nodes[0]), n), theta1_d, dphi1_d)
+        for t in theta_nodes[1:]:
+            pdf_mix_d = pdf_mix_d + twin.pdf(dr.full(mi.Float, float(t), n), theta1_d, dphi1_d)
+        dr.eval(theta1_d, dphi1_d, pdf_mix_d)
+        theta1, dphi1 = theta1_d.numpy().astype(np.float64), dphi1_d.numpy().astype(np.float64)
+        pdf_mix = pdf_mix_d.numpy().astype(np.float64) / n_ti
         # every hit path loses 1 - albedo(theta_i) at its first fiber (expected value)
         tally.absorbed[phi_index] += n * (1 - self._albedo(theta_nodes))
         phi_t = phi_t + np.pi + dphi1
@@ -272,9 +282,17 @@ class Baker:
         bin_of[idx_esc] = bins
         is_capped = np.zeros(n, bool)
         is_capped[capped] = True
-        for lo in range(0, n, 8192):
-            sl = slice(lo, min(n, lo + 8192))
-            A = self.fiber.eval_spectrum(theta_nodes[None, :], theta1[sl, None], dphi1[sl, None])
+        chunk = 65536
+        for lo in range(0, n, chunk):
+            sl = slice(lo, min(n, lo + chunk))
+            m = sl.stop - sl.start
+            th1, dp1 = mi.Float(theta1[sl].astype(np.float32)), mi.Float(dphi1[sl].astype(np.float32))
+            A = []
+            for t in theta_nodes:  # f(theta_i, theta_1, dphi_1) for every incidence, in Dr.Jit
+                values = twin.eval_spectrum(dr.full(mi.Float, float(t), m), th1, dp1)
+                dr.eval(values)
+                A.append(np.stack([v.numpy() for v in values], -1))
+            A = np.stack(A, 1).astype(np.float64)  # [path, theta_i, lambda]
             A *= (np.cos(theta1[sl]) / np.maximum(pdf_mix[sl], 1e-300))[:, None, None]
             tally.absorbed[phi_index] += np.einsum("pjl,pl->jl", A, absorbed_rest[sl])
             W = A * B[sl, None, :]
@@ -453,7 +471,9 @@ class Baker:
 
 
 def _scatter_add(target, rows, values):
-    """``target[rows[k]] += values[k]`` for 2D+ values, as one bincount."""
-    inner = int(np.prod(values.shape[1:]))
-    flat = (rows[:, None] * inner + np.arange(inner)[None, :]).ravel()
-    target.reshape(-1)[:] += np.bincount(flat, values.reshape(-1), target.size)
+    """``target[rows[k]] += values[k]`` for 2D+ values, as a sparse matrix product."""
+    from scipy import sparse
+
+    k = len(rows)
+    one_hot = sparse.csr_matrix((np.ones(k), (rows, np.arange(k))), shape=(target.shape[0], k))
+    target += (one_hot @ values.reshape(k, -1)).reshape(target.shape)
