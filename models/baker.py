@@ -293,7 +293,8 @@ class Baker:
                 dr.eval(values)
                 A.append(np.stack([v.numpy() for v in values], -1))
             A = np.stack(A, 1).astype(np.float64)  # [path, theta_i, lambda]
-            A *= (np.cos(theta1[sl]) / np.maximum(pdf_mix[sl], 1e-300))[:, None, None]
+            # a sample whose mixture pdf rounds to zero carries no weight (never seen in tests)
+            A *= np.where(pdf_mix[sl] > 0, np.cos(theta1[sl]) / np.maximum(pdf_mix[sl], 1e-300), 0.0)[:, None, None]
             tally.absorbed[phi_index] += np.einsum("pjl,pl->jl", A, absorbed_rest[sl])
             W = A * B[sl, None, :]
             tally.lost[phi_index] += W[is_capped[sl]].sum(axis=0)

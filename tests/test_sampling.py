@@ -84,8 +84,8 @@ def test_drjit_twin_matches_numpy(table, mi_llvm):
     assert same.mean() > 0.9995  # float32 against float64 only moves samples at cell edges
     pdf_d = twin.pdf(mi.Float(th), mi.Float(to_d), mi.Float(dp_d)).numpy()
     pdf_n = sampler.pdf(th, to_d, dp_d)
-    close = np.abs(pdf_d - pdf_n) <= 1e-3 * np.maximum(pdf_n, 1e-3 * pdf_n.max())
-    assert close.mean() > 0.9995  # the rest sit on a cell edge (float32 vs float64 cell index)
+    # samples stay EDGE inside their cell, so float32 and float64 agree on the cell everywhere
+    assert np.all(np.abs(pdf_d - pdf_n) <= 1e-3 * np.maximum(pdf_n, 1e-3 * pdf_n.max()))
     f_d = np.stack([a.numpy() for a in twin.eval_spectrum(mi.Float(th), mi.Float(to_d), mi.Float(dp_d))], -1)
     f_n = table.eval_spectrum(th, to_d, dp_d)
     assert np.mean(np.abs(f_d - f_n) <= 1e-3 * np.abs(f_n).max()) > 0.999

@@ -26,6 +26,9 @@ import numpy as np
 from .base import FiberTable, _linear
 
 _FLOOR = 1e-12
+# Keep samples this fraction of a cell away from its edges, so that float32 rounding of
+# the sampled angle cannot move it into a neighbouring cell (whose pdf may be zero).
+EDGE = 1e-3
 
 
 class FiberSampler:
@@ -82,14 +85,14 @@ class FiberSampler:
                 n_phi = len(self.table.phi)
                 a, c = np.divmod(k, n_phi)
                 s0, s1 = np.sin(self.table.theta_o[a]), np.sin(self.table.theta_o[a + 1])
-                theta_o[sel] = sign[sel] * np.arcsin(s0 + u[3][sel] * (s1 - s0))
-                dphi[sel] = self.table.phi[c] + u[4][sel] * self.dphi
+                theta_o[sel] = sign[sel] * np.arcsin(s0 + np.clip(u[3][sel], EDGE, 1 - EDGE) * (s1 - s0))
+                dphi[sel] = self.table.phi[c] + np.clip(u[4][sel], EDGE, 1 - EDGE) * self.dphi
             else:
                 theta_o[sel] = sample_longitudinal(lobe.longitudinal, theta_i[sel], u[3][sel], u[4][sel])
                 # the phi uniform is reused: cell chosen by u[2], position by its remainder
                 lo = np.where(k > 0, self.cdf[p][node[sel] * n_cells + k - 1] - node[sel], 0.0)
                 hi = self.cdf[p][node[sel] * n_cells + k] - node[sel]
-                frac = np.clip((u[2][sel] - lo) / np.maximum(hi - lo, _FLOOR), 0, 1)
+                frac = np.clip((u[2][sel] - lo) / np.maximum(hi - lo, _FLOOR), EDGE, 1 - EDGE)
                 dphi[sel] = self.table.phi[k] + frac * self.dphi
         return theta_o, np.mod(dphi + np.pi, 2 * np.pi) - np.pi
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import FiberTable
-from .sampling import FiberSampler
+from .sampling import EDGE, FiberSampler
 
 
 def i0e(x):
@@ -189,7 +189,7 @@ class DrJitFiber:
         local = k - row_start
         lo = dr.select(local > 0, dr.gather(self.Float, self.cdf, k - 1, local > 0), 0.0)
         hi = dr.gather(self.Float, self.cdf, k)
-        frac = dr.clip((u[2] - lo) / dr.maximum(hi - lo, 1e-12), 0.0, 1.0)
+        frac = dr.clip((u[2] - lo) / dr.maximum(hi - lo, 1e-12), EDGE, 1 - EDGE)
 
         theta_o = dr.zeros(self.Float, dr.width(theta_i))
         dphi = dr.zeros(self.Float, dr.width(theta_i))
@@ -200,8 +200,8 @@ class DrJitFiber:
                 c = local - a * self.n_phi
                 s0 = dr.gather(self.Float, self.sin_theta_o, a)
                 s1 = dr.gather(self.Float, self.sin_theta_o, a + 1)
-                th = sign * dr.safe_asin(s0 + u[3] * (s1 - s0))
-                ph = self.phi0 + (self.Float(c) + u[4]) * self.dphi
+                th = sign * dr.safe_asin(s0 + dr.clip(u[3], EDGE, 1 - EDGE) * (s1 - s0))
+                ph = self.phi0 + (self.Float(c) + dr.clip(u[4], EDGE, 1 - EDGE)) * self.dphi
             else:
                 th = sample_longitudinal(lb.longitudinal, theta_i, u[3], u[4])
                 ph = self.phi0 + (self.Float(local) + frac) * self.dphi
