@@ -200,5 +200,13 @@ th {{ background: #f3f3f3; }} pre {{ background: #f7f7f7; padding: 1em; overflow
 <h1>Fiber bundle scattering: {html.escape(name)}</h1>
 <ol>{toc}</ol>
 {body}
+<script>
+// self-check for headless browsers: how many pictures, how many failed to load
+window.addEventListener("load", () => {{
+  const imgs = Array.from(document.images);
+  document.body.dataset.images = imgs.length;
+  document.body.dataset.broken = imgs.filter(i => !i.complete || i.naturalWidth === 0).length;
+}});
+</script>
 </body></html>
 """

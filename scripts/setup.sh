@@ -15,6 +15,14 @@ if ! ls /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1 && ! ls /usr/lib/libLLVM-19.so
 fi
 
 extras="${BCSDF_EXTRAS:-train,onnx,test}"
+# The tests open the HTML report in headless Chromium
+if [[ "$extras" == *test* ]] && ! command -v chromium >/dev/null 2>&1; then
+    echo "[setup] installing chromium (report test)"
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    export DEBIAN_FRONTEND=noninteractive
+    $SUDO apt-get install -y -q chromium >/dev/null 2>&1 || {
+        $SUDO apt-get update -q >/dev/null && $SUDO apt-get install -y -q chromium >/dev/null; }
+fi
 stamp=".venv/.installed-${extras//,/-}"
 if [ ! -x .venv/bin/python ]; then
     echo "[setup] creating .venv"

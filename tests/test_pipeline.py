@@ -67,3 +67,27 @@ def test_run_skips_up_to_date_stages_and_reruns_what_changed(tmp_path):
     assert "[run] bake: up to date" in out and "[train]" in out and "[export]" in out and "[report]" in out
     assert (art / "tiny" / "bake" / "bundle_table.npz").stat().st_mtime_ns == table_mtime
     assert "[bake]" in run("--force")
+
+
+def test_report_loads_in_headless_chromium(tmp_path):
+    """The page loads in a real browser and every picture it references is shown."""
+    import shutil
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    assert chromium, "chromium is installed by scripts/setup.sh for the tests"
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(dict(TINY, train={"models": {"s": [8]}, "epochs": 3, "batch_size": 256})))
+    art = tmp_path / "art"
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "--artifacts", str(art), "run", str(cfg)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    page = art / "tiny" / "report" / "index.html"
+    r = subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                        "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                        f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=10000", "--dump-dom",
+                        page.as_uri()], capture_output=True, text=True, timeout=120)
+    dom = r.stdout
+    images = re.search(r'data-images="(\d+)"', dom)
+    broken = re.search(r'data-broken="(\d+)"', dom)
+    assert images and broken, dom[-1000:] + r.stderr[-1000:]
+    assert int(images.group(1)) >= 12 and int(broken.group(1)) == 0
