@@ -104,6 +104,9 @@ def plot_energy(theta_i, wavelength, energy, ext, path, model_name) -> None:
         if ext is not None:
             axes[0, 1].plot(np.rad2deg(theta_i), ext[:, j], color=c, lw=1)
     axes[0, 0].set(xlabel="theta_i [deg]", ylabel="albedo = integral f d omega_o", title=f"{model_name}: energy")
+    lo, hi = float(np.min(energy)), float(np.max(energy))
+    if hi - lo < 0.02:  # a lossless fiber: show float rounding as the flat line it is
+        axes[0, 0].set_ylim(lo - 0.01, hi + 0.01)
     if ext is not None:
         axes[0, 1].set(xlabel="theta_i [deg]", ylabel="Q_ext / sin(zeta)", title="extinction per geometric hit")
     fig.tight_layout()
