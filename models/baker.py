@@ -198,12 +198,6 @@ class Baker:
         self.geometry = BundleScene(bundle)
         self.sampler = FiberSampler(fiber)
         self.n_lambda = len(fiber.wavelength)
-        self._albedo_nodes = fiber.energy()
-
-    def _albedo(self, theta):
-        from .fiber.base import _linear
-        i0, i1, w = _linear(self.fiber.theta_i, np.abs(theta))
-        return (1 - w)[:, None] * self._albedo_nodes[i0] + w[:, None] * self._albedo_nodes[i1]
 
     def _bin(self, phi_travel, theta, phi_i):
         spec = self.spec
@@ -258,7 +252,7 @@ class Baker:
         theta1, dphi1 = theta1_d.numpy().astype(np.float64), dphi1_d.numpy().astype(np.float64)
         pdf_mix = pdf_mix_d.numpy().astype(np.float64) / n_ti
         # every hit path loses 1 - albedo(theta_i) at its first fiber (expected value)
-        tally.absorbed[phi_index] += n * (1 - self._albedo(theta_nodes))
+        tally.absorbed[phi_index] += n * (1 - self.fiber.albedo(theta_nodes))
         phi_t = phi_t + np.pi + dphi1
         origin = self.geometry.exit_point(fiber, phi_t, rng.uniform(-1, 1, n))
 
@@ -445,7 +439,7 @@ class Baker:
             theta_out = rng.uniform(-np.pi / 2, np.pi / 2, m)
             dphi = rng.uniform(-np.pi, np.pi, m)
             f = self.fiber.eval_spectrum(theta_in, theta_out, dphi, lambda_index=lam[alive])
-            alb = self._albedo(theta_in)[np.arange(m), lam[alive]]
+            alb = self.fiber.albedo(theta_in)[np.arange(m), lam[alive]]
             np.add.at(tally.absorbed[phi_index], (j[alive], lam[alive]), w * (1 - alb))
             w = w * f * np.cos(theta_out) * 2 * np.pi**2
             phi_t = phi_t + np.pi + dphi

@@ -29,15 +29,13 @@ import yaml
 
 def median_rel_error(tally, spec, bins=None, fraction=0.9):
     from pipeline.bake import tally_to_table
+    from pipeline.train import energy_bins
 
     t = tally_to_table(tally, spec, _FIBER, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
     v = t.values.astype(float)
     e = t.stderr.astype(float)
     if bins is None:
-        energy = (v * t.solid_angle[None, None, :, :, None]).ravel()
-        order = np.argsort(energy)[::-1]
-        k = np.searchsorted(np.cumsum(energy[order]) / energy.sum(), fraction) + 1
-        bins = order[:k]
+        bins = energy_bins(v * t.solid_angle[None, None, :, :, None], fraction)
     rel = np.where(v.ravel()[bins] > 0, e.ravel()[bins] / np.maximum(v.ravel()[bins], 1e-300), 1.0)
     return float(np.median(rel)), bins
 

@@ -86,6 +86,7 @@ class FiberTable:
     wavelength: np.ndarray
     lobes: list[Lobe]
     meta: dict = field(default_factory=dict)
+    _energy: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     # -- evaluation --------------------------------------------------------
     def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength) -> np.ndarray:
@@ -139,7 +140,7 @@ class FiberTable:
         """
         i0, i1, w = _linear(self.theta_i, np.abs(np.asarray(theta_i, dtype=np.float64)))
         E = self.energy()
-        return (1 - w)[..., None] * E[i0] + w[..., None] * E[i1]
+        return (1 - w)[..., None] * E[i0] + w[..., None] * E[i1]  # [..., n_lambda]
 
     # -- energy ------------------------------------------------------------
     def energy(self) -> np.ndarray:
@@ -147,8 +148,11 @@ class FiberTable:
 
         Exact for the tabulated function: ``M`` integrates to one, ``N`` is
         integrated with the periodic trapezoid rule (its own linear interpolant),
-        dense lobes also over theta_o with the cosine.
+        dense lobes also over theta_o with the cosine. Computed once (tables are not
+        changed after construction) and returned read-only.
         """
+        if self._energy is not None:
+            return self._energy
         total = np.zeros((len(self.theta_i), len(self.wavelength)))
         dphi = 2 * np.pi / len(self.phi)
         for lobe in self.lobes:
@@ -158,6 +162,8 @@ class FiberTable:
                 total += np.einsum("ioj,o->ij", per_theta_o, w)
             else:
                 total += per_theta_o[:, 0, :]
+        total.flags.writeable = False
+        self._energy = total
         return total
 
     # -- storage -----------------------------------------------------------
