@@ -61,6 +61,7 @@ class OnnxMLP:
     def __init__(self, path, threads: int = 0):
         import onnxruntime as ort
 
+        self.path = str(path)
         options = ort.SessionOptions()
         if threads:
             options.intra_op_num_threads = threads

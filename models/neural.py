@@ -27,7 +27,7 @@ fold queries.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -47,6 +47,8 @@ class NeuralSpec:
     config_hash: str
     reductions: dict
     cone_scale: float = 4.0
+    passthrough: list = field(default_factory=list)       # P_pass at the phi_i nodes below
+    passthrough_phi_i: list = field(default_factory=list)  # radians, uniform over 2 pi
     format: str = FORMAT
 
     @property

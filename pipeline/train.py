@@ -80,7 +80,8 @@ def run(cfg, out_root="artifacts") -> Path:
     for name, hidden in c.models.items():
         spec = NeuralSpec(relative_phi=relative, hidden=list(hidden), s0=s0, y_max=1.5 * y_top + 1.0,
                           wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
-                          config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"])
+                          config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"],
+                          passthrough=table.passthrough.tolist(), passthrough_phi_i=table.phi_i.tolist())
         x, y, sigma_y, S, E = table_dataset(table, spec)
         if train_idx is None:
             train_idx, val_idx = split_bins(len(x), c.val_fraction, c.seed)

@@ -8,3 +8,18 @@ def mi_llvm():
 
     mi.set_variant("llvm_ad_rgb")
     return mi
+
+
+@pytest.fixture(scope="session")
+def trained(tmp_path_factory):
+    """Two small MLPs trained and exported from a synthetic table (passthrough 0.3)."""
+    from pipeline import export as export_stage
+    from pipeline import train as train_stage
+    from tests.synthetic import make_config, synthetic_table
+
+    tmp = tmp_path_factory.mktemp("neural")
+    cfg = make_config(tmp)
+    synthetic_table(cfg, tmp / "n" / "bake" / "bundle_table.npz", passthrough=0.3)
+    train_stage.run(cfg, tmp)
+    export_stage.run(cfg, tmp)
+    return cfg, tmp

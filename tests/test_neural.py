@@ -11,56 +11,8 @@ import yaml
 from models.bundle_table import BundleTable
 from pipeline import export as export_stage
 from pipeline import train as train_stage
-from pipeline.config import BAKE_SECTIONS, load_config
-
-WL = [450.0, 550.0, 650.0]
-
-
-def synthetic_table(cfg, path, relative=True, dynamic_range=1e5):
-    theta_i = np.deg2rad(np.arange(0, 91, 15.0))
-    phi_i = np.zeros(1) if relative else np.deg2rad([0.0, 45.0, 90.0])
-    pe, te = np.linspace(-np.pi, np.pi, 37), np.linspace(-np.pi / 2, np.pi / 2, 19)
-    pc, tc = 0.5 * (pe[1:] + pe[:-1]), 0.5 * (te[1:] + te[:-1])
-    PI, TI, PO, TO = np.meshgrid(phi_i, theta_i, pc, tc, indexing="ij")
-    ridge = np.exp(-(((np.sin(TO) + np.sin(TI)) / 0.12) ** 2))
-    lobe = 0.6 + 0.4 * np.cos(PO - (0 if relative else PI))
-    spectral = np.array([0.6, 0.8, 1.0])
-    S = (1.0 / dynamic_range + ridge * lobe)[..., None] * spectral
-    rng = np.random.default_rng(0)
-    E = 0.01 * S
-    S = S + E * rng.standard_normal(S.shape)
-    shape_pi = (len(phi_i), len(theta_i), len(WL))
-    table = BundleTable(
-        values=S.astype(np.float32), stderr=E.astype(np.float32), passthrough=np.zeros(len(phi_i)),
-        passthrough_stderr=np.zeros(len(phi_i)), absorbed=np.zeros(shape_pi), lost=np.zeros(shape_pi),
-        phi_i=phi_i, theta_i=theta_i, phi_o_edges=pe, theta_o_edges=te, wavelength=np.array(WL),
-        meta={"reductions": {"theta_i": "mirror", "phi_i": "rotation" if relative else None,
-                             "phi_o": "relative" if relative else "absolute"},
-              "config_hash": cfg.hash(*BAKE_SECTIONS)})
-    table.save(path)
-    return table
-
-
-def make_config(tmp_path, name="n", **train):
-    cfg = {"name": name, "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
-           "fiber": {"model": "isotropic"},
-           "bundle": {"shape": "circle", "radius_um": 100},
-           "train": {"models": {"tiny": [16, 16], "wide": [32, 32, 32]}, "epochs": 60, "batch_size": 512,
-                     "patience": 60, **train}}
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return load_config(path)
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("neural")
-    cfg = make_config(tmp)
-    synthetic_table(cfg, tmp / "n" / "bake" / "bundle_table.npz")
-    train_stage.run(cfg, tmp)
-    export_stage.run(cfg, tmp)
-    return cfg, tmp
-
+from pipeline.config import load_config
+from tests.synthetic import WL, make_config, synthetic_table
 
 def reference(tmp, name):
     import torch

@@ -1,0 +1,179 @@
+"""The three ways the ``fiber_bundle`` BSDF evaluates ``S``: table, ONNX, jitted MLP.
+
+Each backend answers the same three questions for Dr.Jit arrays of bundle-frame
+angles (radians):
+
+* ``eval(phi_i, theta_i, phi_o, theta_o)`` -> list of ``n_lambda`` arrays, ``S`` in 1/sr;
+* ``passthrough(phi_i)`` -> the probability that a ray crosses the bundle untouched;
+* ``sampling_grid(Float)`` -> a :class:`~mitsuba_ext.sampling.DirectionGrid` to
+  importance-sample outgoing directions.
+
+The table backend samples from its own bins. The neural backends have no table at
+render time: they tabulate their own output on a coarse grid when the BSDF is built
+(a few tens of thousands of evaluations), so sampling follows the model itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mitsuba_ext.sampling import DirectionGrid
+
+BACKENDS = ("table", "mlp", "onnx")
+
+
+def _periodic_linear(Float, values, nodes, phi):
+    """Periodic linear interpolation of ``values`` at uniform ``nodes`` (radians)."""
+    import drjit as dr
+
+    values = np.asarray(values, np.float32)
+    if len(values) == 1:
+        return Float(float(values[0])) + dr.zeros(Float, dr.width(phi))
+    n = len(values)
+    t = (phi - float(nodes[0])) * (n / (2 * np.pi))
+    t = t - dr.floor(t / n) * n
+    UInt = dr.uint32_array_t(Float)
+    i0 = UInt(dr.clip(dr.floor(t), 0, n - 1))
+    i1 = dr.select(i0 + 1 >= n, 0, i0 + 1)
+    w = t - dr.floor(t)
+    arr = Float(values)
+    return dr.lerp(dr.gather(Float, arr, i0), dr.gather(Float, arr, i1), w)
+
+
+class TableBackend:
+    """Multilinear (or nearest) lookup of an expanded bundle table."""
+
+    name = "table"
+
+    def __init__(self, table_path, Float, lookup: str = "linear"):
+        from mitsuba_ext.table import DrJitTable
+        from models.bundle_table import BundleTable
+
+        self.Float = Float
+        self.table = BundleTable.load(table_path, expand=True)
+        self.lookup = lookup
+        self.dj = DrJitTable(self.table, Float)
+        self.wavelength = np.asarray(self.table.wavelength, float)
+        self.relative = self.dj.relative
+        self.nbytes = self.dj.nbytes
+
+    def eval(self, phi_i, theta_i, phi_o, theta_o):
+        return self.dj.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup)
+
+    def passthrough(self, phi_i):
+        return _periodic_linear(self.Float, self.table.passthrough, self.table.phi_i, phi_i)
+
+    def sampling_grid(self, uniform: float):
+        t = self.table
+        mass = t.values.astype(np.float64).mean(-1) * t.solid_angle  # energy per bin
+        return DirectionGrid(mass, t.phi_i, t.theta_i, t.phi_o_edges, t.theta_o_edges,
+                             self.relative, self.Float, uniform)
+
+
+class _NeuralBackend:
+    """Shared by the two neural backends: metadata, passthrough, self-tabulated sampling."""
+
+    def _init_spec(self, spec, Float):
+        if not spec.passthrough:
+            raise ValueError("this model was exported without its passthrough probability; "
+                             "re-run `bcsdf train` and `bcsdf export`")
+        self.Float = Float
+        self.spec = spec
+        self.wavelength = np.asarray(spec.wavelength, float)
+        self.relative = spec.relative_phi
+
+    def passthrough(self, phi_i):
+        return _periodic_linear(self.Float, self.spec.passthrough, self.spec.passthrough_phi_i, phi_i)
+
+    def sampling_grid(self, uniform: float, n_phi: int = 72, n_theta: int = 36, n_theta_i: int = 37):
+        """Tabulate the model's mean over wavelengths at cell centres (2 x 2 per cell)."""
+        import drjit as dr
+
+        phi_i = np.asarray(self.spec.passthrough_phi_i if not self.relative else [0.0], float)
+        theta_i = np.linspace(-np.pi / 2, np.pi / 2, n_theta_i)
+        phi_edges = np.linspace(-np.pi, np.pi, n_phi + 1)
+        theta_edges = np.linspace(-np.pi / 2, np.pi / 2, n_theta + 1)
+        sub = np.array([0.25, 0.75])
+        po = (phi_edges[:-1, None] + sub[None, :] * np.diff(phi_edges)[:, None]).ravel()
+        to = (theta_edges[:-1, None] + sub[None, :] * np.diff(theta_edges)[:, None]).ravel()
+        PI, TI, PO, TO = np.meshgrid(phi_i, theta_i, po, to, indexing="ij")
+        absolute_po = PO + (PI if self.relative else 0.0)
+        S = self.eval(*(self.Float(a.ravel().astype(np.float32)) for a in (PI, TI, absolute_po, TO)))
+        mean = np.mean([np.asarray(dr.detach(s)) for s in S], 0).reshape(PI.shape)
+        mean = mean.reshape(len(phi_i), n_theta_i, n_phi, 2, n_theta, 2).mean((3, 5))
+        solid = np.outer(np.diff(phi_edges), np.diff(np.sin(theta_edges)))
+        return DirectionGrid(np.maximum(mean, 0) * solid, phi_i, theta_i, phi_edges, theta_edges,
+                             self.relative, self.Float, uniform)
+
+
+class MLPBackend(_NeuralBackend):
+    """The MLP as Dr.Jit arithmetic with literal weights, fused into the render kernel."""
+
+    name = "mlp"
+
+    def __init__(self, weights_path, Float):
+        from mitsuba_ext.neural import DrJitMLP
+
+        self.mlp = DrJitMLP(weights_path)
+        self._init_spec(self.mlp.spec, Float)
+        self.nbytes = self.mlp.nbytes
+
+    def eval(self, phi_i, theta_i, phi_o, theta_o):
+        return self.mlp.eval(phi_i, theta_i, phi_o, theta_o)
+
+
+class OnnxBackend(_NeuralBackend):
+    """The ONNX model on onnxruntime: Dr.Jit arrays are evaluated and handed over as numpy.
+
+    Needs Dr.Jit's evaluated mode (``dr.set_flag(dr.JitFlag.SymbolicLoops, False)`` and
+    ``dr.set_flag(dr.JitFlag.SymbolicCalls, False)``), checked on every call.
+    """
+
+    name = "onnx"
+
+    def __init__(self, onnx_path, Float, threads: int = 0):
+        from mitsuba_ext.neural import OnnxMLP
+
+        self.model = OnnxMLP(onnx_path, threads=threads)
+        self._init_spec(self.model.spec, Float)
+        self.nbytes = int(sum(np.prod(i.dims) * 4 for i in self._initializers()))
+
+    def _initializers(self):
+        import onnx
+
+        return onnx.load(self.model.path).graph.initializer
+
+    def eval(self, phi_i, theta_i, phi_o, theta_o):
+        import drjit as dr
+
+        if dr.flag(dr.JitFlag.SymbolicLoops) or dr.flag(dr.JitFlag.SymbolicCalls):
+            raise RuntimeError("the onnx backend needs Dr.Jit's evaluated mode: call "
+                               "dr.set_flag(dr.JitFlag.SymbolicLoops, False) and "
+                               "dr.set_flag(dr.JitFlag.SymbolicCalls, False) before rendering")
+        n = dr.width(phi_i)
+        args = [a if dr.width(a) == n else a + dr.zeros(self.Float, n) for a in (phi_i, theta_i, phi_o, theta_o)]
+        dr.eval(*args)
+        out = self.model.eval(*(np.asarray(a, np.float32) for a in args))  # [n, n_lambda]
+        return [self.Float(np.ascontiguousarray(out[:, k])) for k in range(out.shape[1])]
+
+
+def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "linear"):
+    """Build the backend ``kind`` ('table', 'mlp' or 'onnx') from its file."""
+    if kind not in BACKENDS:
+        raise ValueError(f"fiber_bundle: backend {kind!r}; use one of {', '.join(BACKENDS)}")
+    if kind == "table":
+        if not table:
+            raise ValueError("fiber_bundle: backend 'table' needs the parameter 'table' "
+                             "(a bundle_table.npz written by `bcsdf bake`)")
+        return TableBackend(table, Float, lookup)
+    if not model:
+        what = "weights.npz" if kind == "mlp" else "model.onnx"
+        raise ValueError(f"fiber_bundle: backend {kind!r} needs the parameter 'model' "
+                         f"(a {what} written by `bcsdf export`)")
+    if kind == "mlp":
+        if str(model).endswith(".onnx"):
+            raise ValueError(f"fiber_bundle: backend 'mlp' reads weights.npz, got {model}")
+        return MLPBackend(model, Float)
+    if not str(model).endswith(".onnx"):
+        raise ValueError(f"fiber_bundle: backend 'onnx' reads model.onnx, got {model}")
+    return OnnxBackend(model, Float)

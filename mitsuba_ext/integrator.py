@@ -1,0 +1,275 @@
+"""The ``bundle_path`` integrator: Mitsuba's ``path`` plus what fiber bundles need.
+
+Call :func:`mitsuba_ext.register` after ``mi.set_variant`` to make it available.
+"""
+
+from __future__ import annotations
+
+
+# -- small pure functions ----------------------------------------------------------
+def mis_weight(pdf_a, pdf_b):
+    """Power heuristic, as Mitsuba's ``path`` (zero where undefined)."""
+    import drjit as dr
+
+    a, b = dr.square(pdf_a), dr.square(pdf_b)
+    w = a / (a + b)
+    return dr.detach(dr.select(dr.isfinite(w), w, 0.0))
+
+
+def bundle_axis(si):
+    """Unit tangent and in-plane outward normal of a bundle hit (``None``-safe: finite)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    t = si.sh_frame.t
+    ok = dr.isfinite(dr.sum(t)) & (dr.squared_norm(t) > 0.25) & dr.isfinite(dr.sum(si.n))
+    t = dr.select(ok, dr.normalize(t), mi.Vector3f(0, 1, 0))
+    n_perp = si.n - dr.dot(si.n, t) * t
+    ok &= dr.squared_norm(n_perp) > 1e-8
+    return t, dr.select(ok, dr.normalize(n_perp), mi.Vector3f(0, 0, 1)), ok
+
+
+def displaced_exit(si, r, h, w):
+    """Where light scattered into ``w`` leaves a bundle of radius ``r`` (thesis 3.3).
+
+    A ray in direction ``w``, shifted sideways from the bundle's axis by ``h r`` along
+    the side vector ``t x w``, leaves the bounding cylinder at
+    ``c + r (h s + sqrt(1 - h^2) o)`` in the cross-section of the hit (``c`` the axis
+    point, ``o`` the direction of ``w`` in that plane). Fibers are parallel and the
+    table knows no axial displacement, so the exit stays in the hit's cross-section.
+    Returns the exit point and its outward radial direction (for the ray offset).
+    """
+    import drjit as dr
+
+    t, n_perp, ok = bundle_axis(si)
+    c = si.p - r * n_perp
+    w_perp = w - dr.dot(w, t) * t
+    ok &= dr.squared_norm(w_perp) > 1e-10
+    o = dr.normalize(w_perp)
+    s = dr.cross(t, o)
+    radial = h * s + dr.safe_sqrt(1.0 - dr.square(h)) * o
+    p = c + r * radial
+    ok &= r > 0
+    return dr.select(ok, p, si.p), dr.select(ok, radial, si.n)
+
+
+def offset_ray(p, n, d, maxt=None):
+    """A ray from ``p`` pushed off its surface along ``n`` (Mitsuba's spawn offset)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    eps = (1.0 + dr.max(dr.abs(p))) * mi.math.RayEpsilon
+    o = p + dr.mulsign(n, dr.dot(n, d)) * eps
+    ray = mi.Ray3f(o, d)
+    if maxt is not None:
+        ray.maxt = maxt
+    return ray
+
+
+def integrator_class():
+    """The ``bundle_path`` plugin class for the active Mitsuba variant."""
+    import drjit as dr
+    import mitsuba as mi
+
+    class BundlePathIntegrator(mi.SamplingIntegrator):
+        r"""Bundle path tracer (``bundle_path``)
+        -------------------------------------
+
+        Mitsuba's ``path`` integrator (next-event estimation, multiple importance
+        sampling, Russian roulette) with the two special cases of ``fiber_bundle``
+        surfaces (any BSDF with a ``passthrough`` attribute):
+
+        * **passthrough**: the BSDF's null lobe continues the ray in the same direction;
+          the far wall of the bundle is crossed as a null interface. Passthrough events
+          do not count as bounces and leave the MIS state of the last real vertex alone.
+          Shadow rays cross bundles with transmittance ``P_pass`` (``path`` would treat
+          them as opaque and find those paths by BSDF sampling only).
+        * **displaced exit**: scattered light, and the shadow ray of next-event
+          estimation, leave from :func:`displaced_exit`, with ``h`` uniform in [-1, 1].
+          The radius is the BSDF's ``radius`` if given, otherwise measured by a ray
+          from the hit through the bundle (works on ``cylinder`` shapes).
+
+        On scenes without bundles it is ``path``, sample for sample.
+
+        .. list-table::
+           :header-rows: 1
+
+           * - Parameter
+             - Description
+           * - max_depth
+             - Longest path (bounces; passthrough events excluded). Default -1: no limit.
+           * - rr_depth
+             - Depth at which Russian roulette starts (default 5).
+           * - displaced_exit
+             - Leave bundles from the displaced exit point (default ``true``).
+           * - max_passes
+             - Most bundle crossings of one path or shadow ray (default 64).
+
+        .. code-block:: python
+
+            mi.set_variant("llvm_ad_rgb"); mitsuba_ext.register()
+            scene = mi.load_dict({..., "integrator": {"type": "bundle_path", "max_depth": 32}})
+        """
+
+        def __init__(self, props):
+            super().__init__(props)
+            max_depth = props.get("max_depth", -1)
+            if max_depth < -1:
+                raise ValueError("bundle_path: max_depth must be -1 (no limit) or >= 0")
+            self.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
+            self.rr_depth = int(props.get("rr_depth", 5))
+            if self.rr_depth <= 0:
+                raise ValueError("bundle_path: rr_depth must be > 0")
+            self.displace = bool(props.get("displaced_exit", True))
+            self.max_passes = int(props.get("max_passes", 64))
+
+        # -- helpers ----------------------------------------------------------
+        def _radius(self, scene, si, bsdf, active):
+            """Bundle radius at a hit: the BSDF's ``radius``, or measured across the shape."""
+            r = bsdf.eval_attribute_1("radius", si, active)
+            need = active & (r <= 0)
+            _, n_perp, _ = bundle_axis(si)
+            probe = offset_ray(si.p, -n_perp, -n_perp)
+            si_far = scene.ray_intersect(probe, need)
+            measured = dr.select(need & si_far.is_valid() & (si_far.shape == si.shape), 0.5 * si_far.t, 0.0)
+            return dr.select(need, measured, r)
+
+        def _transmittance(self, scene, ray, active):
+            """Fraction of light crossing ``ray``: product of ``P_pass`` of the bundles on it."""
+            T = dr.select(active, mi.Float(1.0), 0.0)
+            steps = mi.UInt32(0)
+
+            def cond(ray, T, steps, active):
+                return active
+
+            def body(ray, T, steps, active):
+                si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=False, active=active)
+                hit = active & si.is_valid()
+                bsdf = si.bsdf()
+                bundle = hit & bsdf.has_attribute("passthrough", hit)
+                P = bsdf.eval_attribute_1("passthrough", si, bundle)
+                T = dr.select(hit, dr.select(bundle, T * P, 0.0), T)
+                steps += 1
+                active = bundle & (T > 0) & (steps < self.max_passes)
+                nxt = si.spawn_ray(ray.d)
+                nxt.maxt = ray.maxt - si.t
+                ray = dr.select(active, nxt, ray)
+                return ray, T, steps, active
+
+            _, T, _, _ = dr.while_loop((ray, T, steps, active), cond, body, label="bundle_shadow")
+            return T
+
+        # -- the integrator ---------------------------------------------------
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            ctx = mi.BSDFContext()
+
+            # ---------------------- loop state ----------------------
+            ray = mi.Ray3f(ray)
+            throughput = mi.Spectrum(1.0)
+            result = mi.Spectrum(0.0)
+            eta = mi.Float(1.0)
+            depth = mi.UInt32(0)
+            passes = mi.UInt32(0)
+            valid_ray = mi.Bool(scene.environment() is not None)
+            prev_si = dr.zeros(mi.Interaction3f)
+            prev_bsdf_pdf = mi.Float(1.0)
+            prev_bsdf_delta = mi.Bool(True)
+            active = mi.Bool(active)
+
+            def cond(sampler, ray, throughput, result, eta, depth, passes, valid_ray,
+                     prev_si, prev_bsdf_pdf, prev_bsdf_delta, active):
+                return active
+
+            def body(sampler, ray, throughput, result, eta, depth, passes, valid_ray,
+                     prev_si, prev_bsdf_pdf, prev_bsdf_delta, active):
+                si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0), active=active)
+
+                # ------------------ direct emission ------------------
+                ds = mi.DirectionSample3f(scene, si, prev_si)
+                em_pdf = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta)
+                em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
+                mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf)
+                emitted = ds.emitter.eval(si, active & (prev_bsdf_pdf > 0))
+                result = dr.select(active, dr.fma(throughput, emitted * mis_bsdf, result), result)
+
+                active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
+                bsdf = si.bsdf(ray)
+
+                # ------------- bundle hit: exit offset and radius -------------
+                bundle = active_next & bsdf.has_attribute("passthrough", active_next)
+                if self.displace:
+                    h = 2.0 * sampler.next_1d(bundle) - 1.0
+                    radius = self._radius(scene, si, bsdf, bundle)
+                else:
+                    h, radius = mi.Float(0.0), mi.Float(0.0)
+
+                # ------------------ emitter sampling ------------------
+                active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(active_em), False, active_em)
+                active_em &= ds.pdf != 0.0
+                shadow = si.spawn_ray_to(ds.p)
+                if self.displace:
+                    p_exit, radial = displaced_exit(si, radius, h, ds.d)
+                    dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
+                    d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
+                    moved = offset_ray(p_exit, radial, d_exit, dist * (1.0 - mi.math.ShadowEpsilon))
+                    shadow = dr.select(bundle & (radius > 0), moved, shadow)
+                T = self._transmittance(scene, shadow, active_em)
+                wo = si.to_local(ds.d)
+
+                # ------------- BSDF evaluation and sampling -------------
+                sample_1 = sampler.next_1d(active_next)
+                sample_2 = sampler.next_2d(active_next)
+                bsdf_val, bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_next)
+                mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+                result = dr.select(active_em, dr.fma(throughput, bsdf_val * em_weight * T * mis_em, result), result)
+
+                # ------------------ the next ray ------------------
+                passed = active_next & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+                wo_world = si.to_world(bs.wo)
+                next_ray = si.spawn_ray(wo_world)
+                if self.displace:
+                    p_exit, radial = displaced_exit(si, radius, h, wo_world)
+                    moved = offset_ray(p_exit, radial, wo_world)
+                    next_ray = dr.select(bundle & ~passed & (radius > 0), moved, next_ray)
+                ray = dr.select(active_next, next_ray, ray)
+
+                throughput = dr.select(active_next, throughput * bsdf_weight, throughput)
+                eta = dr.select(active_next, eta * bs.eta, eta)
+                valid_ray |= active & si.is_valid() & ~passed
+
+                # passthrough keeps the last real vertex for MIS
+                real = active_next & ~passed
+                prev_si = dr.select(real, mi.Interaction3f(si), prev_si)
+                prev_bsdf_pdf = dr.select(real, bs.pdf, prev_bsdf_pdf)
+                prev_bsdf_delta = dr.select(real, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
+                                            prev_bsdf_delta)
+                depth = dr.select(real, depth + 1, depth)
+                passes = dr.select(passed, passes + 1, passes)
+
+                # ------------------ stopping criterion ------------------
+                throughput_max = dr.max(mi.unpolarized_spectrum(throughput))
+                rr_prob = dr.minimum(throughput_max * dr.square(eta), 0.95)
+                rr_active = (depth >= self.rr_depth) & ~passed
+                rr_continue = sampler.next_1d(active_next) < rr_prob
+                throughput = dr.select(active_next & rr_active, throughput * dr.rcp(rr_prob), throughput)
+                active = (active_next & (~rr_active | rr_continue) & (throughput_max != 0.0)
+                          & (passes <= self.max_passes))
+                return (sampler, ray, throughput, result, eta, depth, passes, valid_ray,
+                        prev_si, prev_bsdf_pdf, prev_bsdf_delta, active)
+
+            state = dr.while_loop(
+                (sampler, ray, throughput, result, eta, depth, passes, valid_ray,
+                 prev_si, prev_bsdf_pdf, prev_bsdf_delta, active),
+                cond, body, label="bundle_path")
+            result, valid_ray = state[3], state[7]
+            result = dr.select(dr.isfinite(dr.sum(mi.unpolarized_spectrum(result))), result, 0.0)
+            return dr.select(valid_ray, result, 0.0), valid_ray, []
+
+        def aov_names(self):
+            return []
+
+        def to_string(self):
+            return f"BundlePathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
+
+    return BundlePathIntegrator
