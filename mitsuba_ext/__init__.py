@@ -1,4 +1,4 @@
-"""Mitsuba 3 plugins for fiber bundles: the ``fiber_bundle`` BSDF and ``bundle_path``.
+"""Mitsuba 3 plugins for fiber bundles: BSDFs ``fiber_bundle`` and ``fiber_table``, integrator ``bundle_path``.
 
 Usage, after choosing a variant at your entry point::
 
@@ -13,14 +13,15 @@ again after switching variants.
 
 
 def register() -> None:
-    """Register ``fiber_bundle`` and ``bundle_path`` for the active Mitsuba variant."""
+    """Register ``fiber_bundle``, ``fiber_table`` and ``bundle_path`` for the active Mitsuba variant."""
     import mitsuba as mi
 
     if mi.variant() is None:
         raise RuntimeError("mitsuba_ext.register(): choose a variant first, e.g. mi.set_variant('llvm_ad_rgb')")
-    from mitsuba_ext.bsdf import bsdf_class
+    from mitsuba_ext.bsdf import bsdf_classes
     from mitsuba_ext.integrator import integrator_class
 
-    bsdf, integrator = bsdf_class(), integrator_class()
-    mi.register_bsdf("fiber_bundle", lambda props: bsdf(props))
+    for name, cls in bsdf_classes().items():
+        mi.register_bsdf(name, lambda props, cls=cls: cls(props))
+    integrator = integrator_class()
     mi.register_integrator("bundle_path", lambda props: integrator(props))

@@ -126,7 +126,8 @@ class OnnxBackend(_NeuralBackend):
     """The ONNX model on onnxruntime: Dr.Jit arrays are evaluated and handed over as numpy.
 
     Needs Dr.Jit's evaluated mode (``dr.set_flag(dr.JitFlag.SymbolicLoops, False)`` and
-    ``dr.set_flag(dr.JitFlag.SymbolicCalls, False)``), checked on every call.
+    ``dr.set_flag(dr.JitFlag.SymbolicCalls, False)``) when rendering: a call from inside a
+    symbolic loop or call is refused with that advice.
     """
 
     name = "onnx"
@@ -146,7 +147,7 @@ class OnnxBackend(_NeuralBackend):
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         import drjit as dr
 
-        if dr.flag(dr.JitFlag.SymbolicLoops) or dr.flag(dr.JitFlag.SymbolicCalls):
+        if dr.flag(dr.JitFlag.SymbolicScope):  # inside a recorded loop or call: no numpy here
             raise RuntimeError("the onnx backend needs Dr.Jit's evaluated mode: call "
                                "dr.set_flag(dr.JitFlag.SymbolicLoops, False) and "
                                "dr.set_flag(dr.JitFlag.SymbolicCalls, False) before rendering")

@@ -1,8 +1,9 @@
-"""The ``fiber_bundle`` BSDF: a baked or neural bundle scattering function on a curve.
+"""BSDFs on curves: ``fiber_bundle`` (a baked or neural bundle) and ``fiber_table``
+(one fiber's tabulated model, for explicit-fiber ground truth renders).
 
-Call :func:`mitsuba_ext.register` after ``mi.set_variant`` to make it available;
-the class is built for the active variant (Mitsuba's Python plugins derive from the
-variant's ``mi.BSDF``).
+Call :func:`mitsuba_ext.register` after ``mi.set_variant`` to make them available;
+the classes are built for the active variant (Mitsuba's Python plugins derive from
+the variant's ``mi.BSDF``).
 """
 
 from __future__ import annotations
@@ -82,12 +83,92 @@ def spectral_weights(wavelength_nm, variant_kind: str, mono_nm=None) -> np.ndarr
     return Y[None, :]
 
 
-def bsdf_class():
-    """The ``fiber_bundle`` plugin class for the active Mitsuba variant."""
+def split_uniform(u, bits: int = 12):
+    """Two uniforms from one: its top ``bits`` bits and the remaining fraction."""
+    import drjit as dr
+
+    scaled = u * float(1 << bits)
+    hi = dr.floor(scaled)
+    return hi * (1.0 / (1 << bits)), scaled - hi
+
+
+def bsdf_classes() -> dict:
+    """``{"fiber_bundle": ..., "fiber_table": ...}`` plugin classes for the active variant."""
     import drjit as dr
     import mitsuba as mi
 
-    class FiberBundleBSDF(mi.BSDF):
+    class CurveBSDF(mi.BSDF):
+        """What both plugins share: the curve frame, spectra, inside hits, attributes."""
+
+        def _init_curve(self, props, wavelength):
+            def get(name, default):
+                return props.get(name, default)
+
+            self.twist = float(np.radians(get("twist", 0.0)))
+            self.twist_rate = float(np.radians(get("twist_rate", 0.0)))
+            up = np.asarray(get("up", [0.0, 0.0, 1.0]), float).ravel()
+            if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) == 0:
+                raise ValueError(f"{self.plugin}: 'up' must be a non-zero 3-vector, got {up}")
+            self.up = [float(v) for v in up / np.linalg.norm(up)]
+            self.radius = float(get("radius", 0.0))
+
+            # how the table's wavelengths become this variant's Spectrum
+            self.wavelength = wl = np.asarray(wavelength, float)
+            if mi.is_spectral:
+                if len(wl) < 2:
+                    raise ValueError(f"{self.plugin}: the table holds one wavelength ({wl[0]:.0f} nm); a spectral "
+                                     "variant needs a spectrum: re-bake with more wavelengths or render in a mono variant")
+                step = np.diff(wl)
+                if not np.allclose(step, step[0], rtol=1e-4):
+                    raise ValueError(f"{self.plugin}: spectral variants need evenly spaced table wavelengths")
+                self.weights = None
+            else:
+                kind = "rgb" if mi.is_rgb else "mono"
+                mono_nm = float(props["wavelength"]) if "wavelength" in props else None
+                self.weights = spectral_weights(wl, kind, mono_nm).tolist()
+
+        def _spectrum(self, S, si):
+            """Table spectrum (list over lambda) -> this variant's unpolarized Spectrum."""
+            if self.weights is not None:
+                chans = []
+                for row in self.weights:
+                    acc = mi.Float(0.0)
+                    for w, s in zip(row, S):
+                        if w != 0.0:
+                            acc = dr.fma(s, w, acc)
+                    chans.append(acc)
+                return mi.UnpolarizedSpectrum(*chans) if len(chans) > 1 else mi.UnpolarizedSpectrum(chans[0])
+            wl = self.wavelength
+            lam0, step, n = float(wl[0]), float(wl[1] - wl[0]), len(wl)
+            # hat functions of linear interpolation, held constant beyond the ends
+            t = dr.clip((si.wavelengths - lam0) / step, 0.0, float(n - 1))
+            out = dr.zeros(mi.UnpolarizedSpectrum, dr.width(t))
+            for k, s in enumerate(S):
+                out += s * dr.maximum(0.0, 1.0 - dr.abs(t - k))
+            return dr.select(dr.isfinite(out), dr.maximum(out, 0.0), 0.0)
+
+        def _setup(self, si):
+            """Curve frame, incident angles and whether the ray arrived from inside."""
+            frame = bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
+            phi_i, theta_i = angles(si.to_world(si.wi), frame)
+            inside = mi.Frame3f.cos_theta(si.wi) < 0.0
+            return frame, phi_i, theta_i, inside
+
+        def _passthrough(self, si, phi_i, inside):
+            return dr.select(inside, 1.0, 0.0)
+
+        def eval_attribute_1(self, name, si, active=True):
+            if name == "passthrough":
+                _, phi_i, _, inside = self._setup(si)
+                return self._passthrough(si, phi_i, inside)
+            if name == "radius":
+                return dr.zeros(mi.Float, dr.width(si.t)) + self.radius
+            return dr.zeros(mi.Float, dr.width(si.t))
+
+        def has_attribute(self, name, active=True):
+            return name in ("passthrough", "radius")
+
+    class FiberBundleBSDF(CurveBSDF):
         r"""Fiber bundle BSDF (``fiber_bundle``)
         -------------------------------------
 
@@ -141,92 +222,35 @@ def bsdf_class():
                                  "model": "artifacts/default/export/medium/weights.npz"})
         """
 
+        plugin = "fiber_bundle"
+
         def __init__(self, props):
             super().__init__(props)
-
-            def get(name, default):
-                return props.get(name, default)
-
-            # -- backend and its sampling distribution
-            self.backend = load_backend(get("backend", "table"), mi.Float, table=get("table", None),
-                                        model=get("model", None), lookup=get("lookup", "linear"))
-            self.grid = self.backend.sampling_grid(float(get("sampling_uniform", 0.1)))
-            self.use_passthrough = bool(get("passthrough", True))
-            self.twist = float(np.radians(get("twist", 0.0)))
-            self.twist_rate = float(np.radians(get("twist_rate", 0.0)))
-            up = np.asarray(get("up", [0.0, 0.0, 1.0]), float).ravel()
-            if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) == 0:
-                raise ValueError(f"fiber_bundle: 'up' must be a non-zero 3-vector, got {up}")
-            self.up = [float(v) for v in up / np.linalg.norm(up)]
-            self.radius = float(get("radius", 0.0))
-
-            # -- spectra: how the table's wavelengths become this variant's Spectrum
-            wl = self.backend.wavelength
-            if mi.is_spectral:
-                step = np.diff(wl)
-                if len(wl) > 1 and not np.allclose(step, step[0], rtol=1e-4):
-                    raise ValueError("fiber_bundle: spectral variants need evenly spaced table wavelengths")
-                self.weights = None
-            else:
-                kind = "rgb" if mi.is_rgb else "mono"
-                mono_nm = float(props["wavelength"]) if "wavelength" in props else None
-                self.weights = spectral_weights(wl, kind, mono_nm).tolist()
-
+            self.backend = load_backend(props.get("backend", "table"), mi.Float, table=props.get("table", None),
+                                        model=props.get("model", None), lookup=props.get("lookup", "linear"))
+            self.grid = self.backend.sampling_grid(float(props.get("sampling_uniform", 0.1)))
+            self.use_passthrough = bool(props.get("passthrough", True))
+            self._init_curve(props, self.backend.wavelength)
             scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
                        mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide | mi.BSDFFlags.NonSymmetric)
             passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
             self.m_components = [scatter, passing]
             self.m_flags = scatter | passing
 
-        # -- pieces ----------------------------------------------------------
-        def _frame(self, si):
-            return bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
-
-        def _spectrum(self, S, si):
-            """Table spectrum (list over lambda) -> this variant's unpolarized Spectrum."""
-            if self.weights is not None:
-                chans = []
-                for row in self.weights:
-                    acc = mi.Float(0.0)
-                    for w, s in zip(row, S):
-                        if w != 0.0:
-                            acc = dr.fma(s, w, acc)
-                    chans.append(acc)
-                return mi.UnpolarizedSpectrum(*chans) if len(chans) > 1 else mi.UnpolarizedSpectrum(chans[0])
-            wl = self.backend.wavelength
-            lam0, step, n = float(wl[0]), float(wl[1] - wl[0]) if len(wl) > 1 else 1.0, len(wl)
-            # hat functions of linear interpolation, held constant beyond the ends
-            t = dr.clip((si.wavelengths - lam0) / step, 0.0, float(n - 1))
-            out = dr.zeros(mi.UnpolarizedSpectrum, dr.width(t))
-            for k, s in enumerate(S):
-                out += s * dr.maximum(0.0, 1.0 - dr.abs(t - k))
-            return out
-
         def _passthrough(self, si, phi_i, inside):
             if not self.use_passthrough:
                 return dr.select(inside, 1.0, 0.0)
             return dr.select(inside, 1.0, dr.clip(self.backend.passthrough(phi_i), 0.0, 1.0))
 
-        def _setup(self, si):
-            """Bundle frame, incident angles and whether the ray arrived from inside."""
-            frame = self._frame(si)
-            wi = si.to_world(si.wi)
-            phi_i, theta_i = angles(wi, frame)
-            inside = mi.Frame3f.cos_theta(si.wi) < 0.0
-            return frame, phi_i, theta_i, inside
-
         def _value(self, si, frame, phi_i, theta_i, wo_world):
             phi_o, theta_o = angles(wo_world, frame)
-            S = self.backend.eval(phi_i, theta_i, phi_o, theta_o)
-            value = self._spectrum(S, si)
-            return dr.select(dr.isfinite(value), dr.maximum(value, 0.0), 0.0), phi_o, theta_o
+            return self._spectrum(self.backend.eval(phi_i, theta_i, phi_o, theta_o), si)
 
         # -- the BSDF interface ---------------------------------------------
         def eval(self, ctx, si, wo, active=True):
             frame, phi_i, theta_i, inside = self._setup(si)
-            value, _, _ = self._value(si, frame, phi_i, theta_i, si.to_world(wo))
-            enabled = ctx.is_enabled(mi.BSDFFlags.Glossy, 0)
-            return dr.select(active & ~inside & enabled, value, 0.0)
+            value = self._value(si, frame, phi_i, theta_i, si.to_world(wo))
+            return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), value, 0.0)
 
         def pdf(self, ctx, si, wo, active=True):
             frame, phi_i, theta_i, inside = self._setup(si)
@@ -248,7 +272,7 @@ def bsdf_class():
             u_mix = (sample1 - P) / dr.maximum(1.0 - P, 1e-12)
             phi_o, theta_o, pdf_dir = self.grid.sample(phi_i, theta_i, u_mix, sample2)
             wo_world = direction(phi_o, theta_o, frame)
-            value, _, _ = self._value(si, frame, phi_i, theta_i, wo_world)
+            value = self._value(si, frame, phi_i, theta_i, wo_world)
 
             bs = dr.zeros(mi.BSDFSample3f)
             bs.wo = dr.select(passes, -si.wi, si.to_local(wo_world))
@@ -261,19 +285,75 @@ def bsdf_class():
             ok = active & (bs.pdf > 0)
             return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
 
-        def eval_attribute_1(self, name, si, active=True):
-            if name == "passthrough":
-                _, phi_i, _, inside = self._setup(si)
-                return self._passthrough(si, phi_i, inside)
-            if name == "radius":
-                return dr.zeros(mi.Float, dr.width(si.t)) + self.radius
-            return dr.zeros(mi.Float, dr.width(si.t))
-
-        def has_attribute(self, name, active=True):
-            return name in ("passthrough", "radius")
-
         def to_string(self):
-            return (f"FiberBundleBSDF[backend={self.backend.name}, wavelengths={len(self.backend.wavelength)}, "
+            return (f"FiberBundleBSDF[backend={self.backend.name}, wavelengths={len(self.wavelength)}, "
                     f"passthrough={self.use_passthrough}]")
 
-    return FiberBundleBSDF
+    class FiberTableBSDF(CurveBSDF):
+        r"""Single fiber BSDF (``fiber_table``)
+        ------------------------------------
+
+        One fiber's tabulated scattering model (a ``fiber_table.npz`` from ``bcsdf fiber``)
+        on a ``cylinder`` or ``bsplinecurve`` of the fiber's radius: the ground truth that a
+        bundle BSDF is compared with, with every fiber of a ply as its own shape. ``eval``
+        is the far-field (offset-averaged) fiber function, cosine included, as Mitsuba's
+        ``hair``; sampling follows the table's own importance sampler (the baker's).
+        With ``bundle_path`` the light leaves the fiber from the displaced exit point,
+        as in the baker. Parameters: ``filename`` (the table), ``radius`` (scene units,
+        for curves), ``wavelength`` (mono variants).
+        """
+
+        plugin = "fiber_table"
+
+        def __init__(self, props):
+            super().__init__(props)
+            from models.fiber.base import FiberTable
+            from models.fiber.sampling import FiberSampler
+            from models.fiber.sampling_drjit import DrJitFiber
+
+            if "filename" not in props:
+                raise ValueError("fiber_table: needs 'filename' (a fiber_table.npz written by `bcsdf fiber`)")
+            table = FiberTable.load(props["filename"])
+            self.fiber = DrJitFiber(table, FiberSampler(table), mi.Float)
+            self._init_curve(props, table.wavelength)
+            flags = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
+                     mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
+            self.m_components = [flags]
+            self.m_flags = flags
+
+        def _angles(self, si, wo_world):
+            frame, phi_i, theta_i, inside = self._setup(si)
+            phi_o, theta_o = angles(wo_world, frame)
+            dphi = phi_o - phi_i
+            return theta_i, theta_o, dphi - 2 * np.pi * dr.floor((dphi + np.pi) / (2 * np.pi)), inside
+
+        def eval(self, ctx, si, wo, active=True):
+            theta_i, theta_o, dphi, inside = self._angles(si, si.to_world(wo))
+            value = self._spectrum(self.fiber.eval_spectrum(theta_i, theta_o, dphi), si)
+            return dr.select(active & ~inside, value, 0.0)
+
+        def pdf(self, ctx, si, wo, active=True):
+            theta_i, theta_o, dphi, inside = self._angles(si, si.to_world(wo))
+            return dr.select(active & ~inside, self.fiber.pdf(theta_i, theta_o, dphi), 0.0)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            frame, phi_i, theta_i, inside = self._setup(si)
+            u0, u1 = split_uniform(sample1)
+            u3, u4 = split_uniform(sample2.y)
+            theta_o, dphi = self.fiber.sample(theta_i, [u0, u1, sample2.x, u3, u4])
+            wo_world = direction(phi_i + dphi, theta_o, frame)
+            pdf = self.fiber.pdf(theta_i, theta_o, dphi)
+            value = self._spectrum(self.fiber.eval_spectrum(theta_i, theta_o, dphi), si)
+            bs = dr.zeros(mi.BSDFSample3f)
+            bs.wo = si.to_local(wo_world)
+            bs.pdf = pdf
+            bs.eta = 1.0
+            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyTransmission)
+            ok = active & ~inside & (pdf > 0)
+            weight = value / dr.maximum(pdf, 1e-20)
+            return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
+
+        def to_string(self):
+            return f"FiberTableBSDF[wavelengths={len(self.wavelength)}]"
+
+    return {"fiber_bundle": FiberBundleBSDF, "fiber_table": FiberTableBSDF}

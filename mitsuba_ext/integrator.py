@@ -53,14 +53,18 @@ def displaced_exit(si, r, h, w):
     return dr.select(ok, p, si.p), dr.select(ok, radial, si.n)
 
 
-def offset_ray(p, n, d, maxt=None):
-    """A ray from ``p`` pushed off its surface along ``n`` (Mitsuba's spawn offset)."""
+def offset_ray(p, n, d, wavelengths, maxt=None):
+    """A ray from ``p`` pushed off its surface along ``n`` (Mitsuba's spawn offset).
+
+    It carries the path's ``wavelengths``: a spectral ray without them sees every
+    emitter at 0 nm, i.e. black.
+    """
     import drjit as dr
     import mitsuba as mi
 
     eps = (1.0 + dr.max(dr.abs(p))) * mi.math.RayEpsilon
     o = p + dr.mulsign(n, dr.dot(n, d)) * eps
-    ray = mi.Ray3f(o, d)
+    ray = mi.Ray3f(o, d, 0.0, wavelengths)
     if maxt is not None:
         ray.maxt = maxt
     return ray
@@ -129,7 +133,7 @@ def integrator_class():
             r = bsdf.eval_attribute_1("radius", si, active)
             need = active & (r <= 0)
             _, n_perp, _ = bundle_axis(si)
-            probe = offset_ray(si.p, -n_perp, -n_perp)
+            probe = offset_ray(si.p, -n_perp, -n_perp, si.wavelengths)
             si_far = scene.ray_intersect(probe, need)
             measured = dr.select(need & si_far.is_valid() & (si_far.shape == si.shape), 0.5 * si_far.t, 0.0)
             return dr.select(need, measured, r)
@@ -212,7 +216,7 @@ def integrator_class():
                     p_exit, radial = displaced_exit(si, radius, h, ds.d)
                     dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
                     d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
-                    moved = offset_ray(p_exit, radial, d_exit, dist * (1.0 - mi.math.ShadowEpsilon))
+                    moved = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
                     shadow = dr.select(bundle & (radius > 0), moved, shadow)
                 T = self._transmittance(scene, shadow, active_em)
                 wo = si.to_local(ds.d)
@@ -230,7 +234,7 @@ def integrator_class():
                 next_ray = si.spawn_ray(wo_world)
                 if self.displace:
                     p_exit, radial = displaced_exit(si, radius, h, wo_world)
-                    moved = offset_ray(p_exit, radial, wo_world)
+                    moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
                     next_ray = dr.select(bundle & ~passed & (radius > 0), moved, next_ray)
                 ray = dr.select(active_next, next_ray, ray)
 

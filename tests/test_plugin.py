@@ -236,3 +236,213 @@ def test_passthrough_shadow_transmittance_is_unbiased(mi_plug, tables):
     b = np.array(mi.render(mi.load_dict(scene)))
     assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
     assert abs(a.mean() / b.mean() - 1) < 0.03, (a.mean(), b.mean())
+
+
+@pytest.fixture
+def variant_guard(mi_plug):
+    """Tests that switch variants put the session's variant (and plugins) back."""
+    import drjit as dr
+
+    import mitsuba_ext
+
+    mi = mi_plug
+    before = mi.variant()
+    flags = dr.flag(dr.JitFlag.SymbolicLoops), dr.flag(dr.JitFlag.SymbolicCalls)
+    yield mi
+    dr.set_flag(dr.JitFlag.SymbolicLoops, flags[0])
+    dr.set_flag(dr.JitFlag.SymbolicCalls, flags[1])
+    mi.set_variant(before)
+    mitsuba_ext.register()
+
+
+def lit_cylinder(mi, bsdf, spp=128, res=(32, 24)):
+    """A bundle on a cylinder under a grey sky and a white sun (no colour of their own)."""
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "bundle_path", "max_depth": 8},
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": mi.ScalarTransform4f().look_at([0, 0.5, 4], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res[0], "height": res[1], "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "env": {"type": "constant", "radiance": {"type": "rgb", "value": [0.2, 0.2, 0.2]}},  # D65 white
+        "sun": {"type": "directional", "direction": [-0.4, -0.5, -1], "irradiance": {"type": "rgb", "value": [4.0, 4.0, 4.0]}},
+        "cyl": {"type": "cylinder", "p0": [0, -2, 0], "p1": [0, 2, 0], "radius": 0.6, "bsdf": bsdf}})
+
+
+def test_spectral_render_equals_mono_renders_combined_with_cie(variant_guard, tables):
+    """Mitsuba's spectral variant against the thesis's way: one mono render per table
+    wavelength, combined with CIE 1931 and D65 into sRGB."""
+    import mitsuba_ext
+    from mitsuba_ext.bsdf import spectral_weights
+
+    mi = variant_guard
+    table = BundleTable.load(tables["circle"])
+    bsdf = {"type": "fiber_bundle", "table": str(tables["circle"])}
+    mi.set_variant("llvm_ad_spectral")
+    mitsuba_ext.register()
+    spectral = np.array(mi.render(lit_cylinder(mi, bsdf, spp=512)))[..., :3]
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    monos = np.stack([np.array(mi.render(lit_cylinder(mi, {**bsdf, "wavelength": float(wl)}, spp=512)))[..., 0]
+                      for wl in table.wavelength])
+    combined = np.einsum("ck,khw->hwc", spectral_weights(table.wavelength, "rgb"), monos)
+    assert np.all(np.isfinite(spectral)) and np.all(np.isfinite(combined))
+    cyl = combined[:, 10:22]  # the columns that see the cylinder
+    ratio = spectral[:, 10:22].reshape(-1, 3).mean(0) / cyl.reshape(-1, 3).mean(0)
+    assert np.allclose(ratio, 1.0, atol=0.02), ratio
+    # the fibers do colour the image: red over blue, as the table's spectrum rises with lambda
+    assert spectral[:, 10:22, 0].mean() > 1.1 * spectral[:, 10:22, 2].mean()
+
+
+def test_onnx_and_jitted_mlp_renders_agree(variant_guard, trained):
+    import drjit as dr
+
+    mi = variant_guard
+    _, tmp = trained
+    export = tmp / "n" / "export" / "wide"
+    dr.set_flag(dr.JitFlag.SymbolicLoops, False)  # onnxruntime needs evaluated mode
+    dr.set_flag(dr.JitFlag.SymbolicCalls, False)
+    jit = np.array(mi.render(lit_cylinder(mi, {"type": "fiber_bundle", "backend": "mlp",
+                                               "model": str(export / "weights.npz")})))
+    onnx = np.array(mi.render(lit_cylinder(mi, {"type": "fiber_bundle", "backend": "onnx",
+                                                "model": str(export / "model.onnx")})))
+    assert np.all(np.isfinite(onnx)) and onnx.mean() > 0
+    assert np.allclose(onnx, jit, rtol=1e-4, atol=1e-5 * jit.max()), np.abs(onnx - jit).max()
+
+
+def test_onnx_backend_refuses_symbolic_mode(mi_plug, trained):
+    mi = mi_plug
+    _, tmp = trained
+    with pytest.raises(Exception) as info:
+        mi.render(lit_cylinder(mi, {"type": "fiber_bundle", "backend": "onnx",
+                                    "model": str(tmp / "n/export/wide/model.onnx")}, spp=4, res=(8, 6)))
+    chain, e = [], info.value
+    while e is not None:
+        chain.append(str(e))
+        e = e.__cause__ or e.__context__
+    assert any("evaluated mode" in m for m in chain), chain
+
+
+def test_twist_turns_an_elliptical_cross_section_along_the_curve(mi_plug, tables):
+    """twist_rate winds the major axis with v: v = 1/4 of a 360 deg rate is a 90 deg twist."""
+    mi = mi_plug
+    path = str(tables["ellipse"])
+    winding = mi.load_dict({"type": "fiber_bundle", "table": path, "twist_rate": 360.0})
+    turned = mi.load_dict({"type": "fiber_bundle", "table": path, "twist": 90.0})
+    n = 64
+    rng = np.random.default_rng(2)
+    si = local_si(mi, np.array(wi_of(rng.uniform(-60, 60, n), rng.uniform(10, 170, n))), n)
+    wo = vec(mi, wi_of(rng.uniform(-80, 80, n), rng.uniform(-180, 180, n)))
+    ctx = mi.BSDFContext()
+    si.uv = mi.Point2f(0.5, 0.25)
+    a = np.array(winding.eval(ctx, si, wo))
+    b = np.array(turned.eval(ctx, si, wo))
+    si.uv = mi.Point2f(0.5, 0.0)
+    c = np.array(turned.eval(ctx, si, wo))
+    d = np.array(winding.eval(ctx, si, wo))
+    assert np.allclose(a, b, rtol=1e-4, atol=1e-7)
+    assert not np.allclose(a, d, rtol=0.05)  # the ellipse's table does depend on the twist
+    assert np.allclose(b, c)  # a constant twist does not change with v
+
+
+def curve_file(path, points):
+    path.write_text("\n".join(" ".join(f"{v:.6f}" for v in p) for p in points) + "\n")
+    return str(path)
+
+
+@pytest.mark.parametrize("case", ["curve", "degenerate_tangent", "grazing", "edge"])
+def test_extremes_render_finite_images(mi_plug, tables, tmp_path, case):
+    mi = mi_plug
+    bundle = {"type": "fiber_bundle", "table": str(tables["ellipse"]), "radius": 0.3, "twist_rate": 180.0}
+    if case in ("curve", "degenerate_tangent"):
+        pts = [[np.cos(a) * 0.8, -1.5 + a / 2, np.sin(a) * 0.8, 0.3] for a in np.linspace(0, 6, 10)]
+        if case == "degenerate_tangent":  # repeated control points: zero-length tangent on a segment
+            pts = pts[:4] + [pts[4]] * 4 + pts[5:]
+        shape = {"type": "bsplinecurve", "filename": curve_file(tmp_path / "c.txt", pts), "bsdf": bundle}
+        eye = [0, 0.4, 5]
+    else:
+        shape = {"type": "cylinder", "p0": [0, -1, 0], "p1": [0, 1, 0], "radius": 0.3, "bsdf": bundle}
+        # grazing: nearly along the axis onto the outer wall; edge: the silhouette fills the view
+        eye = [0.6, 3.0, 0.0] if case == "grazing" else [0.29, 0, 4]
+    target = {"grazing": [0, -1, 0], "edge": [0.29, 0, 0]}.get(case, [0, 0, 0])
+    look = mi.ScalarTransform4f().look_at(eye, target, [0, 0, 1] if case == "grazing" else [0, 1, 0])
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "bundle_path", "max_depth": 12},
+        "sensor": {"type": "perspective", "fov": 4 if case == "edge" else 40, "to_world": look,
+                   "film": {"type": "hdrfilm", "width": 24, "height": 24, "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 32}},
+        "env": {"type": "constant", "radiance": {"type": "rgb", "value": [0.3, 0.3, 0.3]}},
+        "sun": {"type": "directional", "direction": [-0.3, -1, -0.6], "irradiance": {"type": "rgb", "value": 3.0}},
+        "shape": shape})
+    img = np.array(mi.render(scene))
+    assert np.all(np.isfinite(img)) and np.all(img >= 0)
+    assert np.abs(img - 0.3).max() > 0.01  # the bundle is visible, not just sky
+
+
+def test_bad_parameters_are_refused_with_clear_errors(mi_plug, tables, trained, tmp_path):
+    mi = mi_plug
+    _, tmp = trained
+    with pytest.raises(Exception, match="backend 'table' needs the parameter 'table'"):
+        mi.load_dict({"type": "fiber_bundle"})
+    with pytest.raises(Exception, match="use one of table, mlp, onnx"):
+        mi.load_dict({"type": "fiber_bundle", "backend": "lut", "table": str(tables["circle"])})
+    with pytest.raises(Exception, match="not a readable bundle table"):
+        bad = tmp_path / "bad.npz"
+        bad.write_bytes(b"not a table")
+        mi.load_dict({"type": "fiber_bundle", "table": str(bad)})
+    with pytest.raises(Exception, match="reads weights.npz"):
+        mi.load_dict({"type": "fiber_bundle", "backend": "mlp", "model": str(tmp / "n/export/wide/model.onnx")})
+    with pytest.raises(Exception, match="'up' must be a non-zero 3-vector"):
+        mi.load_dict({"type": "fiber_bundle", "table": str(tables["circle"]), "up": [0.0, 0.0, 0.0]})
+
+
+def test_wavelengths_outside_the_table(variant_guard, tables):
+    """Mono: a wavelength outside the table is refused; spectral: held at the ends, finite."""
+    import mitsuba_ext
+
+    mi = variant_guard
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    with pytest.raises(Exception, match="outside the table's 450..650 nm"):
+        mi.load_dict({"type": "fiber_bundle", "table": str(tables["circle"]), "wavelength": 380.0})
+    mi.set_variant("llvm_ad_spectral")
+    mitsuba_ext.register()
+    bsdf = mi.load_dict({"type": "fiber_bundle", "table": str(tables["circle"]), "up": [1.0, 0.0, 0.0]})
+    si = local_si(mi, wi_of(10, 90), 1)
+    si.wavelengths = mi.Spectrum(360.0, 450.0, 650.0, 830.0)
+    v = np.array(bsdf.eval(mi.BSDFContext(), si, vec(mi, wi_of(-10, -90)))).ravel()
+    assert np.all(np.isfinite(v)) and v[0] == pytest.approx(v[1]) and v[3] == pytest.approx(v[2])
+
+
+def test_fiber_table_bsdf_matches_mitsuba_hair_on_a_curve(mi_plug, tmp_path):
+    """One fiber seen across its whole width: the tabulated ray model (h-averaged) on a
+    curve sums to the same radiance as Mitsuba's own ``hair`` BSDF on that curve."""
+    from models.fiber.ray import RayFiber
+
+    mi = mi_plug
+    wl = np.array([450.0, 550.0, 650.0])
+    table = RayFiber(wl, [1.55] * 3, [0.0] * 3, 0.3, 0.3, 2.0, n_h=64).tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
+    table.save(tmp_path / "fiber.npz")
+    curve = curve_file(tmp_path / "f.txt", [[x, 0, 0, 0.05] for x in np.linspace(-2, 2, 6)])
+    hair = {"type": "hair", "int_ior": 1.55, "ext_ior": 1.0, "sigma_a": {"type": "rgb", "value": [0, 0, 0]},
+            "longitudinal_roughness": 0.3, "azimuthal_roughness": 0.3, "scale_tilt": 2.0}
+    ours = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz")}
+    sums = []
+    for sun in ([0.2, -0.4, -1.0], [0.3, -0.2, 1.0]):  # front lit (R, TRT) and back lit (TT)
+        for bsdf in (hair, ours):
+            scene = mi.load_dict({
+                "type": "scene", "integrator": {"type": "path", "max_depth": 4},
+                "sensor": {"type": "orthographic",
+                           "to_world": mi.ScalarTransform4f().look_at([0, 0, 5], [0, 0, 0], [0, 1, 0])
+                           @ mi.ScalarTransform4f().scale([1.0, 0.25, 1]),
+                           "film": {"type": "hdrfilm", "width": 32, "height": 64, "rfilter": {"type": "box"}},
+                           "sampler": {"type": "independent", "sample_count": 256}},
+                "sun": {"type": "directional", "direction": sun, "irradiance": {"type": "rgb", "value": 1.0}},
+                "fiber": {"type": "bsplinecurve", "filename": curve, "bsdf": bsdf}})
+            img = np.array(mi.render(scene))
+            assert np.all(np.isfinite(img))
+            sums.append(img[:, 4:28].sum())
+    front_hair, front_ours, back_hair, back_ours = sums
+    print("fiber sums (hair, ours) front / back:", sums)
+    assert front_ours == pytest.approx(front_hair, rel=0.03)
+    assert back_ours == pytest.approx(back_hair, rel=0.03)
+    assert abs(front_hair / back_hair - 1) > 0.1  # the two lightings do differ
