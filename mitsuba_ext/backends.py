@@ -15,6 +15,8 @@ render time: they tabulate their own output on a coarse grid when the BSDF is bu
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from mitsuba_ext.sampling import DirectionGrid
@@ -99,7 +101,8 @@ class _NeuralBackend:
         PI, TI, PO, TO = np.meshgrid(phi_i, theta_i, po, to, indexing="ij")
         absolute_po = PO + (PI if self.relative else 0.0)
         S = self.eval(*(self.Float(a.ravel().astype(np.float32)) for a in (PI, TI, absolute_po, TO)))
-        mean = np.mean([np.asarray(dr.detach(s)) for s in S], 0).reshape(PI.shape)
+        dr.eval(*S)  # one kernel for all wavelengths (each alone would recompute the network)
+        mean = np.mean([np.asarray(s) for s in S], 0).reshape(PI.shape)
         mean = mean.reshape(len(phi_i), n_theta_i, n_phi, 2, n_theta, 2).mean((3, 5))
         solid = np.outer(np.diff(phi_edges), np.diff(np.sin(theta_edges)))
         return DirectionGrid(np.maximum(mean, 0) * solid, phi_i, theta_i, phi_edges, theta_edges,
@@ -137,12 +140,7 @@ class OnnxBackend(_NeuralBackend):
 
         self.model = OnnxMLP(onnx_path, threads=threads)
         self._init_spec(self.model.spec, Float)
-        self.nbytes = int(sum(np.prod(i.dims) * 4 for i in self._initializers()))
-
-    def _initializers(self):
-        import onnx
-
-        return onnx.load(self.model.path).graph.initializer
+        self.nbytes = os.path.getsize(onnx_path)
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         import drjit as dr

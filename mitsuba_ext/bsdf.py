@@ -42,13 +42,18 @@ def bundle_frame(si, up, twist, twist_rate):
 
 
 def angles(w, frame):
-    """``(phi, theta)`` of a world direction in the bundle frame (DESIGN.md conventions)."""
+    """``(phi, theta)`` of a world direction in the bundle frame (DESIGN.md conventions).
+
+    A non-finite direction (a degenerate shading frame) gives (0, 0), never NaN: the
+    angles become table indices, and a NaN index reads out of bounds.
+    """
     import drjit as dr
 
     x, t, z = frame
     theta = dr.safe_asin(dr.clip(dr.dot(w, t), -1.0, 1.0))
     phi = dr.atan2(dr.dot(w, z), dr.dot(w, x))
-    return phi, theta
+    ok = dr.isfinite(theta) & dr.isfinite(phi)
+    return dr.select(ok, phi, 0.0), dr.select(ok, theta, 0.0)
 
 
 def direction(phi, theta, frame):
@@ -150,8 +155,10 @@ def bsdf_classes() -> dict:
         def _setup(self, si):
             """Curve frame, incident angles and whether the ray arrived from inside."""
             frame = bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
-            phi_i, theta_i = angles(si.to_world(si.wi), frame)
-            inside = mi.Frame3f.cos_theta(si.wi) < 0.0
+            wi = si.to_world(si.wi)
+            phi_i, theta_i = angles(wi, frame)
+            # a hit from inside passes; so does one whose frame is degenerate (no direction)
+            inside = (mi.Frame3f.cos_theta(si.wi) < 0.0) | ~dr.isfinite(dr.sum(wi))
             return frame, phi_i, theta_i, inside
 
         def _passthrough(self, si, phi_i, inside):
@@ -316,10 +323,11 @@ def bsdf_classes() -> dict:
             table = FiberTable.load(props["filename"])
             self.fiber = DrJitFiber(table, FiberSampler(table), mi.Float)
             self._init_curve(props, table.wavelength)
-            flags = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
-                     mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
-            self.m_components = [flags]
-            self.m_flags = flags
+            scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
+                       mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
+            passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
+            self.m_components = [scatter, passing]  # passing: only hits from inside the shape
+            self.m_flags = scatter | passing
 
         def _angles(self, si, wo_world):
             frame, phi_i, theta_i, inside = self._setup(si)
@@ -332,9 +340,13 @@ def bsdf_classes() -> dict:
             value = self._spectrum(self.fiber.eval_spectrum(theta_i, theta_o, dphi), si)
             return dr.select(active & ~inside, value, 0.0)
 
+        def _pdf(self, theta_i, theta_o, dphi):
+            """Per steradian: the fiber sampler's density is per d(theta_o) d(phi)."""
+            return self.fiber.pdf(theta_i, theta_o, dphi) / dr.maximum(dr.cos(theta_o), 1e-6)
+
         def pdf(self, ctx, si, wo, active=True):
             theta_i, theta_o, dphi, inside = self._angles(si, si.to_world(wo))
-            return dr.select(active & ~inside, self.fiber.pdf(theta_i, theta_o, dphi), 0.0)
+            return dr.select(active & ~inside, self._pdf(theta_i, theta_o, dphi), 0.0)
 
         def sample(self, ctx, si, sample1, sample2, active=True):
             frame, phi_i, theta_i, inside = self._setup(si)
@@ -342,15 +354,19 @@ def bsdf_classes() -> dict:
             u3, u4 = split_uniform(sample2.y)
             theta_o, dphi = self.fiber.sample(theta_i, [u0, u1, sample2.x, u3, u4])
             wo_world = direction(phi_i + dphi, theta_o, frame)
-            pdf = self.fiber.pdf(theta_i, theta_o, dphi)
+            pdf = self._pdf(theta_i, theta_o, dphi)
             value = self._spectrum(self.fiber.eval_spectrum(theta_i, theta_o, dphi), si)
+            # a ray that meets the fiber's wall from inside crosses it (the light of this
+            # fiber left through its displaced exit point already)
             bs = dr.zeros(mi.BSDFSample3f)
-            bs.wo = si.to_local(wo_world)
-            bs.pdf = pdf
+            bs.wo = dr.select(inside, -si.wi, si.to_local(wo_world))
+            bs.pdf = dr.select(inside, 1.0, pdf)
             bs.eta = 1.0
-            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyTransmission)
-            ok = active & ~inside & (pdf > 0)
-            weight = value / dr.maximum(pdf, 1e-20)
+            bs.sampled_type = dr.select(inside, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
+                                        mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
+            bs.sampled_component = dr.select(inside, mi.UInt32(1), mi.UInt32(0))
+            weight = dr.select(inside, 1.0, value / dr.maximum(pdf, 1e-20))
+            ok = active & (inside | (pdf > 0))
             return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
 
         def to_string(self):

@@ -128,6 +128,10 @@ def integrator_class():
             self.max_passes = int(props.get("max_passes", 64))
 
         # -- helpers ----------------------------------------------------------
+        # what the BSDFs read (UV for the twist, the shading frame for the tangent); the
+        # normal derivatives of RayFlags.All read past the last bsplinecurve segment
+        RAY_FLAGS = mi.RayFlags.UV | mi.RayFlags.dPdUV | mi.RayFlags.ShadingFrame
+
         def _radius(self, scene, si, bsdf, active):
             """Bundle radius at a hit: the BSDF's ``radius``, or measured across the shape."""
             r = bsdf.eval_attribute_1("radius", si, active)
@@ -147,7 +151,7 @@ def integrator_class():
                 return active
 
             def body(ray, T, steps, active):
-                si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=False, active=active)
+                si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=False, active=active)
                 hit = active & si.is_valid()
                 bsdf = si.bsdf()
                 bundle = hit & bsdf.has_attribute("passthrough", hit)
@@ -186,7 +190,7 @@ def integrator_class():
 
             def body(sampler, ray, throughput, result, eta, depth, passes, valid_ray,
                      prev_si, prev_bsdf_pdf, prev_bsdf_delta, active):
-                si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0), active=active)
+                si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=(depth == 0), active=active)
 
                 # ------------------ direct emission ------------------
                 ds = mi.DirectionSample3f(scene, si, prev_si)

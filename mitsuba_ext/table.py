@@ -32,6 +32,7 @@ class DrJitTable:
     def _axis(self, x, grid, periodic):
         import drjit as dr
 
+        x = dr.select(dr.isfinite(x), x, float(grid[0]))  # a NaN must not become an index
         n = len(grid)
         if n == 1:
             zero = self.UInt(0) + dr.zeros(self.UInt, dr.width(x))

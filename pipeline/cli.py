@@ -4,6 +4,7 @@
     bcsdf bake CONFIG      trace the bundle, write the ground-truth table
     bcsdf train CONFIG     fit the MLP sizes of the config to the baked table
     bcsdf export CONFIG    write each trained model as ONNX and as plain weights
+    bcsdf render CONFIG    render the bundle BSDF in Mitsuba: table, ONNX and jitted MLP
     bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
     bcsdf run CONFIG       every stage in order, skipping those that are up to date
                            (their config sections unchanged since they last ran; --force
@@ -18,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-STAGES = ("fiber", "bake", "train", "export", "report")
+STAGES = ("fiber", "bake", "train", "export", "render", "report")
 
 
 def main(argv=None) -> int:
@@ -29,6 +30,7 @@ def main(argv=None) -> int:
                         ("bake", "trace the bundle and write the ground-truth table"),
                         ("train", "fit the neural models to the baked table"),
                         ("export", "write the models as ONNX and plain weights"),
+                        ("render", "render the bundle BSDF in Mitsuba (table, ONNX, jitted MLP)"),
                         ("report", "write the HTML report"),
                         ("run", "run every stage in order")):
         p = sub.add_parser(name, help=help_)
@@ -59,10 +61,10 @@ def main(argv=None) -> int:
 
 
 def _stage_hash(cfg, stage):
-    from .config import BAKE_SECTIONS, FIBER_SECTIONS, TRAIN_SECTIONS
+    from .config import BAKE_SECTIONS, FIBER_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
 
     sections = {"fiber": FIBER_SECTIONS, "bake": BAKE_SECTIONS, "train": TRAIN_SECTIONS,
-                "export": TRAIN_SECTIONS}.get(stage)
+                "export": TRAIN_SECTIONS, "render": RENDER_SECTIONS}.get(stage)
     return None if sections is None else cfg.hash(*sections)  # the report always runs
 
 

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 FIBER_SECTIONS = ("wavelengths", "fiber", "tabulate")
 BAKE_SECTIONS = FIBER_SECTIONS + ("bundle", "bake")
 TRAIN_SECTIONS = BAKE_SECTIONS + ("train",)
+RENDER_SECTIONS = TRAIN_SECTIONS + ("render",)
 
 
 class ConfigError(ValueError):
@@ -218,6 +219,37 @@ class TrainCfg(Strict):
         return v
 
 
+VARIANTS = ("llvm_ad_rgb", "llvm_ad_spectral", "llvm_ad_mono", "cuda_ad_rgb", "cuda_ad_spectral", "cuda_ad_mono",
+            "scalar_rgb", "scalar_spectral")
+
+
+class RenderCfg(Strict):
+    """Mitsuba renders of the bundle BSDF (see pipeline/render.py)."""
+
+    variant: Literal[VARIANTS] = Field("llvm_ad_spectral", description="Mitsuba variant of the renders")
+    scenes: list[Literal["ply", "yarn"]] = Field(default_factory=lambda: ["ply", "yarn"])
+    backends: list[Literal["table", "mlp", "onnx"]] = Field(default_factory=lambda: ["table", "mlp", "onnx"])
+    model: Optional[str] = Field(None, description="trained size for the neural backends (default: the largest)")
+    width: int = Field(256, ge=8, le=8192)
+    height: int = Field(128, ge=8, le=8192)
+    spp: int = Field(64, ge=1, le=1 << 16)
+    max_depth: int = Field(64, ge=1, le=100_000)
+    twist_turns: float = Field(2.0, description="turns of the cross-section along the ply (ellipses)")
+    yarn: str = Field("Polyester 1", description="row of zhao2016_table2.csv for the yarn scene")
+    mono_check: bool = Field(True, description="spectral variant against mono renders per wavelength + CIE")
+    mono_check_size: list[int] = Field(default_factory=lambda: [96, 48])
+    mono_check_spp: int = Field(64, ge=1)
+    explicit: bool = Field(True, description="render the ply with every fiber as its own curve (ground truth)")
+    explicit_spp: int = Field(256, ge=1)
+
+    @field_validator("backends")
+    @classmethod
+    def _backends(cls, v):
+        if not v:
+            raise ValueError("at least one backend is needed, e.g. [table]")
+        return list(dict.fromkeys(v))
+
+
 class ReportCfg(Strict):
     queries: int = Field(200_000, ge=1000, le=10_000_000, description="batch size of the timings")
 
@@ -230,6 +262,7 @@ class Config(Strict):
     bundle: Optional[BundleCfg] = None
     bake: BakeCfg = BakeCfg()
     train: TrainCfg = TrainCfg()
+    render: RenderCfg = RenderCfg()
     report: ReportCfg = ReportCfg()
 
     def hash(self, *sections: str) -> str:

@@ -10,6 +10,19 @@ def mi_llvm():
     return mi
 
 
+@pytest.fixture
+def mi_plugins():
+    """llvm_ad_rgb with the project's plugins registered, set for every test: other
+    stages (the baker) choose their own variant at their entry points."""
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    mi.set_variant("llvm_ad_rgb")
+    mitsuba_ext.register()
+    return mi
+
+
 @pytest.fixture(scope="session")
 def trained(tmp_path_factory):
     """Two small MLPs trained and exported from a synthetic table (passthrough 0.3)."""

@@ -20,6 +20,7 @@ tabulate: {theta_i_step_deg: 15}
 bundle: {shape: circle, radius_um: 20.0, seed: 1}
 bake: {paths_per_phi_i: 20000, batch_paths: 8192, theta_i_step_deg: 30, n_theta_o: 12, n_phi_o: 16}
 train: {models: {s: [8]}, epochs: 5, batch_size: 256}
+render: {width: 24, height: 12, spp: 2, scenes: [ply], mono_check: false, explicit: false}
 report: {queries: 5000}
 """
 
@@ -46,12 +47,12 @@ def test_dvc_repro_reruns_only_what_changed(tmp_path):
         return r.stdout
     assert (repo / ".dvc").is_dir()  # committed: `dvc repro` works on a fresh clone
     out = run("repro")
-    for stage in ("fiber", "bake", "train", "export", "report"):
+    for stage in ("fiber", "bake", "train", "export", "render", "report"):
         assert f"Running stage '{stage}'" in out
     assert (repo / "artifacts" / "tiny" / "report" / "index.html").exists()
     assert "up to date" in run("status")
     (repo / "configs" / "tiny.yaml").write_text(TINY.replace("epochs: 5", "epochs: 6"))
     out = run("repro")
     assert "Stage 'fiber' didn't change" in out and "Stage 'bake' didn't change" in out
-    for stage in ("train", "export", "report"):
+    for stage in ("train", "export", "render", "report"):
         assert f"Running stage '{stage}'" in out

@@ -5,7 +5,7 @@ import pytest
 from scipy import special
 
 from models.fiber import mie
-from tests import mie_reference as ref
+from models.fiber import mie_reference as ref
 
 # (m, x, zeta_deg): the corners of the required domain
 CASES = [

@@ -17,6 +17,8 @@ TINY = {
     "bake": {"paths_per_phi_i": 20000, "batch_paths": 8192, "theta_i_step_deg": 30, "n_theta_o": 12,
              "n_phi_o": 16},
     "train": {"models": {"s": [8], "m": [16, 16]}, "epochs": 20, "batch_size": 256},
+    "render": {"width": 32, "height": 16, "spp": 4, "mono_check_size": [16, 8], "mono_check_spp": 4,
+               "explicit_spp": 4},
     "report": {"queries": 5000},
 }
 
@@ -30,7 +32,8 @@ def test_run_writes_every_stage_and_a_complete_report(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     root = art / "tiny"
     for f in ("fiber/fiber_table.npz", "bake/bundle_table.npz", "train/m/model.pt", "export/m/model.onnx",
-              "export/s/weights.npz", "report/index.html", "report/error_vs_time.png"):
+              "export/s/weights.npz", "render/summary.json", "render/ply_side_by_side.png",
+              "report/index.html", "report/error_vs_time.png"):
         assert (root / f).exists(), f
     page = (root / "report" / "index.html").read_text()
     images = re.findall(r'<img src="([^"]+)"', page)
@@ -65,6 +68,7 @@ def test_run_skips_up_to_date_stages_and_reruns_what_changed(tmp_path):
     cfg.write_text(yaml.safe_dump(data))
     out = run()
     assert "[run] bake: up to date" in out and "[train]" in out and "[export]" in out and "[report]" in out
+    assert "[render]" in out
     assert (art / "tiny" / "bake" / "bundle_table.npz").stat().st_mtime_ns == table_mtime
     assert "[bake]" in run("--force")
 

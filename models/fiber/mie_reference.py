@@ -2,14 +2,15 @@
 
 No recurrences and no logarithmic derivatives: every Bessel function, including
 J_n(eta) of the complex argument, is evaluated directly by mpmath at 40 digits, and
-B&H's eq. (8.30)-(8.33) are used as printed. Slow, so the tests use it at a handful of
-cases only.
+B&H's eq. (8.30)-(8.33) are used as printed. Slow, so the tests and ``bcsdf
+stability`` use it at a handful of cases only. Needs ``mpmath`` (test extra).
 """
-import mpmath as mp
 
 
 def coefficients(m, x, zeta_deg, orders, dps=40):
     """(aI, bI, aII, bII) as lists of complex, at the given orders n."""
+    import mpmath as mp
+
     with mp.workdps(dps):
         m = mp.mpc(m)
         x = mp.mpf(x)

@@ -1,0 +1,75 @@
+"""Render benchmark: the table against every trained MLP size, jitted and through
+onnxruntime, at equal samples, in one run (side by side: these machines are noisy).
+
+    python -m pipeline.bench_render [CONFIG] [--artifacts DIR] [--spp N]
+
+Needs ``bcsdf run CONFIG`` (bake and export) first. Prints, per scene and method, the
+render time of a warm second render, its ratio to the table's, FLIP and PSNR against
+the table's image, and the bytes the backend holds; writes the same as JSON beside
+the render stage's output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .config import load_config
+from .io import write_text
+
+
+def measure(cfg, out_root="artifacts", spp=None) -> dict:
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    from . import render
+
+    r = cfg.render
+    mi.set_variant(r.variant)
+    mitsuba_ext.register()
+    spp = spp or r.spp
+    rows = []
+    for scene in r.scenes:
+        table_props = render.backend_props(cfg, out_root, "table")
+        ref, t_ref, _ = render.render_timed(mi, render._scene(mi, cfg, scene, table_props, spp, Path("/tmp")))
+        exposure = render.exposure_of(ref)
+        rows.append({"scene": scene, "method": "table", "backend": "table", "seconds": t_ref, "time_ratio": 1.0,
+                     "flip": 0.0, "psnr": float("inf"),
+                     "bytes": int(Path(table_props["table"]).stat().st_size)})
+        for size in cfg.train.models:
+            sized = cfg.model_copy(update={"render": r.model_copy(update={"model": size})})
+            for backend in ("mlp", "onnx"):
+                props = render.backend_props(sized, out_root, backend)
+                img, t, _ = render.render_timed(mi, render._scene(mi, sized, scene, props, spp, Path("/tmp")),
+                                                backend)
+                flip, psnr, _ = render.flip_and_psnr(ref, img, exposure)
+                rows.append({"scene": scene, "method": size, "backend": backend, "seconds": t,
+                             "time_ratio": t / t_ref, "flip": flip, "psnr": psnr,
+                             "bytes": int(Path(props["model"]).stat().st_size)})
+    return {"variant": r.variant, "spp": spp, "size": [r.width, r.height], "rows": rows}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("config", nargs="?", default="configs/default.yaml")
+    p.add_argument("--artifacts", default="artifacts")
+    p.add_argument("--spp", type=int, default=None)
+    args = p.parse_args(argv)
+    cfg = load_config(args.config)
+    result = measure(cfg, args.artifacts, args.spp)
+    print(f"{result['variant']}, {result['size'][0]}x{result['size'][1]}, {result['spp']} spp (warm kernels)")
+    print(f"{'scene':6} {'method':8} {'backend':8} {'seconds':>8} {'x table':>8} {'FLIP':>7} {'PSNR':>6} {'bytes':>10}")
+    for row in result["rows"]:
+        print(f"{row['scene']:6} {row['method']:8} {row['backend']:8} {row['seconds']:8.2f} {row['time_ratio']:8.2f} "
+              f"{row['flip']:7.4f} {row['psnr']:6.1f} {row['bytes']:10d}")
+    out = Path(args.artifacts) / cfg.name / "render" / "bench_render.json"
+    write_text(out, json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,107 @@
+"""Scene dictionaries for the render stage (units: millimetres).
+
+* ``ply``: one bundle as a straight cylinder seen from the side, its cross-section
+  winding ``twist_turns`` times along its length (the thesis's Figure 5.8);
+* ``yarn``: ``K`` plies wound helically about the yarn axis (Zhao et al. 2016: ply
+  count, ply radius and pitch from ``zhao2016_table2.csv``), each ply a B-spline
+  curve carrying the bundle BSDF;
+* ``explicit``: the ``ply`` with every fiber of the bake's arrangement as its own
+  cylinder carrying the single-fiber model (``fiber_table``): the ground truth.
+
+All share the lighting: a grey sky and a white sun (``rgb`` emitters, i.e. D65 white
+in spectral variants), so that colour comes only from the fibers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+UM = 1e-3  # micrometres in scene units (mm)
+
+
+def _lights(mi):
+    return {
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.05, 0.05, 0.05]}},
+        "sun": {"type": "directional", "direction": [-0.5, -0.6, -0.8],
+                "irradiance": {"type": "rgb", "value": [3.0, 3.0, 3.0]}},
+    }
+
+
+def _sensor(mi, r, half_width, spp, seed=0):
+    """Perspective camera on +z, 60 deg wide, framing ``half_width`` mm at the origin.
+
+    A far-field BSDF under a sun looks the same wherever the view direction is the
+    same: the perspective sweeps the view along the ply by +-30 deg, so the picture
+    shows the specular cone of the parallel fibers as a highlight.
+    """
+    fov = 60.0
+    distance = half_width / np.tan(np.radians(fov / 2))
+    return {"type": "perspective", "fov": fov, "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f().look_at([0, 0, distance], [0, 0, 0], [0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": r.width, "height": r.height, "rfilter": {"type": "gaussian"},
+                     "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": spp, "seed": seed}}
+
+
+def ply_length(cfg) -> float:
+    return 16 * cfg.bundle.radius_um * UM
+
+
+def _base(mi, cfg, half_width, spp, seed):
+    r = cfg.render
+    return {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": r.max_depth},
+            "sensor": _sensor(mi, r, half_width, spp, seed), **_lights(mi)}
+
+
+def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) -> dict:
+    """The bundle as a cylinder along x; ``bsdf`` is a ``fiber_bundle`` dict."""
+    turns = cfg.render.twist_turns if twist_turns is None else twist_turns
+    L, Rb = ply_length(cfg), cfg.bundle.radius_um * UM
+    scene = _base(mi, cfg, 0.5 * L, spp, seed)
+    scene["ply"] = {"type": "cylinder", "p0": [-0.5 * L, 0, 0], "p1": [0.5 * L, 0, 0], "radius": Rb,
+                    "bsdf": {**bsdf, "twist_rate": 360.0 * turns, "up": [0.0, 1.0, 0.0]}}
+    return scene
+
+
+def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0) -> dict:
+    """The same ply, every fiber its own cylinder with the fiber model (``fiber_table``).
+
+    Cylinders, not one ``bsplinecurve`` of all fibers: rays that leave a fiber next to
+    a touching neighbour made Mitsuba 3.9's curve intersection read past its segment
+    array (seen with Dr.Jit's debug mode), and cylinders need no curve end caps.
+    """
+    L = ply_length(cfg)
+    scene = _base(mi, cfg, 0.5 * L, spp, seed)
+    fiber = {"type": "fiber_table", "filename": str(fiber_table_path)}
+    # the bundle frame (x, t, z) of ply_scene without twist is (y, x, -z) of the scene;
+    # the fibers run past the image edges so that their ends stay out of view
+    for k, ((cx, cz), r) in enumerate(zip(bundle.centers * UM, bundle.radii * UM)):
+        scene[f"fiber_{k:05d}"] = {"type": "cylinder", "p0": [-0.6 * L, cx, -cz], "p1": [0.6 * L, cx, -cz],
+                                   "radius": float(r), "bsdf": {**fiber, "radius": float(r)}}
+    return scene
+
+
+def yarn_helices(cfg, row: dict, n_points: int = 64):
+    """Control points ``[K][n, 4]`` of the plies' centre lines (mm) and the yarn length."""
+    Rb = cfg.bundle.radius_um * UM
+    K = int(row["K_plies"])
+    R_ply = float(row["R_ply"]) * 10.0            # cm -> mm
+    pitch = abs(float(row["alpha_ply"])) * 10.0   # one turn of the plies, mm
+    R_ply = max(R_ply, 1.05 * Rb / np.sin(np.pi / K))  # plies of this bundle's radius must not overlap
+    L = 2.0 * pitch
+    x = np.linspace(-0.6 * L, 0.6 * L, n_points)
+    sign = np.sign(float(row["alpha_ply"])) or 1.0
+    plies = []
+    for k in range(K):
+        a = sign * 2 * np.pi * x / pitch + 2 * np.pi * k / K
+        plies.append(np.stack([x, R_ply * np.cos(a), R_ply * np.sin(a), np.full_like(x, Rb)], -1))
+    return plies, L, R_ply
+
+
+def yarn_scene(mi, cfg, bsdf: dict, curve_path, row: dict, spp: int, seed: int = 0) -> dict:
+    plies, L, R_ply = yarn_helices(cfg, row)
+    curve_path.write_text("\n\n".join("\n".join(" ".join(f"{v:.7f}" for v in p) for p in ply) for ply in plies))
+    scene = _base(mi, cfg, 0.5 * L, spp, seed)
+    scene["yarn"] = {"type": "bsplinecurve", "filename": str(curve_path),
+                     "bsdf": {**bsdf, "radius": cfg.bundle.radius_um * UM, "up": [1.0, 0.0, 0.0]}}
+    return scene
