@@ -5,6 +5,7 @@
     bcsdf train CONFIG     fit the MLP sizes of the config to the baked table
     bcsdf export CONFIG    write each trained model as ONNX and as plain weights
     bcsdf render CONFIG    render the bundle BSDF in Mitsuba: table, ONNX and jitted MLP
+    bcsdf stability CONFIG check finiteness, energy and references on stiff and extreme cases
     bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
     bcsdf run CONFIG       every stage in order, skipping those that are up to date
                            (their config sections unchanged since they last ran; --force
@@ -19,7 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-STAGES = ("fiber", "bake", "train", "export", "render", "report")
+STAGES = ("fiber", "bake", "train", "export", "render", "stability", "report")
 
 
 def main(argv=None) -> int:
@@ -31,6 +32,7 @@ def main(argv=None) -> int:
                         ("train", "fit the neural models to the baked table"),
                         ("export", "write the models as ONNX and plain weights"),
                         ("render", "render the bundle BSDF in Mitsuba (table, ONNX, jitted MLP)"),
+                        ("stability", "numerical stability on stiff and extreme cases"),
                         ("report", "write the HTML report"),
                         ("run", "run every stage in order")):
         p = sub.add_parser(name, help=help_)
@@ -43,7 +45,7 @@ def main(argv=None) -> int:
 
     try:
         cfg = load_config(args.config)
-        stages = [s for s in STAGES if s in ("fiber", "report") or cfg.bundle is not None] \
+        stages = [s for s in STAGES if s in ("fiber", "stability", "report") or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
         for stage in stages:
             if args.command == "run" and not args.force and _up_to_date(cfg, stage, args.artifacts):

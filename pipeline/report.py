@@ -91,8 +91,7 @@ def run(cfg, out_root="artifacts") -> Path:
         sections.append(("Neural compression", _missing("bcsdf train && bcsdf export")))
 
     sections.append(("Renders and FLIP maps", render_section(cfg, root, out)))
-    sections.append(("Numerical stability", "<p>Not part of this pipeline yet (<code>bcsdf stability</code> "
-                                            "is still to come).</p>"))
+    sections.append(("Numerical stability", stability_section(root)))
 
     # -- versions and config ---------------------------------------------------------
     versions = "".join(f"<tr><td>{p}</td><td>{_version(p)}</td></tr>" for p in PACKAGES)
@@ -152,6 +151,21 @@ def compare_slices(cfg, out_root, out) -> str:
         save_figure(fig, out / f"compare_error_{tag}.png")
         body += "".join(f'<img src="compare_{k}_{tag}.png" alt="{k} {tag}">' for k in ("table", "model", "error"))
     return body
+
+
+def stability_section(root: Path) -> str:
+    path = root / "stability" / "stability.json"
+    if not path.exists():
+        return _missing("bcsdf stability")
+    rows = json.loads(path.read_text())
+    failed = sum(not r["passed"] for r in rows)
+    body = (f"<p>{len(rows) - failed} of {len(rows)} checks pass (<code>bcsdf stability</code>; the cases are "
+            "listed in <code>pipeline/stability.py</code>, each is also a test).</p>")
+    body += "<table><tr><th>case</th><th>quantity</th><th>invariant</th><th>value</th><th>limit</th><th></th></tr>"
+    body += "".join(f"<tr><td>{html.escape(r['case'])}</td><td>{html.escape(r['quantity'])}</td>"
+                    f"<td>{html.escape(r['invariant'])}</td><td>{r['value']:.3e}</td><td>{r['limit']:.1e}</td>"
+                    f"<td>{'pass' if r['passed'] else '<b>FAIL</b>'}</td></tr>" for r in rows)
+    return body + "</table>"
 
 
 def render_section(cfg, root: Path, out: Path) -> str:

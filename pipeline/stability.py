@@ -89,7 +89,7 @@ def mie_extremes() -> list[Check]:
                         worst["neg_abs"] = max(worst["neg_abs"], (sca - ext) / scale)
                         if k == 0:
                             worst["lossless_abs"] = max(worst["lossless_abs"], abs(ext - sca) / scale)
-                    if x == 2000.0 and k == 1.0:  # large opaque cylinder: Q_ext / sin(zeta) -> 2
+                    if x == 2000.0 and k == 1.0 and zeta >= 30:  # x sin(zeta) >= 1000: Q_ext / sin -> 2
                         q = 0.5 * (e["QextI"] + e["QextII"]) / np.sin(np.radians(zeta))
                         worst["ext_limit"] = max(worst["ext_limit"], abs(q - 2.0))
     c = "mie: 135 cases"
@@ -97,8 +97,8 @@ def mie_extremes() -> list[Check]:
             at_most(c, "-Q_sca / Q_ext", "scattering >= 0", worst["neg_sca"], 1e-12),
             at_most(c, "(Q_sca - Q_ext) / Q_ext", "absorption >= 0", worst["neg_abs"], 1e-9),
             at_most(c, "|Q_ext - Q_sca| / Q_ext, k = 0", "lossless: no absorption", worst["lossless_abs"], 1e-8),
-            at_most("mie: x = 2000, k = 1", "|Q_ext / sin(zeta) - 2|", "extinction paradox", worst["ext_limit"],
-                    0.05)]
+            at_most("mie: x = 2000, k = 1, zeta 30, 90", "|Q_ext / sin(zeta) - 2|", "extinction paradox",
+                    worst["ext_limit"], 0.02)]
 
 
 @case
@@ -140,12 +140,13 @@ def ray_extremes() -> list[Check]:
             values = fiber.eval(th[:, None], 0.0, th[None, :], np.pi / 3, 550.0)
             checks += all_finite_nonneg(c, "f at theta_i, theta_o = +-90 deg", [values, E])
             checks.append(at_most(c, "albedo - 1", "energy <= 1", np.max(E) - 1, 2e-3))
-            if sigma_a == 0 and beta == 0.3:
+            if sigma_a == 0:
                 checks.append(at_most(c, "|albedo - 1|, theta_i < 90", "lossless conserves", np.max(np.abs(E[:3] - 1)),
-                                      5e-3))
-            if sigma_a == 1e4:
-                checks.append(at_most(c, "albedo - R lobe only", "opaque: only surface reflection",
-                                      np.max(E) - 0.2, 0))
+                                      1e-6))
+            if sigma_a == 1e4:  # nothing crosses the fiber: every lobe but R (p = 0) is dark
+                inner = sum(float(np.abs(lobe.azimuthal).max()) for lobe in t.lobes[1:])
+                checks.append(at_most(c, "max N of the TT, TRT, residual lobes", "opaque: surface only", inner,
+                                      1e-12))
     A = Ap(np.cos(np.deg2rad([0.0, 89.0]))[:, None], 1.55, np.array([-1.0, 1.0]), 0.0)
     checks += all_finite_nonneg("ray: h = +-1 (grazing offsets)", "A_p attenuation", [A])
     return checks
@@ -162,7 +163,9 @@ def _bake(bundle, fiber_table, theta_i_deg, paths, max_bounces=100_000, n_phi=24
     mi.set_variant("llvm_ad_mono")
     spec = BakeSpec(np.deg2rad(theta_i_deg), [0.0], n_theta, n_phi, max_bounces=max_bounces)
     tally = Baker(bundle, fiber_table, spec).trace(0, paths, 1)
-    return bake_stage.tally_to_table(tally, spec, fiber_table, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
+    table = bake_stage.tally_to_table(tally, spec, fiber_table, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
+    table.meta["vertices_per_path"] = tally.vertices / paths
+    return table
 
 
 def _isotropic(albedo=1.0):
@@ -228,25 +231,42 @@ def baker_dense_lossless() -> list[Check]:
     """Packing 0.8 on a hexagonal lattice, lossless isotropic fibers: thousands of bounces."""
     from models.bundle import Bundle
 
-    r = 10.0
-    d = r * np.sqrt(2 * np.pi / (np.sqrt(3) * 0.8))  # lattice spacing of packing 0.8
-    R = 200.0
-    pts = [(i * d + (j % 2) * d / 2, j * d * np.sqrt(3) / 2) for i in range(-40, 41) for j in range(-40, 41)]
-    pts = np.array([p for p in pts if np.hypot(*p) <= R - r])
-    bundle = Bundle(pts, r, (R, R))
+    r, R = 10.0, 400.0
+    bundle = _hexagonal(r, R, 0.8)
     t0 = time.perf_counter()
-    t = _bake(bundle, _isotropic(1.0), [0.0, 80.0], 20_000, max_bounces=200_000)
+    t = _bake(bundle, _isotropic(1.0), [0.0, 80.0], 10_000, max_bounces=1_000_000)
     seconds = time.perf_counter() - t0
-    c = f"baker: packing {bundle.packing_fraction:.2f} lossless ({len(pts)} fibers)"
+    c = f"baker: packing {bundle.packing_fraction:.2f} lossless ({len(bundle.centers)} fibers)"
     bal = t.energy_balance()
-    vertices = t.meta.get("vertices", np.nan) if isinstance(t.meta, dict) else np.nan
     checks = all_finite_nonneg(c, "S", [t.values])
-    checks.append(at_most(c, "|total - 1|", "energy balance", np.max(np.abs(bal["total"] - 1)), 1e-6))
-    checks.append(at_most(c, "absorbed", "lossless: nothing absorbed", np.max(bal["absorbed"]), 1e-9))
+    checks.append(at_most(c, "|total - 1|", "energy balance", np.max(np.abs(bal["total"] - 1)), 1e-5))
+    # the isotropic albedo is 1 in float32 (1 - 6e-8): over ~1000 bounces that is ~1e-5
+    checks.append(at_most(c, "absorbed", "lossless: float32 rounding only", np.max(bal["absorbed"]), 1e-4))
     checks.append(at_most(c, "lost at the bounce cap", "reported, small", np.max(bal["lost"]), 0.01))
-    checks.append(at_most(c, "seconds for 20k paths", "completes", seconds, 600))
-    del vertices
+    # a random walk that enters at the edge: the mean is tens of bounces, the tail
+    # thousands; none may reach the cap of 10^6 (lost = 0 above)
+    checks.append(at_most(c, "-(mean vertices per path)", "long walks (> 20 bounces)",
+                          -t.meta["vertices_per_path"], -20))
+    checks.append(at_most(c, "seconds for 10k paths", "completes", seconds, 600))
     return checks
+
+
+def _hexagonal(r, R, packing):
+    """Fibers of radius ``r`` on a hexagonal lattice inside a circle ``R`` at the given packing."""
+    from models.bundle import Bundle
+
+    def lattice(d):
+        n = int(R / d) + 2
+        pts = np.array([(i * d + (j % 2) * d / 2, j * d * np.sqrt(3) / 2) for i in range(-n, n + 1)
+                        for j in range(-n, n + 1)])
+        return pts[np.hypot(*pts.T) <= R - r]
+
+    lo, hi = 2 * r * (1 + 1e-6), 4 * r
+    for _ in range(40):  # denser lattice, higher packing: bisect the spacing
+        d = 0.5 * (lo + hi)
+        frac = len(lattice(d)) * r * r / (R * R)
+        lo, hi = (d, hi) if frac > packing else (lo, d)
+    return Bundle(lattice(hi), r, (R, R))
 
 
 @case

@@ -75,7 +75,10 @@ def Ap(cos_theta_i, eta, h, sigma_a):
     A0 = F
     A1 = (1 - F) ** 2 * T
     A2 = A1 * T * F
-    A3 = A2 * F * T / (1 - T * F)
+    # the geometric series of the remaining paths; at T F = 1 (h = +-1 on a lossless
+    # fiber) A2 already vanishes like (1 - F)^2, so the limit is 0, not 0 / 0
+    denom = 1 - T * F
+    A3 = np.divide(A2 * F * T, denom, out=np.zeros(np.broadcast(A2, denom).shape), where=denom > 1e-12)
     return np.stack(np.broadcast_arrays(A0, A1, A2, A3))
 
 
@@ -92,6 +95,24 @@ def Np(dphi, p, s, gamma_i, gamma_t):
     logistic = e / (s * (1 + e) ** 2)
     trim = special.expit(np.pi / s) - special.expit(-np.pi / s)
     return logistic / trim
+
+
+def Np_cell(phi, width, p, s, gamma_i, gamma_t):
+    """Mean of :func:`Np` over the cell ``[phi - width/2, phi + width/2]``, exactly.
+
+    From the trimmed logistic's CDF, so a lobe narrower than the cell (small azimuthal
+    roughness) keeps its energy: the cells of a period sum to exactly one.
+    """
+    lo, hi = special.expit(-np.pi / s), special.expit(np.pi / s)
+
+    def cdf(x):  # of the trimmed logistic on [-pi, pi]
+        return (special.expit(np.clip(x, -np.pi, np.pi) / s) - lo) / (hi - lo)
+
+    x0 = np.mod(phi - 0.5 * width - Phi(p, gamma_i, gamma_t) + np.pi, 2 * np.pi) - np.pi
+    x1 = x0 + width
+    inside = cdf(x1) - cdf(x0)
+    wrapped = np.where(x1 > np.pi, cdf(x1 - 2 * np.pi) - cdf(-np.pi), 0.0)
+    return (inside + wrapped) / width
 
 
 def h_quadrature(n_h: int):
@@ -130,10 +151,12 @@ class RayFiber(FiberModel):
     def lobes(self):
         return [Longitudinal("deon", v=float(self.v[p]), shift=float(self.shifts[p])) for p in range(P_MAX + 1)]
 
-    def azimuthal(self, theta_i, dphi, eta, sigma_a):
+    def azimuthal(self, theta_i, dphi, eta, sigma_a, cell=None):
         """``N_p`` for p = 0..3 at broadcastable ``theta_i, dphi, eta, sigma_a``.
 
-        Returns an array with a leading axis of 4; the h average is the last step.
+        With ``cell`` (a width in radians) each value is the mean over its azimuth cell
+        (:func:`Np_cell`), as tables want. Returns an array with a leading axis of 4;
+        the h average is the last step.
         """
         h, wh = h_quadrature(self.n_h)
         cos_ti = np.cos(theta_i)[..., None]
@@ -143,7 +166,10 @@ class RayFiber(FiberModel):
         gamma_t = np.arcsin(np.clip(h / eta_p, -1, 1))
         A = Ap(cos_ti, eta_, h, np.asarray(sigma_a)[..., None])
         dphi_ = np.asarray(dphi)[..., None]
-        N = [A[p] * Np(dphi_, p, self.s, gamma_i, gamma_t) for p in range(P_MAX)]
+        if cell is None:
+            N = [A[p] * Np(dphi_, p, self.s, gamma_i, gamma_t) for p in range(P_MAX)]
+        else:
+            N = [A[p] * Np_cell(dphi_, cell, p, self.s, gamma_i, gamma_t) for p in range(P_MAX)]
         N.append(np.broadcast_to(A[P_MAX] / (2 * np.pi), N[0].shape))
         return np.stack([n @ wh for n in N])
 
@@ -156,7 +182,8 @@ class RayFiber(FiberModel):
         for i, ti in enumerate(tqdm(theta_i, desc="ray", unit="theta_i", leave=False)):
             # Exactly at grazing cos(theta_i) = 0 the Bravais index diverges; take the limit.
             ti = min(ti, np.deg2rad(89.99))
-            N[:, i, 0] = self.azimuthal(ti, phi[:, None], self.eta[None, :], self.sigma_a[None, :])
+            N[:, i, 0] = self.azimuthal(ti, phi[:, None], self.eta[None, :], self.sigma_a[None, :],
+                                        cell=2 * np.pi / self.n_phi)
         names = ["R", "TT", "TRT", "residual"]
         lobes = [Lobe(names[p], m, N[p]) for p, m in enumerate(self.lobes())]
         meta = {"model": self.name, **self.params, "eta": self.eta.tolist(), "sigma_a": self.sigma_a.tolist(),
