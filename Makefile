@@ -3,7 +3,7 @@
 #   make test   set up, then run the default test suite
 CONFIG ?= configs/default.yaml
 
-.PHONY: setup run test bench bench-bake bench-neural clean
+.PHONY: setup run test bench bench-bake bench-neural bench-render stability clean
 setup:
 	./scripts/setup.sh
 
@@ -21,6 +21,12 @@ bench-bake: setup
 
 bench-neural: run
 	.venv/bin/python -m pipeline.bench_neural
+
+bench-render: run
+	.venv/bin/python -m pipeline.bench_render $(CONFIG)
+
+stability: setup
+	.venv/bin/bcsdf stability $(CONFIG)
 
 clean:
 	rm -rf artifacts
