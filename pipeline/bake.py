@@ -145,6 +145,7 @@ def run(cfg, out_root="artifacts", stop_after=None) -> Path:
                "passthrough": table.passthrough.tolist(),
                **{k: float(np.mean(v)) for k, v in balance.items()},
                "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1)))}
+    summary["reductions"] = {"used": reductions, **reduction_cost(cfg, bundle, fiber, spec, baker, elapsed)}
     write_text(out / "summary.json", json.dumps(summary, indent=1))
     plot_table(table, out / "slices")
     plot_balance(table, out / "energy.png")
@@ -153,6 +154,39 @@ def run(cfg, out_root="artifacts", stop_after=None) -> Path:
           f"{elapsed:.1f} s ({summary['vertices_per_second'] / 1e6:.2f} M vertices/s); passthrough "
           f"{table.passthrough.mean():.3f}; energy total {np.mean(balance['total']):.4f}; wrote {out}")
     return out
+
+
+def reduction_cost(cfg, bundle, fiber, spec: BakeSpec, baker: Baker, bake_seconds: float,
+                   probe_paths: int = 50_000) -> dict:
+    """Table size and bake time with the symmetry reductions (this bake) and without them.
+
+    Without: theta_i over [-90, 90] deg and phi_i over the whole circle at
+    ``bake.phi_i_step_deg``, absolute phi_o. Its time is measured, not guessed: one
+    batch of probe paths at the first incident azimuth through both specs (kernels
+    compiled by a warm-up first), the ratio times the ratio of azimuths applied to
+    this bake's time.
+    """
+    c = cfg.bake
+    probe_paths = min(probe_paths, c.paths_per_phi_i, c.batch_paths)
+    step = np.deg2rad(c.theta_i_step_deg)
+    full = BakeSpec(np.arange(-np.pi / 2, np.pi / 2 + 1e-9, step),
+                    np.deg2rad(np.arange(0, 360 - 1e-9, c.phi_i_step_deg)), c.n_theta_o, c.n_phi_o,
+                    relative_phi=False, estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start)
+
+    def seconds(b):
+        b.trace(0, min(2000, probe_paths), np.random.SeedSequence([c.seed, 998]))  # compile
+        t0 = time.perf_counter()
+        b.trace(0, probe_paths, np.random.SeedSequence([c.seed, 999]))
+        return time.perf_counter() - t0
+
+    per_azimuth = seconds(Baker(bundle, fiber, full)) / max(seconds(baker), 1e-9)
+
+    def nbytes(sp):  # values and stderr, float32
+        return 2 * 4 * len(sp.phi_i) * len(sp.theta_i) * c.n_phi_o * c.n_theta_o * len(fiber.wavelength)
+    return {"reduced_bytes": nbytes(spec), "full_bytes": nbytes(full), "reduced_seconds": bake_seconds,
+            "full_seconds": bake_seconds * per_azimuth * len(full.phi_i) / len(spec.phi_i),
+            "reduced_incidences": [len(spec.phi_i), len(spec.theta_i)],
+            "full_incidences": [len(full.phi_i), len(full.theta_i)], "probe_paths": probe_paths}
 
 
 def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: dict) -> BundleTable:
