@@ -25,7 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-ZHAO_CSV = Path(__file__).resolve().parents[2] / "shared" / "data" / "zhao2016_table2.csv"
+# Zhao et al. 2016, Table 2 (a copy of ../shared/data/zhao2016_table2.csv, kept in the
+# repository so that a fresh clone needs nothing beside it)
+ZHAO_CSV = Path(__file__).resolve().parents[1] / "data" / "zhao2016_table2.csv"
 CM_TO_UM = 1e4
 
 
