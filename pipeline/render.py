@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import TRAIN_SECTIONS
+from .config import BAKE_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
 from .io import atomic_path, write_text
 
 
@@ -42,11 +42,15 @@ def backend_props(cfg, out_root, backend: str) -> dict:
     """The ``fiber_bundle`` parameters of one backend, checked against this config."""
     from mitsuba_ext.neural import check_compatible, load_weights
 
+    from models.bundle_table import BundleTable
+
     root = Path(out_root) / cfg.name
     if backend == "table":
         path = root / "bake" / "bundle_table.npz"
         if not path.exists():
             raise ValueError(f"{path} does not exist; run `bcsdf bake` with this config first")
+        if BundleTable.load(path).meta.get("config_hash") != cfg.hash(*BAKE_SECTIONS):
+            raise ValueError(f"{path} was baked from different settings than this config; re-run `bcsdf bake`")
         return {"type": "fiber_bundle", "backend": "table", "table": str(path)}
     size = model_size(cfg)
     weights = root / "export" / size / "weights.npz"
@@ -150,7 +154,8 @@ def run(cfg, out_root="artifacts") -> Path:
     mi.set_variant(r.variant)
     mitsuba_ext.register()
 
-    summary = {"variant": r.variant, "spp": r.spp, "size": [r.width, r.height],
+    summary = {"config_hash": cfg.hash(*RENDER_SECTIONS), "variant": r.variant, "spp": r.spp,
+               "size": [r.width, r.height],
                "model": model_size(cfg) if set(r.backends) - {"table"} else None, "scenes": {}}
     for name in r.scenes:
         images, entry = {}, {}

@@ -462,3 +462,24 @@ def test_fiber_table_sampling_passes_mitsuba_chi2(mi_plug, tmp_path, theta, phi)
     test = ChiSquareTest(domain=BundleDomain(np.radians(phi) - np.pi), sample_func=sample, pdf_func=pdf,
                          sample_dim=3, sample_count=300_000, res=72, ires=6, seed=2)
     assert test.run(), test.messages
+
+
+def test_scene_xml_loads_the_plugins(mi_plug, tables):
+    """`<bsdf type="fiber_bundle">` and `<integrator type="bundle_path">` in a scene file."""
+    mi = mi_plug
+    scene = mi.load_string(f"""<scene version="3.0.0">
+        <integrator type="bundle_path"><integer name="max_depth" value="8"/></integrator>
+        <sensor type="perspective">
+            <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+            <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
+        </sensor>
+        <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+        <shape type="cylinder">
+            <point name="p0" x="0" y="-2" z="0"/><point name="p1" x="0" y="2" z="0"/>
+            <float name="radius" value="0.5"/>
+            <bsdf type="fiber_bundle"><string name="table" value="{tables['circle']}"/></bsdf>
+        </shape>
+    </scene>""")
+    img = np.array(mi.render(scene))
+    assert np.all(np.isfinite(img)) and np.abs(img[:, 8] - 0.5).max() > 1e-3
