@@ -58,7 +58,8 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     c = cfg.bake
     mirror_theta = bool(fiber.meta.get("mirror_symmetric", True))
     step = np.deg2rad(c.theta_i_step_deg)
-    theta_i = np.arange(0 if mirror_theta else -np.pi / 2, np.pi / 2 + 1e-9, step)
+    # clipped: the last node of the arange can exceed pi/2 by a rounding error
+    theta_i = np.clip(np.arange(0 if mirror_theta else -np.pi / 2, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2)
     if bundle.is_circle:
         phi_i, phi_reduction = np.zeros(1), "rotation"
     else:
@@ -169,7 +170,7 @@ def reduction_cost(cfg, bundle, fiber, spec: BakeSpec, baker: Baker, bake_second
     c = cfg.bake
     probe_paths = min(probe_paths, c.paths_per_phi_i, c.batch_paths)
     step = np.deg2rad(c.theta_i_step_deg)
-    full = BakeSpec(np.arange(-np.pi / 2, np.pi / 2 + 1e-9, step),
+    full = BakeSpec(np.clip(np.arange(-np.pi / 2, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2),
                     np.deg2rad(np.arange(0, 360 - 1e-9, c.phi_i_step_deg)), c.n_theta_o, c.n_phi_o,
                     relative_phi=False, estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start)
 
