@@ -301,13 +301,15 @@ class Baker:
         tally.sum_sq[phi_index] += sums_sq.reshape(shape).transpose(2, 0, 1, 3)
 
     def _bounce_loop(self, origin, phi_t, theta, phi_i, seed) -> dict:
-        """Bounces 2.. of the fast estimator, one fused Dr.Jit kernel per bounce.
+        """Bounces 2.. of the fast estimator: one symbolic Dr.Jit loop, one megakernel.
 
-        Paths are compacted after every bounce. Each ends ESCAPED (with its output bin),
-        CAPPED (bounce cap) or STOPPED (Russian roulette); its spectral weight ``B`` and the
-        weight it lost to absorption after the first bounce, ``R``, are scattered into
-        per-path arrays and returned as numpy. Random numbers come from a PCG32 stream per
-        path and bounce, so compaction and checkpointing do not change them.
+        Each path ends ESCAPED (with its output bin), CAPPED (bounce cap) or STOPPED
+        (Russian roulette); its spectral weight ``B``, the weight it lost to absorption
+        after the first bounce ``R``, and its vertex count are scattered into per-path
+        arrays and returned as numpy. Random numbers come from a PCG32 stream per path and
+        bounce, so results do not depend on batching or checkpoints. One kernel for all
+        bounces ran 1.5x the vertex rate of the earlier kernel-per-bounce with compaction
+        on the thesis's 600 um bundle (docs/BENCHMARKS.md).
         """
         import drjit as dr
         import mitsuba as mi
@@ -320,98 +322,92 @@ class Baker:
         centers_z = Float(self.bundle.centers[:, 1].astype(np.float32))
         radii = Float(self.bundle.radii.astype(np.float32))
         shape_to_fiber = UInt(geo.shape_to_fiber.astype(np.uint32))
+        two_pi = 2 * np.pi
+        phi_i_opaque = dr.opaque(Float, float(phi_i))
+        seed_opaque = dr.opaque(mi.UInt64, seed % 2**63)
 
         pid = dr.arange(UInt, n)
-        ox, oz = Float(origin[:, 0].astype(np.float32)), Float(origin[:, 1].astype(np.float32))
-        phi = Float(np.mod(phi_t, 2 * np.pi).astype(np.float32))
-        th = Float(theta.astype(np.float32))
-        B = [dr.full(Float, 1.0, n) for _ in range(L)]
-        R = [dr.zeros(Float, n) for _ in range(L)]
         out_B = [dr.zeros(Float, n) for _ in range(L)]
         out_R = [dr.zeros(Float, n) for _ in range(L)]
         out_status = dr.zeros(UInt, n)
         out_bin = dr.zeros(UInt, n)
-        vertices, depth = 0, 1
-        two_pi = 2 * np.pi
-        # values that change between calls are opaque, so that the kernels are compiled once
-        phi_i_opaque = dr.opaque(Float, float(phi_i))
+        out_depth = dr.zeros(UInt, n)
 
-        def finish(mask, code, bins=None):
+        state = (Float(origin[:, 0].astype(np.float32)), Float(origin[:, 1].astype(np.float32)),
+                 Float(np.mod(phi_t, 2 * np.pi).astype(np.float32)), Float(theta.astype(np.float32)),
+                 [dr.full(Float, 1.0, n) for _ in range(L)], [dr.zeros(Float, n) for _ in range(L)],
+                 dr.full(UInt, 1, n), dr.full(mi.Bool, True, n))
+
+        def finish(mask, code, B, R, depth, bins=None):
             dr.scatter(out_status, UInt(code), pid, mask)
+            dr.scatter(out_depth, depth, pid, mask)
             for l in range(L):
                 dr.scatter(out_B[l], B[l], pid, mask)
                 dr.scatter(out_R[l], R[l], pid, mask)
             if bins is not None:
                 dr.scatter(out_bin, bins, pid, mask)
 
-        while dr.width(pid) > 0:
-            m = dr.width(pid)
-            vertices += m
+        def cond(ox, oz, phi, th, B, R, depth, active):
+            return active
+
+        def body(ox, oz, phi, th, B, R, depth, active):
             sp, cp = dr.sincos(phi)
             ray = mi.Ray3f(mi.Point3f(ox, 0.0, oz), mi.Vector3f(cp, 0.0, sp))
-            hit_info = geo.scene.ray_intersect_preliminary(ray, coherent=False)
-            hit = hit_info.is_valid()
-            # escaped: tally bin of the travel direction (relative to phi_i for circles)
+            hit_info = geo.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
+            hit = active & hit_info.is_valid()
             rel = phi - phi_i_opaque if spec.relative_phi else phi
             rel = rel - two_pi * dr.floor((rel + np.pi) * (1 / two_pi))
             a = dr.clip(UInt(dr.floor((rel + np.pi) * (spec.n_phi_o / two_pi))), 0, spec.n_phi_o - 1)
             b = dr.clip(UInt(dr.floor((th + np.pi / 2) * (spec.n_theta_o / np.pi))), 0, spec.n_theta_o - 1)
-            finish(~hit, ESCAPED, a * spec.n_theta_o + b)
-            if depth >= spec.max_bounces:
-                finish(hit, CAPPED)
-                dr.eval(out_status, out_bin, out_B, out_R)
-                break
-            depth += 1
+            finish(active & ~hit, ESCAPED, B, R, depth, a * spec.n_theta_o + b)
+            capped = hit & (depth >= spec.max_bounces)
+            finish(capped, CAPPED, B, R, depth)
+            go = hit & ~capped
+            depth = dr.select(go, depth + 1, depth)
 
-            # scatter at the fiber that was hit
-            rng = mi.PCG32(size=m, initstate=dr.opaque(mi.UInt64, (seed + depth) % 2**63), initseq=mi.UInt64(pid))
+            rng = mi.PCG32()
+            rng.seed(seed_opaque + mi.UInt64(depth), mi.UInt64(pid))
             u = [rng.next_float32() for _ in range(5)]
+            x6, x7 = rng.next_float32(), rng.next_float32()
             theta_in = -th
             theta_out, dphi = fib.sample(theta_in, u)
             pdf = fib.pdf(theta_in, theta_out, dphi)
             f = fib.eval_spectrum(theta_in, theta_out, dphi)
             alb = fib.albedo(theta_in)
             scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
-            valid = hit & (pdf > 0)
-            for l in range(L):
-                R[l] = R[l] + B[l] * (1 - alb[l])
-                B[l] = B[l] * f[l] * scale
-            if depth > spec.rr_start:
-                q = B[0]
-                for l in range(1, L):
-                    q = dr.maximum(q, B[l])
-                q = dr.minimum(q, 1.0)
-                survive = rng.next_float32() < q
-                for l in range(L):
-                    B[l] = B[l] / dr.maximum(q, 1e-30)
-            else:
-                survive = dr.full(mi.Bool, True, m)
-            finish(hit & ~(valid & survive), STOPPED)
+            valid = go & (pdf > 0)
+            R = [dr.select(go, R[l] + B[l] * (1 - alb[l]), R[l]) for l in range(L)]
+            B = [dr.select(go, B[l] * f[l] * scale, B[l]) for l in range(L)]
+            roulette = depth > spec.rr_start
+            q = B[0]
+            for l in range(1, L):
+                q = dr.maximum(q, B[l])
+            q = dr.minimum(q, 1.0)
+            survive = ~roulette | (x6 < q)
+            B = [dr.select(go & roulette, B[l] / dr.maximum(q, 1e-30), B[l]) for l in range(L)]
+            finish(go & ~(valid & survive), STOPPED, B, R, depth)
             alive = valid & survive
+            h_u = dr.select(roulette, x7, x6)
 
-            # leave the fiber from its surface, offset h across it
-            k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, hit)
-            phi = phi + np.pi + dphi
-            phi = phi - two_pi * dr.floor(phi * (1 / two_pi))
-            s_o, c_o = dr.sincos(phi)
-            h = 2 * rng.next_float32() - 1
-            r = dr.gather(Float, radii, k, hit)
+            k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, alive)
+            phi_n = phi + np.pi + dphi
+            phi_n = phi_n - two_pi * dr.floor(phi_n * (1 / two_pi))
+            s_o, c_o = dr.sincos(phi_n)
+            h = 2 * h_u - 1
+            r = dr.gather(Float, radii, k, alive)
             along = dr.safe_sqrt(1 - h * h) + 1e-4
-            ox = dr.gather(Float, centers_x, k, hit) + r * (h * s_o + along * c_o)
-            oz = dr.gather(Float, centers_z, k, hit) + r * (-h * c_o + along * s_o)
-            th = theta_out
+            ox = dr.select(alive, dr.gather(Float, centers_x, k, alive) + r * (h * s_o + along * c_o), ox)
+            oz = dr.select(alive, dr.gather(Float, centers_z, k, alive) + r * (-h * c_o + along * s_o), oz)
+            phi = dr.select(alive, phi_n, phi)
+            th = dr.select(alive, theta_out, th)
+            return ox, oz, phi, th, B, R, depth, alive
 
-            # one kernel evaluates the whole bounce; then compact the surviving paths
-            dr.eval(alive, ox, oz, phi, th, B, R, out_status, out_bin, out_B, out_R)
-            idx = dr.compress(alive)
-            pid, ox, oz, phi, th = (dr.gather(type(x), x, idx) for x in (pid, ox, oz, phi, th))
-            B = [dr.gather(Float, x, idx) for x in B]
-            R = [dr.gather(Float, x, idx) for x in R]
-            dr.eval(pid, ox, oz, phi, th, B, R)
-
+        dr.while_loop(state, cond, body, label="bake_bounces")
+        dr.eval(out_status, out_bin, out_B, out_R, out_depth)
         return {"status": out_status.numpy(), "bin": out_bin.numpy().astype(np.int64),
                 "B": np.stack([x.numpy() for x in out_B], -1).astype(np.float64),
-                "R": np.stack([x.numpy() for x in out_R], -1).astype(np.float64), "vertices": vertices}
+                "R": np.stack([x.numpy() for x in out_R], -1).astype(np.float64),
+                "vertices": int(out_depth.numpy().astype(np.int64).sum())}
 
     def _drjit_fiber(self):
         if getattr(self, "_dj_fiber", None) is None:
