@@ -23,9 +23,10 @@ Estimators
             the fiber at the path's own longitude. The weight factorizes as
             ``A[theta_i, lambda] * B[lambda]``, so a path stores only ``B`` and the
             first bounce, and ``A`` is evaluated once, when the path ends.
-            Bounces 2.. run in Dr.Jit, one fused kernel per bounce (ray cast,
-            sampling, pdf, spectral value, weight, roulette), with the paths compacted
-            after each; the first bounce and the final tally are numpy.
+            Bounces 2.. run as one symbolic Dr.Jit loop, a single kernel (ray cast,
+            sampling, pdf, spectral value, weight, roulette, exit point); the first
+            bounce's sampling and factors use the same Dr.Jit fiber code, the final
+            tally is numpy.
 
 Tallies (per incident azimuth phi_i, normalized by the paths entering the bounding
 width ``2 R_b``): the summed weights and squared weights per output bin, the
