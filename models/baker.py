@@ -32,6 +32,12 @@ Tallies (per incident azimuth phi_i, normalized by the paths entering the boundi
 width ``2 R_b``): the summed weights and squared weights per output bin, the
 passthrough count, the absorbed weight (expected loss ``1 - albedo`` at every
 bounce) and the lost weight.
+
+A circle (``relative_phi``) has one table for all incident azimuths: each path enters
+from its own azimuth (stratified over the circle) and is binned at ``phi_o - phi_i``,
+so the table is the rotation average of the arrangement. A finite arrangement is not
+rotation invariant (four fibers: passthrough 0.25 to 0.37 with the azimuth), so a
+single azimuth would describe one orientation of the ply, not the ply.
 """
 
 from __future__ import annotations
@@ -177,14 +183,15 @@ class BundleScene:
         # a hair beyond the surface so that the next cast cannot re-hit this fiber at t ~ 0
         return c + r[:, None] * (h[:, None] * side + (along + 1e-4)[:, None] * d)
 
-    def entry(self, phi_i: float, t: np.ndarray):
-        """Rays of light arriving from azimuth ``phi_i`` (w_i), offsets ``t`` across 2 R_b."""
+    def entry(self, phi_i, t: np.ndarray):
+        """Rays of light arriving from azimuths ``phi_i`` (w_i; one, or one per ray), offsets
+        ``t`` across 2 R_b."""
         Rb = self.bundle.bounding_radius
-        phi_travel = phi_i + np.pi
-        d = np.array([np.cos(phi_travel), np.sin(phi_travel)])
-        side = np.array([-d[1], d[0]])
-        origin = -2 * Rb * d[None, :] + t[:, None] * side[None, :]
-        return origin, np.full(len(t), phi_travel)
+        phi_travel = np.broadcast_to(np.asarray(phi_i, np.float64) + np.pi, t.shape)
+        d = np.stack([np.cos(phi_travel), np.sin(phi_travel)], -1)
+        side = np.stack([-d[:, 1], d[:, 0]], -1)
+        origin = -2 * Rb * d + t[:, None] * side
+        return origin, phi_travel.copy()
 
 
 # ------------------------------------------------------------------------------
@@ -215,28 +222,34 @@ class Baker:
         Rb = self.bundle.bounding_radius
         # stratified offsets across the bounding width
         t = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
+        if self.spec.relative_phi:
+            # a circle: the table is the rotation average, so every path enters from its own
+            # azimuth (stratified, shuffled against the offsets) and is binned relative to it;
+            # a finite arrangement is not exactly rotation invariant
+            phi_i = phi_i + 2 * np.pi * rng.permutation((np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths)
+        phi_i = np.broadcast_to(np.asarray(phi_i, np.float64), t.shape)
         origin, phi_t = self.geometry.entry(phi_i, t)
         hit, fiber = self.geometry.cast(origin, phi_t)
         tally.paths[phi_index] = n_paths
         tally.passthrough[phi_index] = np.sum(~hit)
         tally.vertices += n_paths
         if self.spec.estimator == "fast":
-            self._trace_fast(tally, phi_index, phi_t[hit], fiber[hit], rng)
+            self._trace_fast(tally, phi_index, phi_t[hit], fiber[hit], phi_i[hit], rng)
         else:
             # one (theta_i, lambda) per launched path, round robin from a random start;
             # weights scaled so that each combination is normalized by its own paths
             n_combo = len(self.spec.theta_i) * self.n_lambda
             combo = (rng.integers(n_combo) + np.arange(n_paths)) % n_combo
             scale = n_paths / np.maximum(np.bincount(combo, minlength=n_combo), 1)
-            self._trace_thesis(tally, phi_index, phi_t[hit], fiber[hit], combo[hit], scale[combo[hit]], rng)
+            self._trace_thesis(tally, phi_index, phi_t[hit], fiber[hit], phi_i[hit], combo[hit], scale[combo[hit]],
+                               rng)
         return tally
 
     # -- fast ----------------------------------------------------------------
-    def _trace_fast(self, tally, phi_index, phi_t, fiber, rng):
+    def _trace_fast(self, tally, phi_index, phi_t, fiber, phi_i, rng):
         spec, theta_nodes = self.spec, self.spec.theta_i
         n_ti = len(theta_nodes)
         n = len(phi_t)
-        phi_i = spec.phi_i[phi_index]
 
         # Phase 1: the first bounce, from the mixture over every incident theta_i
         import drjit as dr
@@ -324,7 +337,7 @@ class Baker:
         radii = Float(self.bundle.radii.astype(np.float32))
         shape_to_fiber = UInt(geo.shape_to_fiber.astype(np.uint32))
         two_pi = 2 * np.pi
-        phi_i_opaque = dr.opaque(Float, float(phi_i))
+        phi_i_path = Float(np.asarray(phi_i, np.float32))  # each path's incident azimuth
         seed_opaque = dr.opaque(mi.UInt64, seed % 2**63)
 
         pid = dr.arange(UInt, n)
@@ -356,7 +369,7 @@ class Baker:
             ray = mi.Ray3f(mi.Point3f(ox, 0.0, oz), mi.Vector3f(cp, 0.0, sp))
             hit_info = geo.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
             hit = active & hit_info.is_valid()
-            rel = phi - phi_i_opaque if spec.relative_phi else phi
+            rel = phi - phi_i_path if spec.relative_phi else phi
             rel = rel - two_pi * dr.floor((rel + np.pi) * (1 / two_pi))
             a = dr.clip(UInt(dr.floor((rel + np.pi) * (spec.n_phi_o / two_pi))), 0, spec.n_phi_o - 1)
             b = dr.clip(UInt(dr.floor((th + np.pi / 2) * (spec.n_theta_o / np.pi))), 0, spec.n_theta_o - 1)
@@ -419,11 +432,10 @@ class Baker:
         return self._dj_fiber
 
     # -- thesis ----------------------------------------------------------------
-    def _trace_thesis(self, tally, phi_index, phi_t, fiber, combo, w, rng):
+    def _trace_thesis(self, tally, phi_index, phi_t, fiber, phi_i, combo, w, rng):
         spec = self.spec
         n_ti, n_l = len(spec.theta_i), self.n_lambda
         n = len(phi_t)
-        phi_i = spec.phi_i[phi_index]
         j, lam = np.divmod(combo, n_l)
         theta_in = spec.theta_i[j]  # longitude of w_i at the first fiber
         alive = np.arange(n)
@@ -444,9 +456,10 @@ class Baker:
             hit, fiber = self.geometry.cast(origin, phi_t)
             tally.vertices += m
             esc_idx.append(alive[~hit])
-            esc_bin.append(self._bin(phi_t[~hit], theta_out[~hit], phi_i))
+            esc_bin.append(self._bin(phi_t[~hit], theta_out[~hit], phi_i[~hit]))
             esc_w.append(w[~hit])
             alive, w, phi_t, fiber, theta_out = alive[hit], w[hit], phi_t[hit], fiber[hit], theta_out[hit]
+            phi_i = phi_i[hit]
             theta_in = -theta_out
             if len(alive) == 0:
                 break
