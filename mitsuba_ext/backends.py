@@ -20,6 +20,7 @@ import os
 import numpy as np
 
 from mitsuba_ext.sampling import DirectionGrid
+from mitsuba_ext.table import axis_corners
 
 BACKENDS = ("table", "mlp", "onnx")
 
@@ -28,17 +29,8 @@ def _periodic_linear(Float, values, nodes, phi):
     """Periodic linear interpolation of ``values`` at uniform ``nodes`` (radians)."""
     import drjit as dr
 
-    values = np.asarray(values, np.float32)
-    if len(values) == 1:
-        return Float(float(values[0])) + dr.zeros(Float, dr.width(phi))
-    n = len(values)
-    t = (phi - float(nodes[0])) * (n / (2 * np.pi))
-    t = t - dr.floor(t / n) * n
-    UInt = dr.uint32_array_t(Float)
-    i0 = UInt(dr.clip(dr.floor(t), 0, n - 1))
-    i1 = dr.select(i0 + 1 >= n, 0, i0 + 1)
-    w = t - dr.floor(t)
-    arr = Float(values)
+    i0, i1, w = axis_corners(Float, phi, np.asarray(nodes, float), periodic=True)
+    arr = Float(np.asarray(values, np.float32))
     return dr.lerp(dr.gather(Float, arr, i0), dr.gather(Float, arr, i1), w)
 
 

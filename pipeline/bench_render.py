@@ -33,8 +33,8 @@ def measure(cfg, out_root="artifacts", spp=None) -> dict:
     mitsuba_ext.register()
     spp = spp or r.spp
     rows = []
+    table_props = render.backend_props(cfg, out_root, "table")
     for scene in r.scenes:
-        table_props = render.backend_props(cfg, out_root, "table")
         ref, t_ref, _ = render.render_timed(mi, render._scene(mi, cfg, scene, table_props, spp, Path("/tmp")))
         exposure = render.exposure_of(ref)
         rows.append({"scene": scene, "method": "table", "backend": "table", "seconds": t_ref, "time_ratio": 1.0,

@@ -143,8 +143,6 @@ def run(cfg, out_root="artifacts") -> Path:
 
     import mitsuba_ext
 
-    from . import scenes
-
     if cfg.bundle is None:
         raise ValueError("render: this config has no bundle; add a `bundle:` section")
     r = cfg.render
@@ -169,19 +167,21 @@ def run(cfg, out_root="artifacts") -> Path:
         reference = "table" if "table" in images else r.backends[0]
         exposure = exposure_of(images[reference])
         entry["exposure"] = exposure
+        flip_maps = {}
         for backend, img in images.items():
             save_images(mi, img, out / f"{name}_{backend}", exposure)
             if backend == reference:
                 continue
             mean_flip, psnr, error_map = flip_and_psnr(images[reference], img, exposure)
             save_png(error_map, out / f"{name}_{backend}_flip.png")
+            flip_maps[backend] = error_map
             entry[backend].update(flip=mean_flip, psnr=psnr, reference=reference,
                                   time_ratio=entry[backend]["seconds"] / entry[reference]["seconds"])
             print(f"[render] {name} / {backend} vs {reference}: FLIP {mean_flip:.4f}, PSNR {psnr:.1f} dB, "
                   f"time x{entry[backend]['time_ratio']:.2f}")
         if "mlp" in images and "onnx" in images:
             entry["onnx_vs_mlp_max_abs"] = float(np.abs(images["onnx"] - images["mlp"]).max())
-        side_by_side(images, entry, out, name)
+        side_by_side(images, flip_maps, entry, out / f"{name}_side_by_side.png", name)
         summary["scenes"][name] = entry
 
     if r.mono_check and mi.is_spectral and "table" in props:
@@ -205,7 +205,7 @@ def _scene(mi, cfg, name, bsdf, spp, out, seed=0):
     return scenes.yarn_scene(mi, cfg, bsdf, out / "yarn_curves.txt", zhao2016_row(cfg.render.yarn), spp, seed)
 
 
-def side_by_side(images: dict, entry: dict, out: Path, name: str) -> None:
+def side_by_side(images: dict, flip_maps: dict, entry: dict, path: Path, name: str) -> None:
     """Each backend's image, and the FLIP map of each neural image, with their figures."""
     from .plots import save_figure
     import matplotlib.pyplot as plt
@@ -215,14 +215,13 @@ def side_by_side(images: dict, entry: dict, out: Path, name: str) -> None:
     for k, b in enumerate(cols):
         axes[0, k].imshow(to_srgb(images[b], entry["exposure"]))
         axes[0, k].set_title(f"{b}: {entry[b]['seconds']:.2f} s", fontsize=9)
-        if "flip" in entry[b]:
-            flip_map = plt.imread(out / f"{name}_{b}_flip.png")
-            axes[1, k].imshow(flip_map)
+        if b in flip_maps:
+            axes[1, k].imshow(np.clip(flip_maps[b], 0, 1))
             axes[1, k].set_title(f"FLIP {entry[b]['flip']:.3f}, PSNR {entry[b]['psnr']:.1f} dB", fontsize=9)
         for row in range(2):
             axes[row, k].set_axis_off()
     fig.suptitle(f"{name}: equal samples; FLIP against the table (bottom)", fontsize=10)
-    save_figure(fig, out / f"{name}_side_by_side.png")
+    save_figure(fig, path)
 
 
 def mono_check(mi, cfg, table_props: dict, out: Path) -> dict:
