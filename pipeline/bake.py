@@ -17,6 +17,7 @@ The Mitsuba variant (``bake.variant``) is chosen here, at the entry point.
 
 from __future__ import annotations
 
+import copy
 import json
 import time
 from pathlib import Path
@@ -146,7 +147,7 @@ def run(cfg, out_root="artifacts", stop_after=None) -> Path:
                "passthrough": table.passthrough.tolist(),
                **{k: float(np.mean(v)) for k, v in balance.items()},
                "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1)))}
-    summary["reductions"] = {"used": reductions, **reduction_cost(cfg, bundle, fiber, spec, baker, elapsed)}
+    summary["reductions"] = {"used": reductions, **reduction_cost(cfg, baker, elapsed)}
     write_text(out / "summary.json", json.dumps(summary, indent=1))
     plot_table(table, out / "slices")
     plot_balance(table, out / "energy.png")
@@ -157,33 +158,36 @@ def run(cfg, out_root="artifacts", stop_after=None) -> Path:
     return out
 
 
-def reduction_cost(cfg, bundle, fiber, spec: BakeSpec, baker: Baker, bake_seconds: float,
-                   probe_paths: int = 50_000) -> dict:
+def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50_000) -> dict:
     """Table size and bake time with the symmetry reductions (this bake) and without them.
 
     Without: theta_i over [-90, 90] deg and phi_i over the whole circle at
-    ``bake.phi_i_step_deg``, absolute phi_o. Its time is measured, not guessed: one
-    batch of probe paths at the first incident azimuth through both specs (kernels
-    compiled by a warm-up first), the ratio times the ratio of azimuths applied to
-    this bake's time.
+    ``bake.phi_i_step_deg``, absolute phi_o. Its time is measured, not guessed: batches
+    of probe paths at the first incident azimuth through both specs, alternating
+    (kernels compiled by a warm-up first); the median of three ratios (one ratio alone
+    ranged over 4x on this shared machine) times the ratio of azimuths, applied to this
+    bake's time.
     """
-    c = cfg.bake
+    c, spec = cfg.bake, baker.spec
     probe_paths = min(probe_paths, c.paths_per_phi_i, c.batch_paths)
     step = np.deg2rad(c.theta_i_step_deg)
     full = BakeSpec(np.clip(np.arange(-np.pi / 2, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2),
                     np.deg2rad(np.arange(0, 360 - 1e-9, c.phi_i_step_deg)), c.n_theta_o, c.n_phi_o,
                     relative_phi=False, estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start)
 
-    def seconds(b):
-        b.trace(0, min(2000, probe_paths), np.random.SeedSequence([c.seed, 998]))  # compile
+    def seconds(b, k):
         t0 = time.perf_counter()
-        b.trace(0, probe_paths, np.random.SeedSequence([c.seed, 999]))
+        b.trace(0, probe_paths, np.random.SeedSequence([c.seed, 999, k]))
         return time.perf_counter() - t0
 
-    per_azimuth = seconds(Baker(bundle, fiber, full)) / max(seconds(baker), 1e-9)
+    full_baker = copy.copy(baker)  # the same scene and fiber sampler, only the spec differs
+    full_baker.spec = full
+    for b in (baker, full_baker):
+        b.trace(0, min(2000, probe_paths), np.random.SeedSequence([c.seed, 998]))  # compile
+    per_azimuth = float(np.median([seconds(full_baker, k) / max(seconds(baker, k), 1e-9) for k in range(3)]))
 
     def nbytes(sp):  # values and stderr, float32
-        return 2 * 4 * len(sp.phi_i) * len(sp.theta_i) * c.n_phi_o * c.n_theta_o * len(fiber.wavelength)
+        return 2 * 4 * len(sp.phi_i) * len(sp.theta_i) * c.n_phi_o * c.n_theta_o * baker.n_lambda
     return {"reduced_bytes": nbytes(spec), "full_bytes": nbytes(full), "reduced_seconds": bake_seconds,
             "full_seconds": bake_seconds * per_azimuth * len(full.phi_i) / len(spec.phi_i),
             "reduced_incidences": [len(spec.phi_i), len(spec.theta_i)],
