@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.neural import NeuralSpec, stable_expm1
+from models.neural import NeuralSpec, features, stable_expm1
 
 
 def load_weights(path):
@@ -92,26 +92,11 @@ class DrJitMLP:
         # Python floats become literals in the traced kernel
         self._layers = [(W.astype(float).tolist(), b.astype(float).tolist()) for W, b in self.layers]
 
-    def features(self, phi_i, theta_i, phi_o, theta_o):
-        import drjit as dr
-
-        half_pi = float(np.pi / 2)
-        ti = dr.clip(theta_i, -half_pi, half_pi)
-        to = dr.clip(theta_o, -half_pi, half_pi)
-        sin_ti, cos_ti = dr.sincos(ti)
-        head = [sin_ti, cos_ti, self.spec.cone_scale * (to + ti)]
-        if self.spec.relative_phi:
-            s, c = dr.sincos(phi_o - phi_i)
-            return head + [c, s]
-        si, ci = dr.sincos(phi_i)
-        so, co = dr.sincos(phi_o)
-        return head + [ci, si, co, so]
-
     def eval(self, phi_i, theta_i, phi_o, theta_o) -> list:
         """``S`` at every table wavelength: a list of ``n_lambda`` Dr.Jit arrays."""
         import drjit as dr
 
-        x = self.features(phi_i, theta_i, phi_o, theta_o)
+        x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o)
         for k, (W, b) in enumerate(self._layers):
             last = k == len(self._layers) - 1
             out = []

@@ -1,28 +1,45 @@
 """A small MLP that holds a bundle table: the input encoding and output transform.
 
 Everything here is written once and shared by every backend through the exported
-metadata (``NeuralSpec``); torch is imported only by :class:`BundleMLP`, which
-training and export use. Encoding of a query ``(phi_i, theta_i, phi_o, theta_o)``
-in radians (any values: angles wrap, theta is clamped to [-pi/2, pi/2]):
+metadata (``NeuralSpec``); :func:`features` is one function for numpy, PyTorch and
+Dr.Jit, so the training data, the ONNX graph and the jitted evaluator encode a query
+identically. torch is imported only by the PyTorch builders, which training and export
+use.
 
-* rotation-invariant bundle (``phi_o`` relative in the table): features
-  ``[sin theta_i, cos theta_i, c (theta_o + theta_i), cos dphi, sin dphi]`` with
-  ``dphi = phi_o - phi_i``;
-* otherwise ``[sin theta_i, cos theta_i, c (theta_o + theta_i), cos phi_i, sin phi_i,
-  cos phi_o, sin phi_o]``.
+Encoding of a query ``(phi_i, theta_i, phi_o, theta_o)`` in radians (any values:
+angles wrap, theta is clamped to [-pi/2, pi/2]), ``c = cone_scale``:
 
-``theta_o + theta_i`` is the angular distance from the specular cone: parallel fibers
-keep all light near ``theta_o = -theta_i``, so the table is a narrow ridge along it, of
-about constant angular width. Given that coordinate directly (scaled by
-``c = cone_scale``), a 3 x 64 model's held-out error fell from 21% to 11% and its worst
-albedo error from 20% to 6% (the sine form ``sin theta_o + sin theta_i`` narrows the
-ridge like ``cos theta`` at grazing angles, where the fit failed).
+* longitude ``[sin theta_i, cos theta_i, c (theta_o + theta_i)]``. ``theta_o +
+  theta_i`` is the angular distance from the specular cone: parallel fibers keep all
+  light near ``theta_o = -theta_i``, so the table is a narrow ridge along it, of about
+  constant angular width. Given that coordinate directly, a 3 x 64 model's held-out
+  error fell from 21% to 11% and its worst albedo error from 20% to 6% (the sine form
+  ``sin theta_o + sin theta_i`` narrows the ridge like ``cos theta`` at grazing angles).
+* azimuth, rotation-invariant bundle (``phi_o`` relative in the table):
+  ``[cos dphi, sin dphi]`` with ``dphi = phi_o - phi_i``; otherwise
+  ``[cos phi_i, sin phi_i, cos phi_o, sin phi_o]``.
+
+**Symmetry folds** (``spec.folds``). Parallel fibers give ``S(theta_i, theta_o) =
+S(-theta_i, -theta_o)``; a circular bundle is (statistically) mirror symmetric,
+``S(dphi) = S(-dphi)``; an ellipse is mirror symmetric in x and z. A network that is
+handed these symmetries as invariant features learns each distinct value once instead
+of two or four times, and cannot break them. The folded features are continuous
+invariants (so no seam at theta_i = 0 or on the mirror axes):
+
+* ``theta``: ``[|sin theta_i|, cos theta_i, c |x|, c sin(theta_i) x]`` with
+  ``x = theta_o + theta_i`` (its sign relative to theta_i is recovered by the product);
+* ``dphi``:  ``[cos dphi, |sin dphi|]``;
+* ``xz``:    ``[|cos phi_i|, |sin phi_i|, cos phi_i cos phi_o, sin phi_i sin phi_o]``.
+
+The training set is the table *folded*: bins that the features cannot tell apart are
+one sample (their mean), and held-out validation bins are whole such classes, so a
+held-out bin never has its mirror image in the training set.
 
 The MLP (ReLU hidden layers) returns one value per table wavelength in log space:
 ``y = log(1 + S / s0)``; the output transform is ``S = s0 * expm1(clip(y, 0, y_max))``
 so every backend returns finite, non-negative values for any input. The network is
 trained on the table with its symmetry reductions expanded, so no backend needs to
-fold queries.
+fold queries beyond the features above.
 """
 
 from __future__ import annotations
@@ -31,7 +48,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-FORMAT = "bcsdf.neural/1"
+FORMAT = "bcsdf.neural/2"
+FOLDS = ("theta", "dphi", "xz")
 
 
 @dataclass
@@ -47,13 +65,20 @@ class NeuralSpec:
     config_hash: str
     reductions: dict
     cone_scale: float = 4.0
+    folds: list = field(default_factory=list)              # symmetry folds of the features (above)
     passthrough: list = field(default_factory=list)       # P_pass at the phi_i nodes below
     passthrough_phi_i: list = field(default_factory=list)  # radians, uniform over 2 pi
     format: str = FORMAT
 
+    def __post_init__(self):
+        bad = [f for f in self.folds if f not in FOLDS]
+        if bad or ("dphi" in self.folds and not self.relative_phi) or ("xz" in self.folds and self.relative_phi):
+            raise ValueError(f"folds {self.folds} do not fit a {'relative' if self.relative_phi else 'absolute'}"
+                             f"-azimuth model (known: {FOLDS})")
+
     @property
     def n_inputs(self) -> int:
-        return 5 if self.relative_phi else 7
+        return 3 + ("theta" in self.folds) + (2 if self.relative_phi else 4)
 
     @property
     def n_outputs(self) -> int:
@@ -65,39 +90,113 @@ class NeuralSpec:
     @classmethod
     def from_dict(cls, d: dict) -> "NeuralSpec":
         if d.get("format") != FORMAT:
-            raise ValueError(f"model format {d.get('format')!r}, expected {FORMAT!r}")
+            raise ValueError(f"model format {d.get('format')!r}, expected {FORMAT!r}; re-run `bcsdf train`")
         return cls(**d)
+
+
+def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> list:
+    """The encoded inputs as a list of ``spec.n_inputs`` arrays; ``lib`` is numpy, torch or drjit."""
+    clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
+    half_pi = float(np.pi / 2)
+    ti = clip(theta_i, -half_pi, half_pi)
+    x = clip(theta_o, -half_pi, half_pi) + ti
+    sin_ti, cos_ti, c = lib.sin(ti), lib.cos(ti), spec.cone_scale
+    if "theta" in spec.folds:
+        out = [lib.abs(sin_ti), cos_ti, c * lib.abs(x), (c * sin_ti) * x]
+    else:
+        out = [sin_ti, cos_ti, c * x]
+    if spec.relative_phi:
+        d = phi_o - phi_i
+        sin_d = lib.sin(d)
+        return out + [lib.cos(d), lib.abs(sin_d) if "dphi" in spec.folds else sin_d]
+    ci, si, co, so = lib.cos(phi_i), lib.sin(phi_i), lib.cos(phi_o), lib.sin(phi_o)
+    if "xz" in spec.folds:
+        return out + [lib.abs(ci), lib.abs(si), ci * co, si * so]
+    return out + [ci, si, co, so]
 
 
 def encode_numpy(spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> np.ndarray:
     """Feature matrix [n, n_inputs] (float32) of the encoding above."""
-    ti = np.clip(theta_i, -np.pi / 2, np.pi / 2)
-    to = np.clip(theta_o, -np.pi / 2, np.pi / 2)
-    head = [np.sin(ti), np.cos(ti), spec.cone_scale * (to + ti)]
-    if spec.relative_phi:
-        d = np.asarray(phi_o) - np.asarray(phi_i)
-        cols = head + [np.cos(d), np.sin(d)]
-    else:
-        cols = head + [np.cos(phi_i), np.sin(phi_i), np.cos(phi_o), np.sin(phi_o)]
-    return np.stack(np.broadcast_arrays(*cols), -1).astype(np.float32)
+    args = (np.asarray(a, np.float64) for a in (phi_i, theta_i, phi_o, theta_o))
+    return np.stack(np.broadcast_arrays(*features(np, spec, *args)), -1).astype(np.float32)
 
 
-def table_dataset(table, spec: NeuralSpec):
-    """Inputs, log-space targets and their uncertainties from an expanded bundle table.
+@dataclass
+class FoldedTable:
+    """A bundle table as training samples: one per class of bins the features cannot tell apart.
 
-    Returns ``(x [n_bins, n_inputs], y [n_bins, n_lambda], sigma_y [n_bins, n_lambda],
-    S [n_bins, n_lambda], stderr [...])`` with one row per (phi_i, theta_i, phi_o,
-    theta_o) bin at its centre.
+    ``x [n, n_inputs]`` features, ``S`` and ``E [n, n_lambda]`` the members' mean value
+    and its standard error, ``y``/``sigma_y`` the same in log space, ``count [n]`` the
+    members per class, ``bin_class [n_bins]`` the class of every expanded bin (flat
+    order phi_i, theta_i, phi_o, theta_o), and for the energy term ``group [n]`` the
+    incident direction (up to symmetry) of a class and ``omega [n]`` its solid-angle
+    weight, such that ``sum_c S_c omega_c`` over a group is that incident direction's
+    albedo ``integral S d omega_o``.
     """
+
+    x: np.ndarray
+    y: np.ndarray
+    sigma_y: np.ndarray
+    S: np.ndarray
+    E: np.ndarray
+    count: np.ndarray
+    bin_class: np.ndarray
+    group: np.ndarray
+    omega: np.ndarray
+    chi2_per_dof: float  # spread of merged bins about their mean, in units of their noise (~1: consistent)
+
+
+def fold_table(table, spec: NeuralSpec) -> FoldedTable:
+    """Group the bins of an expanded table by their (folded) features and average each group."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n_l = len(table.wavelength)
     PI, TI, PO, TO = np.meshgrid(table.phi_i, table.theta_i, table.phi_o, table.theta_o, indexing="ij")
     if spec.relative_phi:
         PO = PO + PI  # relative tables store phi_o - phi_i
-    x = encode_numpy(spec, PI.ravel(), TI.ravel(), PO.ravel(), TO.ravel())
-    S = table.values.reshape(-1, len(table.wavelength)).astype(np.float64)
-    E = table.stderr.reshape(-1, len(table.wavelength)).astype(np.float64)
+    f = np.stack(np.broadcast_arrays(*features(np, spec, PI.ravel(), TI.ravel(), PO.ravel(), TO.ravel())), -1)
+    _, first, bin_class, count = np.unique(np.round(f, 6), axis=0, return_index=True, return_inverse=True,
+                                           return_counts=True)
+    bin_class = bin_class.ravel()
+    n = len(count)
+    S_bins = table.values.reshape(-1, n_l).astype(np.float64)
+    E_bins = table.stderr.reshape(-1, n_l).astype(np.float64)
+    S = np.zeros((n, n_l))
+    np.add.at(S, bin_class, S_bins)
+    S /= count[:, None]
+    E2 = np.zeros((n, n_l))
+    np.add.at(E2, bin_class, E_bins**2)
+    E = np.sqrt(E2) / count[:, None]
+
+    # merged bins should agree within their noise; a fold the data contradicts shows here.
+    # Per class, chi^2 = sum (S_k - mean)^2 / (pooled variance mean E_k^2), n - 1 degrees of
+    # freedom; only classes of independent estimates count (the copies an expanded
+    # reduction makes are identical), and only where the pooled variance is known.
+    pooled = E2 / count[:, None]
+    spread = np.zeros((n, n_l))
+    np.add.at(spread, bin_class, (S_bins - S[bin_class]) ** 2)
+    independent = (spread > 0) & (pooled > 0)
+    dof = (count[:, None] - 1) * independent
+    chi2 = float(np.sum(spread[independent] / pooled[independent]) / dof.sum()) if dof.sum() else 0.0
+
+    # incident directions equal up to symmetry: groups joined by a shared class
+    n_bins_group = len(table.phi_o) * len(table.theta_o)
+    bin_group = np.arange(len(bin_class)) // n_bins_group
+    n_groups = bin_group[-1] + 1
+    link = coo_matrix((np.ones(len(bin_class)), (bin_group, n_groups + bin_class)),
+                      shape=(n_groups + n, n_groups + n))
+    _, label = connected_components(link, directed=False)
+    group_canonical = np.unique(label[:n_groups], return_inverse=True)[1]
+    members = np.bincount(group_canonical)  # expanded incident directions per canonical one
+    omega_bins = np.broadcast_to(table.solid_angle[None, None], table.values.shape[:4]).ravel()
+    omega = np.bincount(bin_class, omega_bins, n) / members[group_canonical[bin_group[first]]]
+    group = group_canonical[bin_group[first]]
+
     y = np.log1p(S / spec.s0)
     sigma_y = E / (spec.s0 + S)  # first-order propagation of the standard error
-    return x, y.astype(np.float32), sigma_y.astype(np.float32), S, E
+    return FoldedTable(x=f[first].astype(np.float32), y=y.astype(np.float32), sigma_y=sigma_y.astype(np.float32),
+                       S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, chi2_per_dof=chi2)
 
 
 def stable_expm1(lib, y):
@@ -133,16 +232,7 @@ def make_export_module(spec: NeuralSpec, mlp):
             self.mlp = mlp
 
         def forward(self, angles):
-            phi_i, theta_i, phi_o, theta_o = angles.unbind(-1)
-            ti = torch.clamp(theta_i, -np.pi / 2, np.pi / 2)
-            to = torch.clamp(theta_o, -np.pi / 2, np.pi / 2)
-            head = [torch.sin(ti), torch.cos(ti), spec.cone_scale * (to + ti)]
-            if spec.relative_phi:
-                d = phi_o - phi_i
-                feats = head + [torch.cos(d), torch.sin(d)]
-            else:
-                feats = head + [torch.cos(phi_i), torch.sin(phi_i), torch.cos(phi_o), torch.sin(phi_o)]
-            y = torch.clamp(self.mlp(torch.stack(feats, -1)), 0.0, spec.y_max)
-            return spec.s0 * stable_expm1(torch, y)
+            y = self.mlp(torch.stack(features(torch, spec, *angles.unbind(-1)), -1))
+            return spec.s0 * stable_expm1(torch, torch.clamp(y, 0.0, spec.y_max))
 
     return Exported()

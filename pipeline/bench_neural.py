@@ -57,7 +57,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     from mitsuba_ext.table import DrJitTable
     from models.bundle_table import lookup
     from models.neural import NeuralSpec, make_export_module, make_torch_model
-    from pipeline.train import file_hash, load_bundle_table, split_bins
+    from pipeline.train import file_hash, held_out_bins, load_bundle_table
 
     mi.set_variant(cfg.bake.variant)
     torch.set_num_threads(2)
@@ -70,7 +70,10 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
         PO = PO + PI
     grid = [a.ravel() for a in (PI, TI, PO, TO)]
     truth = table.values.reshape(-1, n_l).astype(np.float64)
-    _, val = split_bins(len(truth), cfg.train.val_fraction, cfg.train.seed)
+    first = next(iter(cfg.train.models))
+    first_spec = NeuralSpec.from_dict(torch.load(Path(artifacts) / cfg.name / "train" / first / "model.pt",
+                                                 weights_only=True)["spec"])
+    val = held_out_bins(table, first_spec, cfg)  # every model of a config shares the split
     omega = np.broadcast_to(table.solid_angle[None, None, :, :], table.values.shape[:4]).ravel()
     scattered = table.scattered  # [phi_i, theta_i, lambda]
     s0 = float(np.mean(table.values[table.values > 0]))
@@ -136,6 +139,9 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     for name in cfg.train.models:
         ckpt = torch.load(Path(artifacts) / cfg.name / "train" / name / "model.pt", weights_only=True)
         spec = NeuralSpec.from_dict(ckpt["spec"])
+        if spec.folds != first_spec.folds:
+            raise ValueError(f"models of one config must share their folds ({name}: {spec.folds}, "
+                             f"{first}: {first_spec.folds}); re-run `bcsdf train`")
         check_compatible(spec, table_hash=file_hash(table_path), wavelength=table.wavelength)
         mlp = make_torch_model(spec)
         mlp.load_state_dict(ckpt["state"])

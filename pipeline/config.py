@@ -196,13 +196,13 @@ class TrainCfg(Strict):
 
     models: dict[str, list[int]] = Field(default_factory=lambda: {
         "small": [32, 32], "medium": [64, 64, 64], "large": [128, 128, 128]})
-    epochs: int = Field(300, ge=1, le=100_000)
-    batch_size: int = Field(4096, ge=16, le=1 << 20)
+    epochs: int = Field(1500, ge=1, le=100_000)
+    batch_size: int = Field(1024, ge=16, le=1 << 20)
     lr: float = Field(3e-3, gt=0.0, le=1.0)
-    patience: int = Field(40, ge=1)
+    patience: int = Field(300, ge=1)
     val_fraction: float = Field(0.1, gt=0.0, lt=0.9)
     sigma_floor: float = Field(0.02, gt=0.0, le=1.0, description="log-space noise floor of the loss weights")
-    albedo_weight: float = Field(0.1, ge=0.0, le=100.0, description="weight of the energy term of the loss")
+    albedo_weight: float = Field(0.3, ge=0.0, le=100.0, description="weight of the energy term of the loss")
     seed: int = Field(0, ge=0)
     threads: int = Field(2, ge=1, le=256)
 

@@ -132,7 +132,89 @@ def test_absolute_phi_encoding_for_ellipses(tmp_path, mi_llvm):
     export_stage.run(cfg, tmp_path)
     A = query_set(2000)
     on = OnnxMLP(tmp_path / "e" / "export" / "tiny" / "model.onnx")
-    assert on.spec.n_inputs == 7
+    assert on.spec.folds == ["theta", "xz"] and on.spec.n_inputs == 8
     out = DrJitMLP(tmp_path / "e" / "export" / "tiny" / "weights.npz").eval(*(mi_llvm.Float(a) for a in A.T))
     dr.eval(out)
     assert np.allclose(np.stack([o.numpy() for o in out], -1), on.eval(*A.T), rtol=1e-5, atol=1e-5 * on.spec.s0)
+
+
+# -- symmetry folds -----------------------------------------------------------------
+
+def _spec(relative, folds):
+    from models.neural import NeuralSpec
+
+    return NeuralSpec(relative_phi=relative, hidden=[4], s0=1.0, y_max=10.0, wavelength=WL, table_hash="",
+                      config_hash="", reductions={}, folds=folds)
+
+
+def test_folded_features_are_the_symmetries_and_nothing_more():
+    from models.neural import encode_numpy
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    pi, po = rng.uniform(-np.pi, np.pi, (2, n))
+    ti, to = rng.uniform(-1.5, 1.5, (2, n))
+    circle, ellipse = _spec(True, ["theta", "dphi"]), _spec(False, ["theta", "xz"])
+    f = lambda spec, *a: encode_numpy(spec, *a).astype(np.float64)  # noqa: E731
+    same = lambda a, b: np.allclose(a, b, atol=1e-5)  # noqa: E731
+    # S(theta_i, theta_o) = S(-theta_i, -theta_o); a circle: S(dphi) = S(-dphi)
+    assert same(f(circle, pi, ti, po, to), f(circle, pi, -ti, po, -to))
+    assert same(f(circle, pi, ti, po, to), f(circle, pi, ti, 2 * pi - po, to))
+    # an ellipse: the z mirror (phi -> -phi) and the x mirror (phi -> pi - phi) of both azimuths
+    assert same(f(ellipse, pi, ti, po, to), f(ellipse, -pi, ti, -po, to))
+    assert same(f(ellipse, pi, ti, po, to), f(ellipse, np.pi - pi, ti, np.pi - po, to))
+    # ... and nothing else: one longitude or one azimuth mirrored alone is another input
+    for spec in (circle, ellipse):
+        a = f(spec, pi, ti, po, to)
+        for b in (f(spec, pi, ti, po, -to), f(spec, pi, -ti, po, to)):
+            moved = np.abs(a - b).max(axis=1) > 1e-3
+            assert moved[np.abs(ti) > 0.05].mean() > 0.99
+    e, b = f(ellipse, pi, ti, po, to), f(ellipse, pi, ti, -po, to)
+    assert (np.abs(e - b).max(axis=1) > 1e-3)[np.abs(np.sin(pi) * np.sin(po)) > 0.05].all()
+
+
+def test_folds_are_chosen_by_the_data(tmp_path):
+    from pipeline.train import choose_folds
+
+    cfg = make_config(tmp_path)
+    table = synthetic_table(cfg, tmp_path / "t.npz").expanded()
+    assert choose_folds(table, relative=True) == ["theta", "dphi"]
+    # a bundle that scatters more to one side (chirality): 10% against 1% noise
+    table.values = table.values * (1 + 0.1 * np.sin(table.phi_o))[None, None, :, None, None]
+    assert choose_folds(table, relative=True) == ["theta"]
+    ellipse = synthetic_table(cfg, tmp_path / "e.npz", relative=False).expanded()
+    assert choose_folds(ellipse, relative=False) == ["theta", "xz"]
+
+
+def test_held_out_bins_have_their_mirror_images_held_out(tmp_path):
+    """A held-out bin whose mirror image is trained on would be a leak, not a test."""
+    from pipeline.train import held_out_bins
+
+    cfg = make_config(tmp_path)
+    table = synthetic_table(cfg, tmp_path / "t.npz").expanded()
+    shape = table.values.shape[:4]
+    val = np.zeros(shape, bool)
+    val.ravel()[held_out_bins(table, _spec(True, ["theta", "dphi"]), cfg)] = True
+    assert 0.05 < val.mean() < 0.15
+    # index mirrors: theta_i nodes, theta_o and phi_o bin centres are symmetric about 0
+    assert np.allclose(table.theta_i, -table.theta_i[::-1]) and np.allclose(table.phi_o, -table.phi_o[::-1])
+    assert np.array_equal(val, val[:, ::-1, :, ::-1])  # (theta_i, theta_o) -> (-theta_i, -theta_o)
+    assert np.array_equal(val, val[:, :, ::-1, :])     # dphi -> -dphi
+
+
+def test_folded_energy_weights_give_the_albedo(tmp_path):
+    from models.neural import fold_table
+
+    cfg = make_config(tmp_path)
+    table = synthetic_table(cfg, tmp_path / "t.npz").expanded()
+    data = fold_table(table, _spec(True, ["theta", "dphi"]))
+    albedo = np.zeros((data.group.max() + 1, len(WL)))
+    np.add.at(albedo, data.group, data.S * data.omega[:, None])
+    # groups are |theta_i| (feature 0 is |sin theta_i|); the table's albedo of +-theta_i, averaged
+    sin_ti = np.zeros(len(albedo))
+    sin_ti[data.group] = data.x[:, 0]
+    albedo = albedo[np.argsort(sin_ti)]
+    scattered = table.scattered[0]
+    expect = np.stack([scattered[np.isclose(np.abs(table.theta_i), t)].mean(0) for t in np.unique(
+        np.round(np.abs(table.theta_i), 9))])
+    assert albedo.shape == expect.shape and np.allclose(albedo, expect, rtol=1e-9)
