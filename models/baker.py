@@ -201,6 +201,9 @@ class BundleScene:
 class Baker:
     """Traces batches of paths; see the module docstring for the estimators."""
 
+    ROUND = 16         # fast: bounces per round of the bounce loop before compaction
+    TAIL_LANES = 4096  # fast: with this few paths left, the last round runs to the end
+
     def __init__(self, bundle: Bundle, fiber: FiberTable, spec: BakeSpec):
         self.bundle, self.fiber, self.spec = bundle, fiber, spec
         self.geometry = BundleScene(bundle)
@@ -262,9 +265,8 @@ class Baker:
         pdf_mix_d = twin.pdf(dr.full(mi.Float, float(theta_nodes[0]), n), theta1_d, dphi1_d)
         for t in theta_nodes[1:]:
             pdf_mix_d = pdf_mix_d + twin.pdf(dr.full(mi.Float, float(t), n), theta1_d, dphi1_d)
-        dr.eval(theta1_d, dphi1_d, pdf_mix_d)
+        dr.eval(theta1_d, dphi1_d, pdf_mix_d)  # pdf_mix_d: n_ti times the mixture pdf
         theta1, dphi1 = theta1_d.numpy().astype(np.float64), dphi1_d.numpy().astype(np.float64)
-        pdf_mix = pdf_mix_d.numpy().astype(np.float64) / n_ti
         # every hit path loses 1 - albedo(theta_i) at its first fiber (expected value)
         tally.absorbed[phi_index] += n * (1 - self.fiber.albedo(theta_nodes))
         phi_t = phi_t + np.pi + dphi1
@@ -273,57 +275,72 @@ class Baker:
         # Phase 2: bounce in Dr.Jit until every path has escaped, been stopped, or hit the cap
         final = self._bounce_loop(origin, phi_t, theta1, phi_i, int(rng.integers(2**62)))
         tally.vertices += final["vertices"]
-        status, bins = final["status"], final["bin"]
-        B, absorbed_rest = final["B"], final["R"]
-        B[status == STOPPED] = 0.0  # roulette victims and failed samples carry no weight on
-        idx_esc = np.flatnonzero(status == ESCAPED)
-        bins = bins[idx_esc]
-        capped = np.flatnonzero(status == CAPPED)
+        status, bin_of = final["status"], final["bin"]
+        escaped, capped = status == ESCAPED, status == CAPPED
 
-        # Phase 3: finalize. A[path, theta_i, lambda] is evaluated once per path.
-        n_bins = spec.n_phi_o * spec.n_theta_o
-        sums = np.zeros((n_bins, n_ti, self.n_lambda))
+        # Phase 3: finalize. W[path, theta_i, lambda] = A B is computed in Dr.Jit (one kernel
+        # per chunk); the sums over paths are numpy, in a fixed order (same seed, same table)
+        # a sample whose mixture pdf rounds to zero carries no weight (never seen in tests)
+        factor = dr.select(pdf_mix_d > 0, dr.cos(theta1_d) * n_ti / dr.maximum(pdf_mix_d, 1e-30), 0.0)
+        B = [dr.select(mi.UInt32(status) == STOPPED, 0.0, b) for b in final["B"]]  # roulette victims
+        sums = np.zeros((spec.n_phi_o * spec.n_theta_o, n_ti * self.n_lambda))
         sums_sq = np.zeros_like(sums)
-        escaped = np.zeros(n, bool)
-        escaped[idx_esc] = True
-        bin_of = np.zeros(n, np.int64)
-        bin_of[idx_esc] = bins
-        is_capped = np.zeros(n, bool)
-        is_capped[capped] = True
-        chunk = 65536
+        chunk = 16384
         for lo in range(0, n, chunk):
             sl = slice(lo, min(n, lo + chunk))
-            m = sl.stop - sl.start
-            th1, dp1 = mi.Float(theta1[sl].astype(np.float32)), mi.Float(dphi1[sl].astype(np.float32))
-            A = []
-            for t in theta_nodes:  # f(theta_i, theta_1, dphi_1) for every incidence, in Dr.Jit
-                values = twin.eval_spectrum(dr.full(mi.Float, float(t), m), th1, dp1)
-                dr.eval(values)
-                A.append(np.stack([v.numpy() for v in values], -1))
-            A = np.stack(A, 1).astype(np.float64)  # [path, theta_i, lambda]
-            # a sample whose mixture pdf rounds to zero carries no weight (never seen in tests)
-            A *= np.where(pdf_mix[sl] > 0, np.cos(theta1[sl]) / np.maximum(pdf_mix[sl], 1e-300), 0.0)[:, None, None]
-            tally.absorbed[phi_index] += np.einsum("pjl,pl->jl", A, absorbed_rest[sl])
-            W = A * B[sl, None, :]
-            tally.lost[phi_index] += W[is_capped[sl]].sum(axis=0)
+            W, A_R = self._path_weights(twin, theta1_d, dphi1_d, factor, B, final["R"], lo, sl.stop - lo)
+            tally.absorbed[phi_index] += A_R.sum(axis=0, dtype=np.float64)
+            tally.lost[phi_index] += W[capped[sl]].sum(axis=0, dtype=np.float64)
             e = escaped[sl]
             if np.any(e):
-                _scatter_add(sums, bin_of[sl][e], W[e])
-                _scatter_add(sums_sq, bin_of[sl][e], W[e] ** 2)
+                W_e = W[e].reshape(-1, n_ti * self.n_lambda).astype(np.float64)
+                _scatter_add(sums, bin_of[sl][e], W_e)
+                _scatter_add(sums_sq, bin_of[sl][e], W_e**2)
         shape = (spec.n_phi_o, spec.n_theta_o, n_ti, self.n_lambda)
         tally.sum[phi_index] += sums.reshape(shape).transpose(2, 0, 1, 3)
         tally.sum_sq[phi_index] += sums_sq.reshape(shape).transpose(2, 0, 1, 3)
+
+    def _path_weights(self, twin, theta1, dphi1, factor, B, R, lo, m):
+        """``W = A B`` and ``A R`` for paths ``lo .. lo + m`` and every theta_i: [m, n_ti, n_lambda].
+
+        ``A[theta_i, lambda] = f(theta_i, theta_1, dphi_1) cos(theta_1) / pdf_mix`` (``factor``
+        holds the last two); one lane per (path, theta_i), spectra written as packets.
+        """
+        import sys
+
+        import drjit as dr
+        import mitsuba as mi
+
+        n_ti, L, P = len(self.spec.theta_i), self.n_lambda, twin.packet
+        lane = dr.arange(mi.UInt32, m * n_ti)
+        path = lo + lane // n_ti
+        theta_i = dr.gather(mi.Float, mi.Float(self.spec.theta_i.astype(np.float32)), lane % n_ti)
+        f = twin.eval_spectrum(theta_i, dr.gather(mi.Float, theta1, path), dr.gather(mi.Float, dphi1, path))
+        A = [v * dr.gather(mi.Float, factor, path) for v in f]
+        pad = [dr.zeros(mi.Float, m * n_ti)] * (P - L)
+        ArrayXf = getattr(sys.modules[mi.Float.__module__], "ArrayXf")
+        out = []
+        for carried in (B, R):
+            values = [a * dr.gather(mi.Float, c, path) for a, c in zip(A, carried)]
+            target = dr.zeros(mi.Float, m * n_ti * P)
+            dr.scatter(target, ArrayXf(values + pad) if P > 1 else values[0], lane)
+            out.append(target)
+        dr.eval(out)
+        return tuple(t.numpy().reshape(m, n_ti, P)[..., :L] for t in out)
 
     def _bounce_loop(self, origin, phi_t, theta, phi_i, seed) -> dict:
         """Bounces 2.. of the fast estimator: one symbolic Dr.Jit loop, one megakernel.
 
         Each path ends ESCAPED (with its output bin), CAPPED (bounce cap) or STOPPED
-        (Russian roulette); its spectral weight ``B``, the weight it lost to absorption
-        after the first bounce ``R``, and its vertex count are scattered into per-path
-        arrays and returned as numpy. Random numbers come from a PCG32 stream per path and
+        (Russian roulette). A lane that has ended is never updated again, so the loop's
+        final state is the per-path result: status, bin and vertex count (numpy), the
+        spectral weight ``B`` and the weight lost to absorption after the first bounce
+        ``R`` (lists of Dr.Jit arrays). Random numbers come from a PCG32 stream per path and
         bounce, so results do not depend on batching or checkpoints. One kernel for all
         bounces ran 1.5x the vertex rate of the earlier kernel-per-bounce with compaction
-        on the thesis's 600 um bundle (docs/BENCHMARKS.md).
+        on the thesis's 600 um bundle; reading the final state instead of scattering each
+        path's result from inside the loop (52 masked scatters per vertex) and packet
+        gathers of whole spectra gained more (docs/BENCHMARKS.md).
         """
         import drjit as dr
         import mitsuba as mi
@@ -337,34 +354,22 @@ class Baker:
         radii = Float(self.bundle.radii.astype(np.float32))
         shape_to_fiber = UInt(geo.shape_to_fiber.astype(np.uint32))
         two_pi = 2 * np.pi
-        phi_i_path = Float(np.asarray(phi_i, np.float32))  # each path's incident azimuth
         seed_opaque = dr.opaque(mi.UInt64, seed % 2**63)
 
-        pid = dr.arange(UInt, n)
-        out_B = [dr.zeros(Float, n) for _ in range(L)]
-        out_R = [dr.zeros(Float, n) for _ in range(L)]
-        out_status = dr.zeros(UInt, n)
-        out_bin = dr.zeros(UInt, n)
-        out_depth = dr.zeros(UInt, n)
-
-        state = (Float(origin[:, 0].astype(np.float32)), Float(origin[:, 1].astype(np.float32)),
+        # a lane that has ended keeps its state in the loop (inactive lanes are not updated),
+        # so the final state is the per-path result: no scatters inside the loop
+        state = [Float(origin[:, 0].astype(np.float32)), Float(origin[:, 1].astype(np.float32)),
                  Float(np.mod(phi_t, 2 * np.pi).astype(np.float32)), Float(theta.astype(np.float32)),
                  [dr.full(Float, 1.0, n) for _ in range(L)], [dr.zeros(Float, n) for _ in range(L)],
-                 dr.full(UInt, 1, n), dr.full(mi.Bool, True, n))
+                 dr.full(UInt, 1, n), dr.zeros(UInt, n), dr.zeros(UInt, n), dr.full(mi.Bool, True, n),
+                 dr.arange(UInt, n), Float(np.asarray(phi_i, np.float32)), dr.zeros(UInt, n)]
+        limit = [None]  # iterations per round, an opaque kernel parameter (one compiled kernel)
 
-        def finish(mask, code, B, R, depth, bins=None):
-            dr.scatter(out_status, UInt(code), pid, mask)
-            dr.scatter(out_depth, depth, pid, mask)
-            for l in range(L):
-                dr.scatter(out_B[l], B[l], pid, mask)
-                dr.scatter(out_R[l], R[l], pid, mask)
-            if bins is not None:
-                dr.scatter(out_bin, bins, pid, mask)
+        def cond(ox, oz, phi, th, B, R, depth, status, bins, active, pid, phi_i_path, steps):
+            return active & (steps < limit[0])
 
-        def cond(ox, oz, phi, th, B, R, depth, active):
-            return active
-
-        def body(ox, oz, phi, th, B, R, depth, active):
+        def body(ox, oz, phi, th, B, R, depth, status, bins, active, pid, phi_i_path, steps):
+            steps = steps + 1
             sp, cp = dr.sincos(phi)
             ray = mi.Ray3f(mi.Point3f(ox, 0.0, oz), mi.Vector3f(cp, 0.0, sp))
             hit_info = geo.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
@@ -373,9 +378,11 @@ class Baker:
             rel = rel - two_pi * dr.floor((rel + np.pi) * (1 / two_pi))
             a = dr.clip(UInt(dr.floor((rel + np.pi) * (spec.n_phi_o / two_pi))), 0, spec.n_phi_o - 1)
             b = dr.clip(UInt(dr.floor((th + np.pi / 2) * (spec.n_theta_o / np.pi))), 0, spec.n_theta_o - 1)
-            finish(active & ~hit, ESCAPED, B, R, depth, a * spec.n_theta_o + b)
+            escaped = active & ~hit
+            status = dr.select(escaped, ESCAPED, status)
+            bins = dr.select(escaped, a * spec.n_theta_o + b, bins)
             capped = hit & (depth >= spec.max_bounces)
-            finish(capped, CAPPED, B, R, depth)
+            status = dr.select(capped, CAPPED, status)
             go = hit & ~capped
             depth = dr.select(go, depth + 1, depth)
 
@@ -399,8 +406,8 @@ class Baker:
             q = dr.minimum(q, 1.0)
             survive = ~roulette | (x6 < q)
             B = [dr.select(go & roulette, B[l] / dr.maximum(q, 1e-30), B[l]) for l in range(L)]
-            finish(go & ~(valid & survive), STOPPED, B, R, depth)
-            alive = valid & survive
+            status = dr.select(go & ~(valid & survive), STOPPED, status)
+            alive = go & valid & survive
             h_u = dr.select(roulette, x7, x6)
 
             k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, alive)
@@ -414,13 +421,32 @@ class Baker:
             oz = dr.select(alive, dr.gather(Float, centers_z, k, alive) + r * (-h * c_o + along * s_o), oz)
             phi = dr.select(alive, phi_n, phi)
             th = dr.select(alive, theta_out, th)
-            return ox, oz, phi, th, B, R, depth, alive
+            return ox, oz, phi, th, B, R, depth, status, bins, alive, pid, phi_i_path, steps
 
-        dr.while_loop(state, cond, body, label="bake_bounces")
-        dr.eval(out_status, out_bin, out_B, out_R, out_depth)
-        return {"status": out_status.numpy(), "bin": out_bin.numpy().astype(np.int64),
-                "B": np.stack([x.numpy() for x in out_B], -1).astype(np.float64),
-                "R": np.stack([x.numpy() for x in out_R], -1).astype(np.float64),
+        # Rounds: a SIMD packet of lanes iterates until its longest path ends, so after a
+        # round of `ROUND` bounces the unfinished lanes are compacted and continue; the
+        # last round (few lanes) runs to the end. Results go to per-path outputs by id.
+        out_B, out_R = [dr.zeros(Float, n) for _ in range(L)], [dr.zeros(Float, n) for _ in range(L)]
+        out_depth, out_status, out_bin = dr.zeros(UInt, n), dr.zeros(UInt, n), dr.zeros(UInt, n)
+        while True:
+            lanes = dr.width(state[0])
+            last = lanes <= self.TAIL_LANES
+            limit[0] = dr.opaque(UInt, spec.max_bounces + 2 if last else self.ROUND)
+            state = list(dr.while_loop(tuple(state), cond, body, label="bake_bounces"))
+            _, _, _, _, B, R, depth, status, bins, active, pid, _, _ = state
+            for out, value in zip(out_B + out_R + [out_depth, out_status, out_bin], B + R + [depth, status, bins]):
+                dr.scatter(out, value, pid)
+            if last:
+                dr.eval(out_B, out_R, out_depth, out_status, out_bin)
+                break
+            dr.eval(out_B, out_R, out_depth, out_status, out_bin, state)  # one kernel for all
+            keep = dr.compress(active)
+            if dr.width(keep) == 0:
+                break
+            state = [[dr.gather(type(v), v, keep) for v in s] if isinstance(s, list) else dr.gather(type(s), s, keep)
+                     for s in state]
+            state[-1] = dr.zeros(UInt, dr.width(keep))  # steps
+        return {"status": out_status.numpy(), "bin": out_bin.numpy().astype(np.int64), "B": out_B, "R": out_R,
                 "vertices": int(out_depth.numpy().astype(np.int64).sum())}
 
     def _drjit_fiber(self):

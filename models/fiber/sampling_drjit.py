@@ -102,9 +102,13 @@ class DrJitFiber:
         self.dphi = 2 * np.pi / self.n_phi
         self.phi0 = float(table.phi[0])
         self.lobes = table.lobes
-        self.N = [Float(np.ascontiguousarray(l.azimuthal, dtype=np.float32).ravel()) for l in table.lobes]
+        # Spectra are stored padded to a power of two so that one *packet* gather reads all
+        # wavelengths of a table entry (Dr.Jit turns it into a few vector loads); scalar
+        # gathers, one per wavelength, made the spectral value most of a bounce's cost
+        self.packet = 1 << (self.n_lambda - 1).bit_length()
+        self.N = [Float(self._padded(l.azimuthal).ravel()) for l in table.lobes]
         self.energy = Float(sampler.energy.astype(np.float32).ravel())        # [lobe, node]
-        self.albedo_nodes = Float(table.energy().astype(np.float32).ravel())   # [node, lambda]
+        self.albedo_nodes = Float(self._padded(table.energy()).ravel())        # [node, lambda]
         # Flat CDF of every (lobe, node) row; a lane searches only its own row
         rows, cells = [], []
         self.cell_offset, self.n_cells = [], []
@@ -126,6 +130,23 @@ class DrJitFiber:
         self.theta_o = Float(table.theta_o.astype(np.float32))
         self.sin_theta_o = Float(np.sin(table.theta_o).astype(np.float32))
         self.n_theta_o = len(table.theta_o)
+
+    def _padded(self, a):
+        a = np.asarray(a, dtype=np.float32)
+        pad = [(0, 0)] * (a.ndim - 1) + [(0, self.packet - a.shape[-1])]
+        return np.ascontiguousarray(np.pad(a, pad))
+
+    def _gather_spectrum(self, source, entry) -> list:
+        """The ``n_lambda`` values of table entry ``entry`` (an index in units of spectra)."""
+        import sys
+
+        import drjit as dr
+
+        if self.packet == 1:
+            return [dr.gather(self.Float, source, entry)]
+        ArrayXf = getattr(sys.modules[self.Float.__module__], "ArrayXf")
+        values = dr.gather(ArrayXf, source, entry, shape=(self.packet, dr.width(entry)))
+        return [values[l] for l in range(self.n_lambda)]
 
     # -- node interpolation in |theta_i| ------------------------------------------
     def _nodes(self, abs_theta):
@@ -266,10 +287,9 @@ class DrJitFiber:
             for node, wn in ((i0, 1 - w), (i1, w)):
                 for o, wo_ in o_corners:
                     for cc, wcc in ((c0, 1 - wc), (c1, wc)):
-                        base = ((node * n_o + o) * self.n_phi + cc) * L
                         weight = wn * wo_ * wcc
-                        for l in range(L):
-                            acc[l] = dr.fma(weight, dr.gather(self.Float, self.N[p], base + l), acc[l])
+                        values = self._gather_spectrum(self.N[p], (node * n_o + o) * self.n_phi + cc)
+                        acc = [dr.fma(weight, v, a_) for v, a_ in zip(values, acc)]
             out = [o_ + M * a_ for o_, a_ in zip(out, acc)]
         return out
 
@@ -277,6 +297,6 @@ class DrJitFiber:
         import drjit as dr
 
         i0, i1, w = self._nodes(dr.abs(theta_i))
-        L = self.n_lambda
-        return [(1 - w) * dr.gather(self.Float, self.albedo_nodes, i0 * L + l) +
-                w * dr.gather(self.Float, self.albedo_nodes, i1 * L + l) for l in range(L)]
+        a0 = self._gather_spectrum(self.albedo_nodes, i0)
+        a1 = self._gather_spectrum(self.albedo_nodes, i1)
+        return [(1 - w) * x0 + w * x1 for x0, x1 in zip(a0, a1)]
