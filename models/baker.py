@@ -257,6 +257,7 @@ class Baker:
         # Phase 1: the first bounce, from the mixture over every incident theta_i
         import drjit as dr
         import mitsuba as mi
+        from scipy import sparse
 
         twin = self._drjit_fiber()
         j = rng.integers(n_ti, size=n)
@@ -279,29 +280,43 @@ class Baker:
         escaped, capped = status == ESCAPED, status == CAPPED
 
         # Phase 3: finalize. W[path, theta_i, lambda] = A B is computed in Dr.Jit (one kernel
-        # per chunk); the sums over paths are numpy, in a fixed order (same seed, same table)
+        # per chunk), for the paths in the order: escaped, capped, the rest; the sums over
+        # paths are numpy (float64, in a fixed order: same seed, same table)
         # a sample whose mixture pdf rounds to zero carries no weight (never seen in tests)
         factor = dr.select(pdf_mix_d > 0, dr.cos(theta1_d) * n_ti / dr.maximum(pdf_mix_d, 1e-30), 0.0)
         B = [dr.select(mi.UInt32(status) == STOPPED, 0.0, b) for b in final["B"]]  # roulette victims
+        esc = np.flatnonzero(escaped)
+        order = np.concatenate([esc, np.flatnonzero(capped), np.flatnonzero(~(escaped | capped))])
+        n_esc, n_cap = len(esc), int(capped.sum())
+        esc_bins = bin_of[esc]
+        perm = mi.UInt32(order.astype(np.uint32))
+        per_path = [dr.gather(mi.Float, x, perm) for x in [theta1_d, dphi1_d, factor] + B + final["R"]]
+        dr.eval(per_path)  # once per path, so that the (path, theta_i) lanes below read in order
+        L = self.n_lambda
         sums = np.zeros((spec.n_phi_o * spec.n_theta_o, n_ti * self.n_lambda))
         sums_sq = np.zeros_like(sums)
         chunk = 16384
         for lo in range(0, n, chunk):
-            sl = slice(lo, min(n, lo + chunk))
-            W, A_R = self._path_weights(twin, theta1_d, dphi1_d, factor, B, final["R"], lo, sl.stop - lo)
+            hi = min(n, lo + chunk)
+            W, A_R = self._path_weights(twin, *per_path[:3], per_path[3:3 + L], per_path[3 + L:], lo, hi - lo)
             tally.absorbed[phi_index] += A_R.sum(axis=0, dtype=np.float64)
-            tally.lost[phi_index] += W[capped[sl]].sum(axis=0, dtype=np.float64)
-            e = escaped[sl]
-            if np.any(e):
-                W_e = W[e].reshape(-1, n_ti * self.n_lambda).astype(np.float64)
-                _scatter_add(sums, bin_of[sl][e], W_e)
-                _scatter_add(sums_sq, bin_of[sl][e], W_e**2)
+            W = W.reshape(hi - lo, -1)
+            k = max(0, min(hi, n_esc) - lo)  # escaped rows of this chunk
+            if k:  # one-hot (bin x path) products: the fastest deterministic segmented sum here
+                one_hot = sparse.csr_matrix((np.ones(k), (esc_bins[lo:lo + k], np.arange(k))),
+                                            shape=(len(sums), k))
+                sums += one_hot @ W[:k]
+                sums_sq += one_hot @ np.square(W[:k], dtype=np.float64)
+            c0, c1 = max(lo, n_esc) - lo, max(lo, min(hi, n_esc + n_cap)) - lo  # capped rows
+            if c1 > c0:
+                tally.lost[phi_index] += W[c0:c1].sum(axis=0, dtype=np.float64).reshape(n_ti, self.n_lambda)
         shape = (spec.n_phi_o, spec.n_theta_o, n_ti, self.n_lambda)
         tally.sum[phi_index] += sums.reshape(shape).transpose(2, 0, 1, 3)
         tally.sum_sq[phi_index] += sums_sq.reshape(shape).transpose(2, 0, 1, 3)
 
     def _path_weights(self, twin, theta1, dphi1, factor, B, R, lo, m):
-        """``W = A B`` and ``A R`` for paths ``lo .. lo + m`` and every theta_i: [m, n_ti, n_lambda].
+        """``W = A B`` and ``A R`` of paths ``lo .. lo + m`` for every theta_i: two float32
+        arrays [m, n_ti, n_lambda].
 
         ``A[theta_i, lambda] = f(theta_i, theta_1, dphi_1) cos(theta_1) / pdf_mix`` (``factor``
         holds the last two); one lane per (path, theta_i), spectra written as packets.
@@ -500,11 +515,3 @@ class Baker:
         tally.sum[phi_index] += np.bincount(flat, ws, size).reshape(shape)
         tally.sum_sq[phi_index] += np.bincount(flat, ws**2, size).reshape(shape)
 
-
-def _scatter_add(target, rows, values):
-    """``target[rows[k]] += values[k]`` for 2D+ values, as a sparse matrix product."""
-    from scipy import sparse
-
-    k = len(rows)
-    one_hot = sparse.csr_matrix((np.ones(k), (rows, np.arange(k))), shape=(target.shape[0], k))
-    target += (one_hot @ values.reshape(k, -1)).reshape(target.shape)
