@@ -24,9 +24,10 @@ Estimators
             ``A[theta_i, lambda] * B[lambda]``, so a path stores only ``B`` and the
             first bounce, and ``A`` is evaluated once, when the path ends.
             Bounces 2.. run as one symbolic Dr.Jit loop, a single kernel (ray cast,
-            sampling, pdf, spectral value, weight, roulette, exit point); the first
-            bounce's sampling and factors use the same Dr.Jit fiber code, the final
-            tally is numpy.
+            sampling, pdf, spectral value, weight, roulette, exit point), in rounds
+            with compaction of the unfinished paths; the first bounce and the final
+            weights ``A B`` use the same Dr.Jit fiber code; the sums over paths are
+            numpy (float64, in a fixed order).
 
 Tallies (per incident azimuth phi_i, normalized by the paths entering the bounding
 width ``2 R_b``): the summed weights and squared weights per output bin, the
