@@ -144,6 +144,39 @@ class FoldedTable:
     group: np.ndarray
     omega: np.ndarray
     chi2_per_dof: float  # spread of merged bins about their mean, in units of their noise (~1: consistent)
+    cell: np.ndarray = None  # [n, 6] a representative bin: phi_i, theta_i, phi_o lo/hi, sin theta_o lo/hi
+
+
+def table_cells(table) -> np.ndarray:
+    """[n_bins, 6] every (expanded) bin in flat order: phi_i, theta_i, absolute phi_o
+    edges (lo, hi), sin theta_o edges (lo, hi)."""
+    relative = table.meta["reductions"]["phi_o"] == "relative"
+    PI, TI, PO, SO = np.meshgrid(table.phi_i, table.theta_i, np.arange(len(table.phi_o)),
+                                 np.arange(len(table.theta_o)), indexing="ij")
+    PI, TI, PO, SO = (a.ravel() for a in (PI, TI, PO, SO))
+    offset = PI if relative else 0.0  # relative tables store phi_o - phi_i
+    sin_edges = np.sin(table.theta_o_edges)
+    return np.stack([PI, TI, table.phi_o_edges[PO] + offset, table.phi_o_edges[PO + 1] + offset,
+                     sin_edges[SO], sin_edges[SO + 1]], -1)
+
+
+def points_in_bins(lib, cell, u):
+    """Angles ``(phi_i, theta_i, phi_o, theta_o)`` at uniform points ``u [n, 2]`` of the bins
+    ``cell [n, 6]`` (``FoldedTable.cell``), uniform in phi_o and sin theta_o (per solid
+    angle); ``lib`` is numpy or torch."""
+    phi_o = cell[:, 2] + u[:, 0] * (cell[:, 3] - cell[:, 2])
+    sin_o = cell[:, 4] + u[:, 1] * (cell[:, 5] - cell[:, 4])
+    return cell[:, 0], cell[:, 1], phi_o, lib.arcsin(lib.clip(sin_o, -1.0, 1.0))
+
+
+def bin_average(predict, cell, k: int = 4) -> np.ndarray:
+    """Mean of ``predict(phi_i, theta_i, phi_o, theta_o) -> [n, ...]`` over k x k stratified
+    points of each bin of ``cell``: what a bin of the table (a bin average) is compared with."""
+    total = 0.0
+    for a in (np.arange(k) + 0.5) / k:
+        for b in (np.arange(k) + 0.5) / k:
+            total = total + predict(*points_in_bins(np, cell, np.broadcast_to([a, b], (len(cell), 2))))
+    return total / (k * k)
 
 
 def fold_table(table, spec: NeuralSpec) -> FoldedTable:
@@ -193,10 +226,15 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     omega = np.bincount(bin_class, omega_bins, n) / members[group_canonical[bin_group[first]]]
     group = group_canonical[bin_group[first]]
 
+    # each class's first bin, for training at points inside the bin (the table holds bin
+    # averages; at the centres alone a network may peak between them, unseen)
+    cell = table_cells(table)[first]
+
     y = np.log1p(S / spec.s0)
     sigma_y = E / (spec.s0 + S)  # first-order propagation of the standard error
     return FoldedTable(x=f[first].astype(np.float32), y=y.astype(np.float32), sigma_y=sigma_y.astype(np.float32),
-                       S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, chi2_per_dof=chi2)
+                       S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, chi2_per_dof=chi2,
+                       cell=cell)
 
 
 def stable_expm1(lib, y):

@@ -1,7 +1,8 @@
 """Synthetic bundle tables and configs, so that neural and plugin tests need no bake.
 
 The table is an analytic ridge along the specular cone (``sin theta_o = -sin theta_i``)
-with a 1e5:1 dynamic range, a cosine lobe in azimuth, three wavelengths and 1% noise.
+with a 1e5:1 dynamic range, a cosine lobe in azimuth, three wavelengths and 1% noise,
+averaged over each bin as a baked table is.
 """
 
 import numpy as np
@@ -19,12 +20,19 @@ def synthetic_table(cfg, path, relative=True, dynamic_range=1e5, passthrough=0.0
     pe, te = np.linspace(-np.pi, np.pi, 37), np.linspace(-np.pi / 2, np.pi / 2, 19)
     pc, tc = 0.5 * (pe[1:] + pe[:-1]), 0.5 * (te[1:] + te[:-1])
     PI, TI, PO, TO = np.meshgrid(phi_i, theta_i, pc, tc, indexing="ij")
-    ridge = np.exp(-(((np.sin(TO) + np.sin(TI)) / 0.12) ** 2))
-    lobe = 0.6 + 0.4 * np.cos(PO - (0 if relative else PI))
-    if not relative:  # an elliptical bundle: brighter seen across its major axis
-        lobe = lobe * (1.0 + 0.5 * np.cos(2 * PI))
+
+    def f(po, so):
+        ridge = np.exp(-(((so + np.sin(TI)) / 0.12) ** 2))
+        lobe = 0.6 + 0.4 * np.cos(po - (0 if relative else PI))
+        if not relative:  # an elliptical bundle: brighter seen across its major axis
+            lobe = lobe * (1.0 + 0.5 * np.cos(2 * PI))
+        return ridge * lobe
+    # a baked table holds bin averages (per solid angle: uniform in phi_o and sin theta_o)
+    sub = (np.arange(6) + 0.5) / 6
+    s0, s1 = np.sin(te[:-1]), np.sin(te[1:])
+    avg = np.mean([f(PO + (a - 0.5) * (pe[1] - pe[0]), s0 + b * (s1 - s0)) for a in sub for b in sub], axis=0)
     spectral = np.array([0.6, 0.8, 1.0])
-    S = (1.0 / dynamic_range + ridge * lobe)[..., None] * spectral
+    S = (1.0 / dynamic_range + avg)[..., None] * spectral
     rng = np.random.default_rng(0)
     E = 0.01 * S
     S = S + E * rng.standard_normal(S.shape)
@@ -44,7 +52,7 @@ def make_config(tmp_path, name="n", **train):
     cfg = {"name": name, "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
            "fiber": {"model": "isotropic"},
            "bundle": {"shape": "circle", "radius_um": 100},
-           "train": {"models": {"tiny": [16, 16], "wide": [32, 32, 32]}, "epochs": 60, "batch_size": 128,
+           "train": {"models": {"tiny": [16, 16], "wide": [32, 32, 32]}, "epochs": 120, "batch_size": 128,
                      "patience": 60, **train}}
     path = tmp_path / f"{name}.yaml"
     path.write_text(yaml.safe_dump(cfg))
