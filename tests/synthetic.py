@@ -52,7 +52,7 @@ def make_config(tmp_path, name="n", **train):
     cfg = {"name": name, "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
            "fiber": {"model": "isotropic"},
            "bundle": {"shape": "circle", "radius_um": 100},
-           "train": {"models": {"tiny": [16, 16], "wide": [32, 32, 32]}, "epochs": 120, "batch_size": 128,
+           "train": {"models": {"tiny": [16, 16], "wide": [32, 32, 32]}, "epochs": 60, "batch_size": 128,
                      "patience": 60, **train}}
     path = tmp_path / f"{name}.yaml"
     path.write_text(yaml.safe_dump(cfg))
