@@ -322,8 +322,6 @@ class Baker:
         ``A[theta_i, lambda] = f(theta_i, theta_1, dphi_1) cos(theta_1) / pdf_mix`` (``factor``
         holds the last two); one lane per (path, theta_i), spectra written as packets.
         """
-        import sys
-
         import drjit as dr
         import mitsuba as mi
 
@@ -334,12 +332,11 @@ class Baker:
         f = twin.eval_spectrum(theta_i, dr.gather(mi.Float, theta1, path), dr.gather(mi.Float, dphi1, path))
         A = [v * dr.gather(mi.Float, factor, path) for v in f]
         pad = [dr.zeros(mi.Float, m * n_ti)] * (P - L)
-        ArrayXf = getattr(sys.modules[mi.Float.__module__], "ArrayXf")
         out = []
         for carried in (B, R):
             values = [a * dr.gather(mi.Float, c, path) for a, c in zip(A, carried)]
             target = dr.zeros(mi.Float, m * n_ti * P)
-            dr.scatter(target, ArrayXf(values + pad) if P > 1 else values[0], lane)
+            dr.scatter(target, twin.ArrayXf(values + pad) if P > 1 else values[0], lane)
             out.append(target)
         dr.eval(out)
         return tuple(t.numpy().reshape(m, n_ti, P)[..., :L] for t in out)

@@ -86,7 +86,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     def errors(predict):
         """predict(list of 4 arrays) -> [n, n_lambda]; every bin's average over 4 x 4 points,
         as the table's bins are averages (at the centres alone a model may peak unseen
-        between them: a model 1.8% off in albedo at the centres was 4% off in between)."""
+        between them: a model 1.8% off in albedo at the centres was 7% off in its worst row)."""
         pred = bin_average(lambda *q: predict([a.astype(np.float32) for a in q]), cells).astype(np.float64)
         p, t = pred[val], truth[val]
         albedo = (pred * omega[:, None]).reshape(table.values.shape[:2] + (-1, n_l)).sum(axis=2)

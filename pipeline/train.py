@@ -17,7 +17,7 @@ The table's values are bin averages, so the model's *bin average* is fitted: its
 over ``bin_strata`` x ``bin_strata`` stratified random points of the bin (fresh every
 step); the held-out errors compare bin averages (4 x 4 points) too. Fitted and measured
 at bin centres only, models peaked unseen between the centres (3-7% more energy than the
-table; a render 5% too bright), see docs/BENCHMARKS.md.
+table), see docs/BENCHMARKS.md.
 
 The loss is a weighted MSE in log space, ``y = log(1 + S / s0)``: each sample and
 wavelength is weighted by ``1 / (sigma_y^2 + sigma_floor^2)`` where ``sigma_y`` is the
@@ -34,6 +34,7 @@ seed: same weights.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -122,16 +123,17 @@ def run(cfg, out_root="artifacts") -> Path:
     y_top = float(np.log1p(table.values.max() / s0))
     folds = choose_folds(table, relative)
     out = Path(out_root) / cfg.name / "train"
+    # every size shares the spec but for its widths, hence one folded table and one split
+    base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
+                      wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
+                      config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"],
+                      folds=folds, passthrough=table.passthrough.tolist(), passthrough_phi_i=table.phi_i.tolist())
+    data = fold_table(table, base)
+    train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
+    w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
+    w = (w / w[train_idx].mean()).astype(np.float32)
     for name, hidden in c.models.items():
-        spec = NeuralSpec(relative_phi=relative, hidden=list(hidden), s0=s0, y_max=1.5 * y_top + 1.0,
-                          wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
-                          config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"],
-                          folds=folds, passthrough=table.passthrough.tolist(),
-                          passthrough_phi_i=table.phi_i.tolist())
-        data = fold_table(table, spec)
-        train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
-        w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
-        w = (w / w[train_idx].mean()).astype(np.float32)
+        spec = dataclasses.replace(base, hidden=list(hidden))
 
         torch.manual_seed(c.seed)
         model = make_torch_model(spec)

@@ -10,6 +10,8 @@ Abramowitz-Stegun 9.8.1-9.8.2 polynomials (relative error < 2e-7, below float32)
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from .base import FiberTable
@@ -106,6 +108,7 @@ class DrJitFiber:
         # wavelengths of a table entry (Dr.Jit turns it into a few vector loads); scalar
         # gathers, one per wavelength, made the spectral value most of a bounce's cost
         self.packet = 1 << (self.n_lambda - 1).bit_length()
+        self.ArrayXf = getattr(sys.modules[Float.__module__], "ArrayXf")  # packet type of this backend
         self.N = [Float(self._padded(l.azimuthal).ravel()) for l in table.lobes]
         self.energy = Float(sampler.energy.astype(np.float32).ravel())        # [lobe, node]
         self.albedo_nodes = Float(self._padded(table.energy()).ravel())        # [node, lambda]
@@ -138,14 +141,11 @@ class DrJitFiber:
 
     def _gather_spectrum(self, source, entry) -> list:
         """The ``n_lambda`` values of table entry ``entry`` (an index in units of spectra)."""
-        import sys
-
         import drjit as dr
 
         if self.packet == 1:
             return [dr.gather(self.Float, source, entry)]
-        ArrayXf = getattr(sys.modules[self.Float.__module__], "ArrayXf")
-        values = dr.gather(ArrayXf, source, entry, shape=(self.packet, dr.width(entry)))
+        values = dr.gather(self.ArrayXf, source, entry, shape=(self.packet, dr.width(entry)))
         return [values[l] for l in range(self.n_lambda)]
 
     # -- node interpolation in |theta_i| ------------------------------------------
