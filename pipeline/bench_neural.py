@@ -179,7 +179,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     noise_l1 = float(np.sqrt(2 / np.pi) * table.stderr.reshape(-1, n_l)[val].sum() / truth[val].sum())
     print(f"the table's own Monte Carlo noise on these bins: relative L1 {noise_l1:.2%}")
     (out / "error_vs_time.json").write_text(json.dumps({"rows": rows, "table_noise_l1": noise_l1}, indent=1))
-    plot(rows, noise_l1, out / "error_vs_time.png")
+    plot(rows, noise_l1, out / "error_vs_time.png", n)
     table_bytes = rows[0]["bytes"]
     lin_jit = next(r for r in rows if r["method"] == "table linear" and r["backend"] == "drjit")
     for r in rows:
@@ -191,7 +191,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     return {"rows": rows, "table_noise_l1": noise_l1, "queries": n}
 
 
-def plot(rows, noise_l1, path):
+def plot(rows, noise_l1, path, queries):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -216,7 +216,7 @@ def plot(rows, noise_l1, path):
         ax.scatter([], [], color=colors[m], label=m)
     for b, mk in markers.items():
         ax.scatter([], [], color="0.5", marker=mk, label=b)
-    ax.set(xscale="log", yscale="log", xlabel="cost [ns per query, all wavelengths, batch 1M]",
+    ax.set(xscale="log", yscale="log", xlabel=f"cost [ns per query, all wavelengths, batch of {queries:,}]",
            ylabel="relative L1 error on held-out bins", title="error against run time (marker area ~ bytes)")
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
