@@ -131,7 +131,8 @@ class FoldedTable:
     order phi_i, theta_i, phi_o, theta_o), and for the energy term ``group [n]`` the
     incident direction (up to symmetry) of a class and ``omega [n]`` its solid-angle
     weight, such that ``sum_c S_c omega_c`` over a group is that incident direction's
-    albedo ``integral S d omega_o``.
+    albedo ``integral S d omega_o``; ``albedo [n_groups, n_lambda]`` is that integral as
+    the bake tallied it (the scattered fraction, ``BundleTable.scattered``).
     """
 
     x: np.ndarray
@@ -143,6 +144,7 @@ class FoldedTable:
     bin_class: np.ndarray
     group: np.ndarray
     omega: np.ndarray
+    albedo: np.ndarray
     chi2_per_dof: float  # spread of merged bins about their mean, in units of their noise (~1: consistent)
     cell: np.ndarray = None  # [n, 6] a representative bin: phi_i, theta_i, phi_o lo/hi, sin theta_o lo/hi
 
@@ -225,6 +227,10 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     omega_bins = np.broadcast_to(table.solid_angle[None, None], table.values.shape[:4]).ravel()
     omega = np.bincount(bin_class, omega_bins, n) / members[group_canonical[bin_group[first]]]
     group = group_canonical[bin_group[first]]
+    # the baked scattered fraction of each canonical incident direction (its members' mean)
+    albedo = np.zeros((members.size, n_l))
+    np.add.at(albedo, group_canonical, table.scattered.reshape(-1, n_l).astype(np.float64))
+    albedo /= members[:, None]
 
     # each class's first bin, for training at points inside the bin (the table holds bin
     # averages; at the centres alone a network may peak between them, unseen)
@@ -233,7 +239,7 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     y = np.log1p(S / spec.s0)
     sigma_y = E / (spec.s0 + S)  # first-order propagation of the standard error
     return FoldedTable(x=f[first].astype(np.float32), y=y.astype(np.float32), sigma_y=sigma_y.astype(np.float32),
-                       S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, chi2_per_dof=chi2,
+                       S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, albedo=albedo, chi2_per_dof=chi2,
                        cell=cell)
 
 
