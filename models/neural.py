@@ -239,8 +239,8 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     y = np.log1p(S / spec.s0)
     sigma_y = E / (spec.s0 + S)  # first-order propagation of the standard error
     return FoldedTable(x=f[first].astype(np.float32), y=y.astype(np.float32), sigma_y=sigma_y.astype(np.float32),
-                       S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, albedo=albedo, chi2_per_dof=chi2,
-                       cell=cell)
+                       S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, albedo=albedo,
+                       chi2_per_dof=chi2, cell=cell)
 
 
 def stable_expm1(lib, y):

@@ -22,16 +22,13 @@ table), see docs/BENCHMARKS.md.
 The loss is a weighted MSE in log space, ``y = log(1 + S / s0)``: each sample and
 wavelength is weighted by ``1 / (sigma_y^2 + sigma_floor^2)`` where ``sigma_y`` is the
 table's own standard error carried into log space, so Monte Carlo noise is not learned
-as signal. A second term, weighted by ``albedo_weight``, keeps energy: per incident
-direction and wavelength, the squared symmetric relative difference of the model's
-albedo ``sum S solid_angle`` over the whole row of outgoing bins against the table's
-scattered fraction (in a minibatch: the batch's live values, the rest of the row from
-the last epoch's). Log-space errors alone bias the albedo (a few percent, worst at
-grazing incidence). After the epochs, the output layer alone is *calibrated* by L-BFGS
-on the whole table (``calibration_steps``, ``calibration_weight``), which brings the
-small model's worst row from 2-4.6% to about 1% (docs/BENCHMARKS.md). The rows include
-the held-out bins: their values are never fitted, but each row's total, the scattered
-fraction the bake tallied, is the energy target.
+as signal. Log-space errors bias the albedo (a few percent, worst at grazing incidence),
+so after the epochs the output layer alone is *calibrated* by L-BFGS on the whole table
+(``calibration_steps``): the same fit term plus, weighted by ``albedo_weight``, the
+squared relative error of the model's albedo ``sum S solid_angle`` per incident
+direction and wavelength against the table's scattered fraction. The small model's
+worst row goes from 2-4.6% to about 1% (docs/BENCHMARKS.md). A row's sum includes its
+held-out bins: their values are never fitted, only the row's total is the target.
 
 A random ``val_fraction`` of the samples (all wavelengths of a bin, and all its mirror
 images, together) is held out for early stopping and for the report. Same table and
@@ -179,7 +176,7 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
     """Train one MLP on the folded table; returns (model, loss history, best validation loss, seconds).
 
     Phase 1 fits the bin averages by minibatch Adam with early stopping on the held-out
-    loss; phase 2 calibrates the output layer on the energy per incident direction.
+    loss; phase 2 calibrates the output layer on the energy of every incident direction.
     """
     import torch
     from tqdm import tqdm
@@ -188,9 +185,6 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
     model = make_torch_model(spec)
     s0 = spec.s0
     Y, W = torch.from_numpy(data.y), torch.from_numpy(w)
-    omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
-    group = torch.from_numpy(data.group)
-    albedo = torch.from_numpy(data.albedo.astype(np.float32))
     cell = torch.from_numpy(data.cell.astype(np.float32))
     tr, va, every = (torch.from_numpy(i) for i in (train_idx, val_idx, np.arange(len(data.x))))
 
@@ -219,42 +213,15 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
         S = s0 * torch.expm1(torch.clamp(y, min=0.0)).mean(1)
         return torch.log1p(torch.clamp(S_leaky / s0, min=-0.5)), S
 
-    # -- the loss ---------------------------------------------------------------------
     def fit_loss(b, y):
         """Weighted log-space MSE: the weights carry the table's own noise."""
         return (W[b] * (y - Y[b]) ** 2).mean()
 
-    def energy_loss(row):
-        """Mean squared symmetric relative difference 2 (p - a) / (p + a) of the model's albedo
-        ``row`` per (incident direction, wavelength) against the table's: ~ the relative error
-        when small, bounded by 2 when far off (early in training, or on a 1e5:1 table)."""
-        seen = albedo > 0
-        p, a = row[seen], albedo[seen]
-        return ((2 * (p - a) / (p + a)) ** 2).mean()
-
-    def rows(b, E):
-        """Sum the energies ``E = S omega`` of samples ``b`` per incident direction."""
-        return torch.zeros_like(albedo).index_add(0, group[b], E)
-
     # -- phase 1: minibatch epochs, early stopping on the held-out loss ------------------
-    # The energy term compares whole rows: the batch's live energies plus every other
-    # sample's from the cache (refreshed by each epoch's full evaluation). Rows of the
-    # batch alone are a noisy, biased estimate of the albedo.
     opt = torch.optim.Adam(model.parameters(), lr=c.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, c.epochs)
     gen = torch.Generator().manual_seed(c.seed)
     fixed = stratified(len(data.x), c.bin_strata, torch.Generator().manual_seed(c.seed + 1))
-
-    def evaluate():
-        """(train loss, validation loss, every sample's energy) at the fixed points."""
-        with torch.no_grad():
-            y, S = bin_average(every, model(encode(every, fixed)))
-            E = S * omega
-            energy = c.albedo_weight * float(energy_loss(rows(every, E)))
-            return float(fit_loss(tr, y[tr])) + energy, float(fit_loss(va, y[va])) + energy, E
-
-    _, _, E_cache = evaluate()
-    row_cache = rows(every, E_cache)
     history, best, best_state, since = [], np.inf, None, 0
     t0 = time.perf_counter()
     with tqdm(range(c.epochs), desc=f"train {name}", unit="epoch") as bar:
@@ -262,16 +229,14 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
             perm = tr[torch.randperm(len(tr), generator=gen)]
             for lo in range(0, len(perm), c.batch_size):
                 b = perm[lo: lo + c.batch_size]
-                y, S = bin_average(b, model(encode(b, stratified(len(b), c.bin_strata, gen))))
-                E = S * omega[b]
-                row = row_cache - rows(b, E_cache[b]) + rows(b, E)
-                loss = fit_loss(b, y) + c.albedo_weight * energy_loss(row)
+                y, _ = bin_average(b, model(encode(b, stratified(len(b), c.bin_strata, gen))))
+                loss = fit_loss(b, y)
                 opt.zero_grad()
                 loss.backward()
                 opt.step()
-                E_cache[b], row_cache = E.detach(), row.detach()
-            train_loss, val_loss, E_cache = evaluate()
-            row_cache = rows(every, E_cache)
+            with torch.no_grad():
+                y, _ = bin_average(every, model(encode(every, fixed)))
+                train_loss, val_loss = float(fit_loss(tr, y[tr])), float(fit_loss(va, y[va]))
             if not (np.isfinite(train_loss) and np.isfinite(val_loss)):
                 raise FloatingPointError(f"training {name} diverged at epoch {epoch} (loss {train_loss}); "
                                          "lower train.lr")
@@ -288,13 +253,28 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
     model.load_state_dict(best_state)
 
     # -- phase 2: energy calibration of the output layer --------------------------------
-    # The hidden layers frozen, the output layer is refitted by L-BFGS on the whole table at
-    # 4 x 4 stratified points per bin (drawn once; the features are computed once, so each
-    # iteration is one small matrix product): the fit term keeps the shape, the energy term,
-    # now over exact rows, pulls every row's albedo onto the table's. On the tests' synthetic
-    # table Adam (300 steps at the training's learning rate) left 6.5% / 2.2% (two sizes),
-    # L-BFGS 4.7% / 1.5%.
+    # Log-space errors alone bias the albedo (the small model: 2-4.6% in its worst row,
+    # grazing incidence). With the hidden layers frozen, the output layer is refitted by
+    # L-BFGS on the whole table at 4 x 4 stratified points per bin (drawn once; the
+    # features are computed once, so each iteration is one small matrix product): the fit
+    # term keeps the shape, the energy term pulls every row's albedo, the sum of S d omega
+    # over all its outgoing bins, onto the table's. The rows include the held-out bins:
+    # their values are never fitted, but the row's total is the target. Energy terms in the
+    # minibatch loss instead (over the batch's share of a row, or the whole row from a cache)
+    # made training oscillate and did no better after this phase (docs/BENCHMARKS.md).
     if c.calibration_steps:
+        omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
+        group = torch.from_numpy(data.group)
+        albedo = torch.from_numpy(data.albedo.astype(np.float32))
+        seen = albedo > 0
+
+        def energy_loss(S):
+            """Mean squared symmetric relative difference 2 (p - a) / (p + a) of the model's
+            albedo p per (incident direction, wavelength) against the table's a: ~ the
+            relative error when small, bounded by 2 when far off (a 1e5:1 table)."""
+            p = torch.zeros_like(albedo).index_add(0, group, S * omega)[seen]
+            return ((2 * (p - albedo[seen]) / (p + albedo[seen])) ** 2).mean()
+
         pts = stratified(len(data.x), 4, torch.Generator().manual_seed(c.seed + 2))
         with torch.no_grad():
             hidden = model[:-1](encode(every, pts))
@@ -305,12 +285,12 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
         def closure():
             opt.zero_grad()
             y, S = bin_average(every, last(hidden))
-            loss = fit_loss(tr, y[tr]) + c.calibration_weight * energy_loss(rows(every, S * omega))
+            loss = fit_loss(tr, y[tr]) + c.albedo_weight * energy_loss(S)
             loss.backward()
             return loss
         opt.step(closure)
         if not all(torch.isfinite(p).all() for p in last.parameters()):
-            raise FloatingPointError(f"the energy calibration of {name} diverged; lower train.calibration_weight")
+            raise FloatingPointError(f"the energy calibration of {name} diverged; lower train.albedo_weight")
     return model, history, best, time.perf_counter() - t0
 
 
