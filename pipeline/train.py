@@ -136,7 +136,7 @@ def run(cfg, out_root="artifacts") -> Path:
     w = (w / w[train_idx].mean()).astype(np.float32)
     for name, hidden in c.models.items():
         spec = dataclasses.replace(base, hidden=list(hidden))
-        model, history, best, seconds = fit(spec, data, train_idx, val_idx, w, c, name)
+        model, history, best, seconds, calibration = fit(spec, data, train_idx, val_idx, w, c, name)
 
         # -- held-out errors, in linear space against the table -----------------
         module = make_export_module(spec, model).eval()
@@ -160,20 +160,29 @@ def run(cfg, out_root="artifacts") -> Path:
             "folds": folds, "fold_chi2_per_dof": data.chi2_per_dof, "samples": len(data.x),
             "epochs": len(history), "train_seconds": seconds,
             "parameters": int(sum(p.numel() for p in model.parameters())),
+            **calibration,
         }
         d = out / name
         with atomic_path(d / "model.pt") as tmp:
             torch.save({"spec": spec.to_dict(), "state": model.state_dict(), "metrics": metrics}, tmp)
         write_text(d / "summary.json", json.dumps(metrics, indent=1))
         plot_loss(history, d / "loss.png", name)
-        print(f"[train] {name} {hidden}: {metrics['parameters']} parameters, {len(history)} epochs in "
-              f"{seconds:.1f} s; held-out relative L1 {metrics['relative_l1']:.3%}, error / table noise "
-              f"{metrics['noise_ratio']:.2f}")
+        line = (f"[train] {name} {hidden}: {metrics['parameters']} parameters, {len(history)} epochs in "
+                f"{seconds:.1f} s; held-out relative L1 {metrics['relative_l1']:.3%}, error / table noise "
+                f"{metrics['noise_ratio']:.2f}")
+        if calibration:
+            line += (f"; worst albedo error {calibration['worst_albedo_error_before']:.2%} -> "
+                     f"{calibration['worst_albedo_error_after']:.2%} by the calibration")
+        print(line)
     return out
 
 
 def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
-    """Train one MLP on the folded table; returns (model, loss history, best validation loss, seconds).
+    """Train one MLP on the folded table.
+
+    Returns the model, the loss history, the best validation loss, the seconds taken and
+    the worst albedo error over (incident direction, wavelength) before and after the
+    calibration (at its points; empty without calibration).
 
     Phase 1 fits the bin averages by minibatch Adam with early stopping on the held-out
     loss; phase 2 calibrates the output layer on the energy of every incident direction.
@@ -268,17 +277,25 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
         albedo = torch.from_numpy(data.albedo.astype(np.float32))
         seen = albedo > 0
 
+        def model_albedo(S):
+            return torch.zeros_like(albedo).index_add(0, group, S * omega)[seen]
+
         def energy_loss(S):
             """Mean squared symmetric relative difference 2 (p - a) / (p + a) of the model's
             albedo p per (incident direction, wavelength) against the table's a: ~ the
             relative error when small, bounded by 2 when far off (a 1e5:1 table)."""
-            p = torch.zeros_like(albedo).index_add(0, group, S * omega)[seen]
+            p = model_albedo(S)
             return ((2 * (p - albedo[seen]) / (p + albedo[seen])) ** 2).mean()
+
+        def worst_albedo_error():
+            with torch.no_grad():
+                return float((model_albedo(bin_average(every, last(hidden))[1]) / albedo[seen] - 1).abs().max())
 
         pts = stratified(len(data.x), 4, torch.Generator().manual_seed(c.seed + 2))
         with torch.no_grad():
             hidden = model[:-1](encode(every, pts))
         last = model[-1]
+        before = worst_albedo_error()
         opt = torch.optim.LBFGS(last.parameters(), max_iter=c.calibration_steps, history_size=20,
                                 line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
 
@@ -291,7 +308,10 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
         opt.step(closure)
         if not all(torch.isfinite(p).all() for p in last.parameters()):
             raise FloatingPointError(f"the energy calibration of {name} diverged; lower train.albedo_weight")
-    return model, history, best, time.perf_counter() - t0
+        calibration = {"worst_albedo_error_before": before, "worst_albedo_error_after": worst_albedo_error()}
+    else:
+        calibration = {}
+    return model, history, best, time.perf_counter() - t0, calibration
 
 
 def plot_loss(history, path, name) -> None:
