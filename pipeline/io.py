@@ -8,6 +8,16 @@ import tempfile
 from pathlib import Path
 
 
+def _file_mode() -> int:
+    """What ``open()`` would give a new file: 0666 less the process's umask."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+_FILE_MODE = _file_mode()
+
+
 @contextlib.contextmanager
 def atomic_path(path):
     """Yield a temporary path beside ``path``; on success rename it over ``path``.
@@ -20,6 +30,7 @@ def atomic_path(path):
     os.close(fd)
     try:
         yield tmp
+        os.chmod(tmp, _FILE_MODE)  # mkstemp's 0600 would make the artifact private
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -79,11 +79,15 @@ def run(cfg, out_root="artifacts") -> Path:
             p = train / name / "summary.json"
             if p.exists():
                 m = json.loads(p.read_text())
+                calibration = (f"{m['worst_albedo_error_before']:.2%} &rarr; {m['worst_albedo_error_after']:.2%}"
+                               if "worst_albedo_error_after" in m else "-")
                 rows.append(f"<tr><td>{name}</td><td>{cfg.train.models[name]}</td><td>{m['parameters']}</td>"
                             f"<td>{m['epochs']}</td><td>{m['train_seconds']:.1f}</td><td>{m['relative_l1']:.2%}</td>"
-                            f"<td>{m['table_noise_l1']:.2%}</td><td>{m['noise_ratio']:.2f}</td></tr>")
+                            f"<td>{m['table_noise_l1']:.2%}</td><td>{m['noise_ratio']:.2f}</td>"
+                            f"<td>{calibration}</td></tr>")
         body = ("<table><tr><th>model</th><th>hidden</th><th>parameters</th><th>epochs</th><th>train s</th>"
-                "<th>held-out rel. L1</th><th>table noise L1</th><th>error / table noise</th></tr>"
+                "<th>held-out rel. L1</th><th>table noise L1</th><th>error / table noise</th>"
+                "<th>worst albedo error, calibration</th></tr>"
                 + "".join(rows) + "</table>")
         body += "".join(_img(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
                         if (train / n / "loss.png").exists())
@@ -124,6 +128,7 @@ def compare_slices(cfg, out_root, out) -> str:
     import mitsuba as mi
 
     from mitsuba_ext.neural import DrJitMLP
+    from models.neural import bin_average, table_cells
     from pipeline.train import load_bundle_table
 
     mi.set_variant(cfg.bake.variant)
@@ -131,18 +136,18 @@ def compare_slices(cfg, out_root, out) -> str:
     relative = table.meta["reductions"]["phi_o"] == "relative"
     name = list(cfg.train.models)[-1] if len(cfg.train.models) < 2 else list(cfg.train.models)[1]
     mlp = DrJitMLP(Path(out_root) / cfg.name / "export" / name / "weights.npz")
-    body = f"<p>Table against model <b>{name}</b> (Dr.Jit evaluator) at bin centres.</p>"
+    body = (f"<p>Table against model <b>{name}</b> (Dr.Jit evaluator), the model's bin averages (4 x 4 "
+            "points per bin) as a table value is an average over its bin.</p>")
+
+    def predict(*angles):
+        S = mlp.eval(*(mi.Float(np.asarray(a, np.float32)) for a in angles))
+        dr.eval(S)
+        return np.stack([s.numpy() for s in S], -1).astype(np.float64)
+    cells = table_cells(table).reshape(table.values.shape[:4] + (6,))
     for target in (30.0, 60.0):
         j = int(np.argmin(np.abs(np.rad2deg(table.theta_i) - target)))
-        PO, TO = np.meshgrid(table.phi_o, table.theta_o, indexing="ij")
-        phi_i = float(table.phi_i[0])
-        po = PO + phi_i if relative else PO
-        S = mlp.eval(mi.Float(np.full(PO.size, phi_i, np.float32)),
-                     mi.Float(np.full(PO.size, table.theta_i[j], np.float32)),
-                     mi.Float(po.ravel().astype(np.float32)), mi.Float(TO.ravel().astype(np.float32)))
-        dr.eval(S)
-        pred = np.stack([s.numpy() for s in S], -1).reshape(PO.shape + (-1,))
         ref = table.values[0, j].astype(np.float64)
+        pred = bin_average(predict, cells[0, j].reshape(-1, 6)).reshape(ref.shape)
         tag = f"{int(target):02d}"
         extent = (0, 360, -90, 90) if relative else (-180, 180, -90, 90)
         roll = len(table.phi_o) // 2 if relative else 0
@@ -153,7 +158,7 @@ def compare_slices(cfg, out_root, out) -> str:
         err = np.abs(pred - ref).mean(-1) / max(ref.mean(-1).max(), 1e-30)
         fig, ax = plt.subplots(figsize=(12, 3.6), dpi=110)
         im = ax.imshow(np.roll(err.T, roll, axis=1), origin="lower", aspect="auto", extent=extent, cmap="magma")
-        fig.colorbar(im, ax=ax, label="|model - table| / table peak (mean over wavelengths)")
+        fig.colorbar(im, ax=ax, label="|model - table| / table peak\n(mean over wavelengths)")
         xlabel = "dphi = phi_o - phi_i [deg]" if relative else "phi_o [deg] (bundle frame)"
         ax.set(xlabel=xlabel, ylabel="theta_o [deg]", title=f"error map, theta_i = {target:.0f} deg")
         fig.tight_layout()

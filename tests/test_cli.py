@@ -80,3 +80,24 @@ def test_fiber_stage_end_to_end_and_failure_keeps_artifacts(tmp_path):
     assert r.returncode == 2 and "corrupt.npz" in r.stderr
     assert (d / "fiber_table.npz").read_bytes() == before
     assert not list(d.glob(".*.tmp"))
+
+
+def test_atomic_writes_keep_the_old_file_on_failure_and_give_the_usual_mode(tmp_path):
+    """A failed write leaves the earlier artifact as it was; a new one is readable like any
+    file the process creates (0666 less the umask), not mkstemp's private 0600."""
+    import os
+    import stat
+
+    from pipeline.io import atomic_path, write_text
+
+    path = tmp_path / "a.txt"
+    write_text(path, "old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(path) as tmp:
+            open(tmp, "w").write("half")
+            raise RuntimeError("interrupted")
+    assert path.read_text() == "old" and os.listdir(tmp_path) == ["a.txt"]
+    write_text(tmp_path / "b.txt", "new")
+    (tmp_path / "c.txt").write_text("plain")
+    mode = stat.S_IMODE(os.stat(tmp_path / "b.txt").st_mode)
+    assert mode == stat.S_IMODE(os.stat(tmp_path / "c.txt").st_mode), oct(mode)
