@@ -271,11 +271,11 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
     # their values are never fitted, but the row's total is the target. Energy terms in the
     # minibatch loss instead (over the batch's share of a row, or the whole row from a cache)
     # made training oscillate and did no better after this phase (docs/BENCHMARKS.md).
-    if c.calibration_steps:
+    albedo = torch.from_numpy(data.albedo.astype(np.float32))
+    seen = albedo > 0  # a row that scatters nothing has no relative error
+    if c.calibration_steps and bool(seen.any()):
         omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
         group = torch.from_numpy(data.group)
-        albedo = torch.from_numpy(data.albedo.astype(np.float32))
-        seen = albedo > 0
 
         def model_albedo(S):
             return torch.zeros_like(albedo).index_add(0, group, S * omega)[seen]

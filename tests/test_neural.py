@@ -248,3 +248,22 @@ def test_energy_calibration_keeps_every_rows_albedo(trained, tmp_path):
     uncalibrated = {name: model_albedo_error(tmp_path, name, table) for name in ("tiny", "wide")}
     assert calibrated["wide"] < 0.02, calibrated
     assert all(calibrated[n] < 0.5 * uncalibrated[n] for n in calibrated), (calibrated, uncalibrated)
+
+
+def test_a_table_that_scatters_nothing_trains_without_nan(tmp_path):
+    """A bundle that passes or absorbs everything: no row has an albedo to calibrate (a
+    relative error of 0 / 0 would be NaN); training must still give a finite model."""
+    import torch
+
+    cfg = make_config(tmp_path, models={"tiny": [8, 8]})
+    path = tmp_path / "n" / "bake" / "bundle_table.npz"
+    table = synthetic_table(cfg, path, passthrough=1.0)
+    table.values[:] = 0.0
+    table.stderr[:] = 0.0
+    table.save(path)
+    train_stage.run(cfg, tmp_path)
+    state = torch.load(tmp_path / "n" / "train" / "tiny" / "model.pt", weights_only=True)["state"]
+    assert all(torch.isfinite(v).all() for v in state.values())
+    _, run = reference(tmp_path, "tiny")
+    S = run(query_set(1000))
+    assert np.all(np.isfinite(S)) and np.all(S >= 0)
