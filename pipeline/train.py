@@ -215,8 +215,8 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
         """From the raw outputs ``y`` at the points of bins ``b``: the log-space bin average
         for the fit and the exported one, ``S``, for the energy. The exported clamp at 0 is
         leaky for the fit (an output clamped everywhere would get no gradient and stay dead;
-        it did, for one wavelength); the energy sees the exported S, else the optimizer
-        cancels excess energy with negative values that the export clamps to 0."""
+        it did, for one wavelength); the energy is that of the exported S, what a renderer
+        gets (leaky negative values would count as negative energy)."""
         y = torch.clamp(torch.where(y < 0, 0.01 * y, y), max=spec.y_max).reshape(len(b), -1, spec.n_outputs)
         S_leaky = s0 * torch.expm1(y).mean(1)
         S = s0 * torch.expm1(torch.clamp(y, min=0.0)).mean(1)
