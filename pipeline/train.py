@@ -4,7 +4,8 @@ For every model name, writes under ``artifacts/<name>/train/<model>/``:
 
 * ``model.pt``      the weights and the :class:`models.neural.NeuralSpec`;
 * ``loss.png``      training and validation loss per epoch;
-* ``summary.json``  held-out errors, the noise ratio, time, parameter count.
+* ``summary.json``  held-out errors, the noise ratio, time, parameter count, and the
+                    worst albedo error before and after the energy calibration.
 
 The samples are the table *folded* by its symmetries (``models.neural.fold_table``):
 bins that the symmetric features cannot tell apart are one sample, their mean.
