@@ -224,6 +224,22 @@ def test_folded_energy_weights_give_the_albedo(tmp_path):
     assert np.allclose(data.albedo[np.argsort(sin_ti)], expect, rtol=1e-9)
 
 
+@pytest.mark.parametrize("relative,folds", [(True, ["theta", "dphi"]), (False, ["theta", "xz"])])
+def test_energy_targets_agree_with_the_folded_samples(tmp_path, relative, folds):
+    """The calibration pulls sum S omega per group onto ``albedo``: both must be the same
+    energy, for a circle (one incident azimuth) and an ellipse (several, mirrored)."""
+    from models.neural import fold_table
+
+    cfg = make_config(tmp_path)
+    table = synthetic_table(cfg, tmp_path / "t.npz", relative=relative).expanded()
+    data = fold_table(table, _spec(relative, folds))
+    sums = np.zeros_like(data.albedo)
+    np.add.at(sums, data.group, data.S * data.omega[:, None])
+    # groups: theta_i mirrored (7 of 13), and for the ellipse phi_i mirrored in x and z (3 of 8)
+    assert len(data.albedo) == (7 if relative else 21)
+    assert np.allclose(sums, data.albedo, rtol=1e-9)
+
+
 def model_albedo_error(tmp, name, table):
     """Worst relative error of the model's albedo over (phi_i, theta_i, lambda), from its bin
     averages (4 x 4 points) over every outgoing bin, against the table's scattered fraction."""
