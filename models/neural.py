@@ -131,8 +131,8 @@ class FoldedTable:
     order phi_i, theta_i, phi_o, theta_o), and for the energy term ``group [n]`` the
     incident direction (up to symmetry) of a class and ``omega [n]`` its solid-angle
     weight, such that ``sum_c S_c omega_c`` over a group is that incident direction's
-    albedo ``integral S d omega_o``; ``albedo [n_groups, n_lambda]`` is that integral as
-    the bake tallied it (the scattered fraction, ``BundleTable.scattered``).
+    albedo ``integral S d omega_o``; ``albedo [n_groups, n_lambda]`` is that integral
+    from the table (``BundleTable.scattered``, the mean over the group's members).
     """
 
     x: np.ndarray

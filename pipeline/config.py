@@ -202,7 +202,8 @@ class TrainCfg(Strict):
     patience: int = Field(300, ge=1)
     val_fraction: float = Field(0.1, gt=0.0, lt=0.9)
     sigma_floor: float = Field(0.02, gt=0.0, le=1.0, description="log-space noise floor of the loss weights")
-    bin_strata: int = Field(2, ge=1, le=8, description="k: the model's mean over k x k stratified points of a bin is fitted")
+    bin_strata: int = Field(2, ge=1, le=8,
+                            description="k: the model's mean over k x k stratified points of a bin is fitted")
     albedo_weight: float = Field(3.0, ge=0.0, le=1000.0, description="weight of the energy term of the calibration")
     calibration_steps: int = Field(300, ge=0, le=100_000,
                                    description="L-BFGS iterations of the output layer's energy calibration (0: none)")

@@ -212,7 +212,7 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
         return torch.stack(features(torch, spec, *points_in_bins(torch, cell[b].repeat_interleave(K, 0),
                                                                  u.reshape(-1, 2))), -1)
 
-    def bin_average(b, y):
+    def bin_means(b, y):
         """From the raw outputs ``y`` at the points of bins ``b``: the log-space bin average
         for the fit and the exported one, ``S``, for the energy. The exported clamp at 0 is
         leaky for the fit (an output clamped everywhere would get no gradient and stay dead;
@@ -239,13 +239,13 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
             perm = tr[torch.randperm(len(tr), generator=gen)]
             for lo in range(0, len(perm), c.batch_size):
                 b = perm[lo: lo + c.batch_size]
-                y, _ = bin_average(b, model(encode(b, stratified(len(b), c.bin_strata, gen))))
+                y, _ = bin_means(b, model(encode(b, stratified(len(b), c.bin_strata, gen))))
                 loss = fit_loss(b, y)
                 opt.zero_grad()
                 loss.backward()
                 opt.step()
             with torch.no_grad():
-                y, _ = bin_average(every, model(encode(every, fixed)))
+                y, _ = bin_means(every, model(encode(every, fixed)))
                 train_loss, val_loss = float(fit_loss(tr, y[tr])), float(fit_loss(va, y[va]))
             if not (np.isfinite(train_loss) and np.isfinite(val_loss)):
                 raise FloatingPointError(f"training {name} diverged at epoch {epoch} (loss {train_loss}); "
@@ -290,7 +290,7 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
 
         def worst_albedo_error():
             with torch.no_grad():
-                return float((model_albedo(bin_average(every, last(hidden))[1]) / albedo[seen] - 1).abs().max())
+                return float((model_albedo(bin_means(every, last(hidden))[1]) / albedo[seen] - 1).abs().max())
 
         pts = stratified(len(data.x), 4, torch.Generator().manual_seed(c.seed + 2))
         with torch.no_grad():
@@ -302,7 +302,7 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
 
         def closure():
             opt.zero_grad()
-            y, S = bin_average(every, last(hidden))
+            y, S = bin_means(every, last(hidden))
             loss = fit_loss(tr, y[tr]) + c.albedo_weight * energy_loss(S)
             loss.backward()
             return loss
