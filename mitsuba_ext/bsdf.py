@@ -97,6 +97,34 @@ def split_uniform(u, bits: int = 12):
     return hi * (1.0 / (1 << bits)), scaled - hi
 
 
+def light_and_camera(ctx, si, wo):
+    """Which of Mitsuba's two directions is the table's ``w_i`` (the light side).
+
+    In Mitsuba's ``eval(ctx, si, wo)`` of a path tracer (``TransportMode.Radiance``)
+    ``wo`` points towards the light and ``si.wi`` towards the camera; a light tracer
+    (``Importance``) swaps them. Returns local ``(w_light, w_camera, radiance)``.
+    """
+    import mitsuba as mi
+
+    if ctx.mode == mi.TransportMode.Radiance:
+        return wo, si.wi, True
+    return si.wi, wo, False
+
+
+def adjoint_factor(theta_light, theta_camera):
+    """``cos(theta_light) / cos(theta_camera)``: the radiance-mode value from the table's.
+
+    The far field of a cylinder seen along ``w_o`` is ``I = E 2R cos(theta_i) S(w_i -> w_o)``,
+    while a render collects ``2R cos(theta_o) E eval``; so in radiance mode
+    ``eval = S(w_i -> w_o) cos(theta_i) / cos(theta_o)`` with ``w_i`` the light side.
+    For a reciprocal ``S`` this equals ``S(w_o -> w_i)``. The camera's cosine is kept
+    from zero (a view along the axis sees no projected width anyway).
+    """
+    import drjit as dr
+
+    return dr.cos(theta_light) / dr.maximum(dr.cos(theta_camera), 1e-4)
+
+
 def bsdf_classes() -> dict:
     """``{"fiber_bundle": ..., "fiber_table": ...}`` plugin classes for the active variant."""
     import drjit as dr
@@ -249,14 +277,19 @@ def bsdf_classes() -> dict:
                 return dr.select(inside, 1.0, 0.0)
             return dr.select(inside, 1.0, dr.clip(self.backend.passthrough(phi_i), 0.0, 1.0))
 
-        def _value(self, si, frame, phi_i, theta_i, wo_world):
-            phi_o, theta_o = angles(wo_world, frame)
-            return self._spectrum(self.backend.eval(phi_i, theta_i, phi_o, theta_o), si)
+        def _value(self, ctx, si, frame, wo):
+            """The BSDF value for local ``wo``: the table's ``S(w_i -> w_o)`` with ``w_i``
+            the light side, times the adjoint factor in radiance mode."""
+            w_light, w_camera, radiance = light_and_camera(ctx, si, wo)
+            phi_l, theta_l = angles(si.to_world(w_light), frame)
+            phi_c, theta_c = angles(si.to_world(w_camera), frame)
+            value = self._spectrum(self.backend.eval(phi_l, theta_l, phi_c, theta_c), si)
+            return value * adjoint_factor(theta_l, theta_c) if radiance else value
 
         # -- the BSDF interface ---------------------------------------------
         def eval(self, ctx, si, wo, active=True):
-            frame, phi_i, theta_i, inside = self._setup(si)
-            value = self._value(si, frame, phi_i, theta_i, si.to_world(wo))
+            frame, _, _, inside = self._setup(si)
+            value = self._value(ctx, si, frame, wo)
             return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), value, 0.0)
 
         def pdf(self, ctx, si, wo, active=True):
@@ -278,11 +311,11 @@ def bsdf_classes() -> dict:
             # scattering: the remainder of sample1 picks uniform or tabulated sampling
             u_mix = (sample1 - P) / dr.maximum(1.0 - P, 1e-12)
             phi_o, theta_o, pdf_dir = self.grid.sample(phi_i, theta_i, u_mix, sample2)
-            wo_world = direction(phi_o, theta_o, frame)
-            value = self._value(si, frame, phi_i, theta_i, wo_world)
+            wo_local = si.to_local(direction(phi_o, theta_o, frame))
+            value = self._value(ctx, si, frame, wo_local)
 
             bs = dr.zeros(mi.BSDFSample3f)
-            bs.wo = dr.select(passes, -si.wi, si.to_local(wo_world))
+            bs.wo = dr.select(passes, -si.wi, wo_local)
             bs.pdf = dr.select(passes, P, (1.0 - P) * pdf_dir)
             bs.eta = 1.0
             bs.sampled_type = dr.select(passes, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
@@ -330,14 +363,23 @@ def bsdf_classes() -> dict:
             self.m_flags = scatter | passing
 
         def _angles(self, si, wo_world):
+            """Longitudes of ``si.wi`` and ``wo`` and their azimuth difference (wrapped)."""
             frame, phi_i, theta_i, inside = self._setup(si)
             phi_o, theta_o = angles(wo_world, frame)
             dphi = phi_o - phi_i
             return theta_i, theta_o, dphi - 2 * np.pi * dr.floor((dphi + np.pi) / (2 * np.pi)), inside
 
+        def _value(self, ctx, theta_si, theta_wo, dphi, si):
+            """``f(w_i -> w_o)`` with ``w_i`` the light side (``wo`` in radiance mode),
+            times the adjoint factor; ``dphi`` is ``phi(wo) - phi(si.wi)``."""
+            if ctx.mode == mi.TransportMode.Radiance:
+                f = self.fiber.eval_spectrum(theta_wo, theta_si, -dphi)
+                return self._spectrum(f, si) * adjoint_factor(theta_wo, theta_si)
+            return self._spectrum(self.fiber.eval_spectrum(theta_si, theta_wo, dphi), si)
+
         def eval(self, ctx, si, wo, active=True):
             theta_i, theta_o, dphi, inside = self._angles(si, si.to_world(wo))
-            value = self._spectrum(self.fiber.eval_spectrum(theta_i, theta_o, dphi), si)
+            value = self._value(ctx, theta_i, theta_o, dphi, si)
             return dr.select(active & ~inside, value, 0.0)
 
         def _pdf(self, theta_i, theta_o, dphi):
@@ -355,7 +397,7 @@ def bsdf_classes() -> dict:
             theta_o, dphi = self.fiber.sample(theta_i, [u0, u1, sample2.x, u3, u4])
             wo_world = direction(phi_i + dphi, theta_o, frame)
             pdf = self._pdf(theta_i, theta_o, dphi)
-            value = self._spectrum(self.fiber.eval_spectrum(theta_i, theta_o, dphi), si)
+            value = self._value(ctx, theta_i, theta_o, dphi, si)
             # a ray that meets the fiber's wall from inside crosses it (the light of this
             # fiber left through its displaced exit point already)
             bs = dr.zeros(mi.BSDFSample3f)

@@ -53,6 +53,29 @@ def displaced_exit(si, r, h, w):
     return dr.select(ok, p, si.p), dr.select(ok, radial, si.n)
 
 
+def far_side(si, r, d):
+    """Where a ray entering a bundle of radius ``r`` at ``si`` along ``d`` leaves it.
+
+    The far end of the chord in the hit's cross-section, and the outward radial
+    direction there (for the ray offset). Spawning the continuing ray there, rather
+    than just inside the entry point, crosses the bundle as one null event: a ray
+    spawned a float epsilon inside a long thin cylinder was seen to hit the same
+    entry wall again (from outside: a second scattering event for the same light).
+    """
+    import drjit as dr
+
+    t, n_perp, ok = bundle_axis(si)
+    d_perp = d - dr.dot(d, t) * t
+    dd = dr.squared_norm(d_perp)
+    ok &= (dd > 1e-10) & (r > 0)
+    s = dr.maximum(-2.0 * r * dr.dot(n_perp, d_perp) / dr.maximum(dd, 1e-10), 0.0)
+    p = si.p + s * d
+    c = si.p - r * n_perp
+    radial = (p - c) - dr.dot(p - c, t) * t
+    radial = dr.normalize(dr.select(dr.squared_norm(radial) > 0, radial, n_perp))
+    return dr.select(ok, p, si.p), dr.select(ok, radial, si.n), ok
+
+
 def offset_ray(p, n, d, wavelengths, maxt=None):
     """A ray from ``p`` pushed off its surface along ``n`` (Mitsuba's spawn offset).
 
@@ -133,8 +156,18 @@ def integrator_class():
         RAY_FLAGS = mi.RayFlags.UV | mi.RayFlags.dPdUV | mi.RayFlags.ShadingFrame
 
         def _radius(self, scene, si, bsdf, active):
-            """Bundle radius at a hit: the BSDF's ``radius``, or measured across the shape."""
-            r = bsdf.eval_attribute_1("radius", si, active)
+            """Bundle radius at a hit, from the shape where Mitsuba's parametrization holds it.
+
+            On ``cylinder`` and ``bsplinecurve`` the first surface derivative runs around
+            the circumference, ``|dp/du| = 2 pi r`` (exact, per hit, also for a curve whose
+            radius varies). Elsewhere: the BSDF's ``radius``, else a probe ray across the
+            shape (a probe spawned a float epsilon inside a thin cylinder can hit its entry
+            wall again, which is why it is the last resort).
+            """
+            shape_type = si.shape.shape_type()
+            curve = (shape_type == int(mi.ShapeType.Cylinder)) | (shape_type == int(mi.ShapeType.BSplineCurve))
+            r_shape = dr.norm(si.dp_du) * (0.5 / dr.pi)
+            r = dr.select(curve & dr.isfinite(r_shape), r_shape, bsdf.eval_attribute_1("radius", si, active))
             need = active & (r <= 0)
             _, n_perp, _ = bundle_axis(si)
             probe = offset_ray(si.p, -n_perp, -n_perp, si.wavelengths)
@@ -161,6 +194,11 @@ def integrator_class():
                 active = bundle & (T > 0) & (steps < self.max_passes)
                 nxt = si.spawn_ray(ray.d)
                 nxt.maxt = ray.maxt - si.t
+                # from outside: continue beyond the bundle's far wall
+                front = active & (mi.Frame3f.cos_theta(si.wi) > 0)
+                p_far, radial, ok = far_side(si, self._radius(scene, si, bsdf, front), ray.d)
+                crossed = offset_ray(p_far, radial, ray.d, si.wavelengths, ray.maxt - si.t - dr.norm(p_far - si.p))
+                nxt = dr.select(front & ok, crossed, nxt)
                 ray = dr.select(active, nxt, ray)
                 return ray, T, steps, active
 
@@ -205,11 +243,8 @@ def integrator_class():
 
                 # ------------- bundle hit: exit offset and radius -------------
                 bundle = active_next & bsdf.has_attribute("passthrough", active_next)
-                if self.displace:
-                    h = 2.0 * sampler.next_1d(bundle) - 1.0
-                    radius = self._radius(scene, si, bsdf, bundle)
-                else:
-                    h, radius = mi.Float(0.0), mi.Float(0.0)
+                radius = self._radius(scene, si, bsdf, bundle)
+                h = 2.0 * sampler.next_1d(bundle) - 1.0 if self.displace else mi.Float(0.0)
 
                 # ------------------ emitter sampling ------------------
                 active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
@@ -236,6 +271,10 @@ def integrator_class():
                 passed = active_next & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
                 wo_world = si.to_world(bs.wo)
                 next_ray = si.spawn_ray(wo_world)
+                # passing from outside: the whole crossing is one null event
+                p_far, radial, ok = far_side(si, radius, wo_world)
+                crossed = offset_ray(p_far, radial, wo_world, si.wavelengths)
+                next_ray = dr.select(passed & ok & (mi.Frame3f.cos_theta(si.wi) > 0), crossed, next_ray)
                 if self.displace:
                     p_exit, radial = displaced_exit(si, radius, h, wo_world)
                     moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
@@ -244,7 +283,11 @@ def integrator_class():
 
                 throughput = dr.select(active_next, throughput * bsdf_weight, throughput)
                 eta = dr.select(active_next, eta * bs.eta, eta)
-                valid_ray |= active & si.is_valid() & ~passed
+                # Mitsuba's rule (a hit on a non-null BSDF), plus a bundle seen from outside: it
+                # scatters even when this sample passes through (its emitter sample counts)
+                front_of_bundle = bsdf.has_attribute("passthrough", active) & (mi.Frame3f.cos_theta(si.wi) > 0)
+                valid_ray |= active & si.is_valid() & (~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
+                                                       | front_of_bundle)
 
                 # passthrough keeps the last real vertex for MIS
                 real = active_next & ~passed

@@ -1,0 +1,141 @@
+"""Far-field closure: does a render reproduce the scattering function it was given?
+
+DESIGN.md's test. A long straight cylinder of radius ``R`` along the bundle frame's
+``+y`` (world = bundle frame: ``up = [1, 0, 0]``), a directional light of irradiance
+``E`` arriving from ``w_i`` (the direction *towards* the light, the bake's incidence),
+no environment, and an orthographic camera looking along ``-w_o`` with a box filter.
+Per unit length of the cylinder the scattered intensity is
+
+    I(w_i, w_o) = E * 2R * cos(theta_i) * S(w_i -> w_o)                    (physics)
+
+and the render measures it as ``sum(pixels) * pixel_area / visible_length`` with the
+visible length ``film_height / cos(theta_o)`` (the axis runs up the film).
+
+Everything here is in the bundle frame of DESIGN.md: ``sin(theta) = w.y``,
+``phi = atan2(w.z, w.x)``. :func:`direction` turns angles into vectors,
+:func:`scene` builds the Mitsuba scene for any set of shapes (one cylinder with a
+``fiber_bundle`` or ``fiber_table`` BSDF, or every fiber of a ply as its own cylinder),
+:func:`rendered_intensity` renders and measures, :func:`predicted_intensity` is the
+formula above. Mono variants render one wavelength (the BSDFs' ``wavelength``).
+
+Example::
+
+    mi.set_variant("llvm_ad_mono"); mitsuba_ext.register()
+    w_i, w_o = direction(0.0, 0.5), direction(2.0, -0.45)
+    bsdf = {"type": "fiber_bundle", "table": "bundle_table.npz", "wavelength": 550.0,
+            "up": [1.0, 0.0, 0.0]}
+    sc = scene(mi, {"ply": cylinder(0.2, bsdf)}, w_i, w_o, half_size=0.3)
+    I = rendered_intensity(mi, sc, w_o, half_size=0.3)
+    # compare with predicted_intensity(1.0, 0.2, theta_i, S(w_i -> w_o))
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+AXIS = np.array([0.0, 1.0, 0.0])   # the fibers' direction (bundle frame +y)
+UP = [1.0, 0.0, 0.0]               # the BSDFs' ``up``: bundle frame x = world x
+
+
+# -- small pure functions ----------------------------------------------------------
+def direction(phi, theta) -> np.ndarray:
+    """Unit vector of bundle-frame angles (radians): ``(cos t cos p, sin t, cos t sin p)``."""
+    return np.array([np.cos(theta) * np.cos(phi), np.sin(theta), np.cos(theta) * np.sin(phi)])
+
+
+def predicted_intensity(E, R, theta_i, S):
+    """Intensity per unit length, ``E 2R cos(theta_i) S``: the far field of DESIGN.md."""
+    return E * 2.0 * R * np.cos(theta_i) * S
+
+
+def visible_length(half_size, theta_o) -> float:
+    """Length of the axis seen across a film of height ``2 half_size`` along ``w_o``."""
+    return 2.0 * half_size / np.cos(theta_o)
+
+
+def cylinder(R, bsdf: dict, center_xz=(0.0, 0.0), half_length=1.0) -> dict:
+    """A cylinder of radius ``R`` parallel to ``+y`` through ``(x, z) = center_xz``."""
+    x, z = map(float, center_xz)
+    return {"type": "cylinder", "p0": [x, -half_length, z], "p1": [x, half_length, z], "radius": float(R),
+            "bsdf": bsdf}
+
+
+def scene(mi, shapes: dict, w_i, w_o, half_size, *, irradiance=1.0, resolution=64, spp=16, seed=0,
+          max_depth=64, background=None) -> dict:
+    """The closure scene: ``shapes`` lit from ``w_i``, seen along ``w_o`` (orthographic).
+
+    The film is square, ``2 half_size`` wide, centred on the origin, with the projected
+    fiber axis running up the film (so ``w_o`` must not be parallel to the axis).
+    The cylinders' length must exceed the visible length (``half_length`` of
+    :func:`cylinder`). ``background``: radiance of an optional emitting plane far
+    behind the bundle (the passthrough test); no environment otherwise.
+    """
+    w_i, w_o = np.asarray(w_i, float), np.asarray(w_o, float)
+    up = AXIS - np.dot(AXIS, w_o) * w_o
+    if np.linalg.norm(up) < 1e-3:
+        raise ValueError("closure scene: w_o is parallel to the fiber axis; the axis would not cross the film")
+    up /= np.linalg.norm(up)
+    distance = 100.0 * half_size
+    T = mi.ScalarTransform4f
+    to_world = T().look_at(origin=(distance * w_o).tolist(), target=[0, 0, 0], up=up.tolist()) @ \
+        T().scale([half_size, half_size, 1.0])
+    sc = {
+        "type": "scene",
+        "integrator": {"type": "bundle_path", "max_depth": max_depth},
+        "sensor": {"type": "orthographic", "to_world": to_world, "near_clip": 1e-3 * half_size,
+                   "far_clip": 1e4 * half_size,
+                   "film": {"type": "hdrfilm", "width": resolution, "height": resolution,
+                            "rfilter": {"type": "box"}, "pixel_format": "luminance"},
+                   "sampler": {"type": "stratified", "sample_count": spp, "seed": seed}},
+        "sun": {"type": "directional", "direction": (-w_i).tolist(),
+                "irradiance": {"type": "spectrum", "value": float(irradiance)}},
+        **shapes,
+    }
+    if background is not None:
+        # a plane facing the camera, far behind: it subtends ~1e-4 sr from the bundle,
+        # so light it sends in by scattering is negligible next to what passes through
+        size = 4.0 * half_size
+        sc["backdrop"] = {"type": "rectangle",
+                          "to_world": T().look_at(origin=(-distance * w_o).tolist(), target=[0, 0, 0],
+                                                  up=up.tolist()) @ T().scale([size, size, 1.0]),
+                          "emitter": {"type": "area", "radiance": {"type": "spectrum", "value": float(background)}}}
+    return sc
+
+
+def render_image(mi, scene_dict) -> np.ndarray:
+    """The rendered image, one channel (a NaN or Inf is an error, not a pixel)."""
+    img = np.asarray(mi.render(mi.load_dict(scene_dict)), np.float64)
+    img = img[..., 0] if img.ndim == 3 else img
+    if not np.all(np.isfinite(img)):
+        raise FloatingPointError("closure render holds NaN or Inf")
+    return img
+
+
+def rendered_intensity(mi, scene_dict: dict, w_o, half_size) -> float:
+    """Render ``scene_dict`` and measure ``sum(pixels) pixel_area / visible_length``."""
+    img = render_image(mi, scene_dict)
+    n = img.shape[0]
+    pixel_area = (2.0 * half_size / n) ** 2
+    theta_o = np.arcsin(np.clip(np.asarray(w_o, float)[1], -1, 1))
+    return float(img.sum() * pixel_area / visible_length(half_size, theta_o))
+
+
+# -- direction sets ------------------------------------------------------------------
+def direction_pairs(cone_offsets_deg=(0.0, 1.5, -3.0), kinds=("backward", "sideways", "oblique"), grazing=True):
+    """Test directions ``(phi_i, theta_i, phi_o, theta_o)`` in radians.
+
+    Light and camera at several longitudes, on the specular cone ``theta_o = -theta_i``
+    and off it by ``cone_offsets_deg``, backwards (``dphi = 15 deg``), sideways
+    (``dphi = 90 deg``), obliquely forward (``dphi = 150 deg``: never exactly
+    forward, where a table averages the diffraction spike over one bin), plus grazing
+    light (``theta_i = 80 deg``).
+    """
+    dphis = {"backward": 15.0, "sideways": 90.0, "oblique": 150.0}
+    thetas = [10.0, 35.0, 60.0] + ([80.0] if grazing else [])
+    pairs = []
+    for k, ti in enumerate(thetas):
+        for kind in kinds:
+            for off in cone_offsets_deg:
+                phi_i = np.deg2rad(20.0 + 37.0 * k)
+                pairs.append((phi_i, np.deg2rad(ti), phi_i + np.deg2rad(dphis[kind]), np.deg2rad(-ti + off)))
+    return np.array(pairs)
