@@ -136,6 +136,8 @@ def direction_pairs(cone_offsets_deg=(0.0, 1.5, -3.0), kinds=("backward", "sidew
     for k, ti in enumerate(thetas):
         for kind in kinds:
             for off in cone_offsets_deg:
+                if abs(-ti + off) > 89.0:  # past the pole: no such direction
+                    continue
                 phi_i = np.deg2rad(20.0 + 37.0 * k)
                 pairs.append((phi_i, np.deg2rad(ti), phi_i + np.deg2rad(dphis[kind]), np.deg2rad(-ti + off)))
     return np.array(pairs)

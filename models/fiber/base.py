@@ -32,21 +32,32 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .longitudinal import Longitudinal
+from .reciprocal import half_angle, scale_at
 
 FORMAT = "bcsdf.fiber_table/1"
 
 
 @dataclass
 class Lobe:
-    """One term ``M(theta_i, theta_o) N(theta_i, theta_o?, dphi, lambda)``."""
+    """One term ``M(theta_i, theta_o) N(theta_i, theta_o?, dphi, lambda)``.
+
+    With ``scale`` (``[|theta| node, lambda]``, its own uniform nodes) a separable lobe takes the reciprocal
+    form of :mod:`models.fiber.reciprocal`: ``N`` at the half angle ``|theta_i - theta_o| / 2``,
+    times ``c(theta_i) c(theta_o) cos(theta_o) / cos(theta_d)``.
+    """
 
     name: str
     longitudinal: Longitudinal
     azimuthal: np.ndarray  # float32 [theta_i, theta_o or 1, phi, lambda]
+    scale: np.ndarray | None = None  # float64 [|theta| nodes over [0, pi/2], lambda]: the reciprocal c
 
     @property
     def dense(self) -> bool:
         return self.azimuthal.shape[1] > 1
+
+    @property
+    def reciprocal(self) -> bool:
+        return self.scale is not None
 
 
 def _linear(grid: np.ndarray, x: np.ndarray, periodic: bool = False):
@@ -124,12 +135,19 @@ class FiberTable:
             N = lobe.azimuthal
             # separable lobes have no theta_o axis: 4 corners, not 8
             o_corners = ((to[0], 1 - to[2]), (to[1], to[2])) if lobe.dense else ((0, 1.0),)
+            nodes, factor = ti, 1.0
+            if lobe.reciprocal:  # N at the half angle, times the symmetric weight and scale
+                abs_d, weight = half_angle(theta_i, theta_o, np)
+                nodes = _linear(self.theta_i, abs_d)
+                cc = scale_at(lobe.scale, np.abs(theta_i)) * scale_at(lobe.scale, np.abs(theta_o))
+                cc = cc if lambda_index is None else np.take_along_axis(cc, pick[0][..., None], -1)[..., 0]
+                factor = (weight[expand] * cc).astype(np.float32)
             acc = np.zeros_like(out)
-            for a, wa in ((ti[0], 1 - ti[2]), (ti[1], ti[2])):
+            for a, wa in ((nodes[0], 1 - nodes[2]), (nodes[1], nodes[2])):
                 for b, wb in o_corners:
                     for c, wc in ((ph[0], 1 - ph[2]), (ph[1], ph[2])):
                         acc += (wa * wb * wc).astype(np.float32)[expand] * N[(a, b, c) + pick]
-            out += lobe.longitudinal(theta_i, theta_o).astype(np.float32)[expand] * acc
+            out += lobe.longitudinal(theta_i, theta_o).astype(np.float32)[expand] * acc * factor
         return out.astype(np.float64)
 
     def albedo(self, theta_i) -> np.ndarray:
@@ -148,8 +166,9 @@ class FiberTable:
 
         Exact for the tabulated function: ``M`` integrates to one, ``N`` is
         integrated with the periodic trapezoid rule (its own linear interpolant),
-        dense lobes also over theta_o with the cosine. Computed once (tables are not
-        changed after construction) and returned read-only.
+        dense lobes also over theta_o with the cosine; a reciprocal lobe's scale was
+        solved for this very energy (to 1e-10 at the nodes). Computed once (tables are
+        not changed after construction) and returned read-only.
         """
         if self._energy is not None:
             return self._energy
@@ -178,7 +197,10 @@ class FiberTable:
         lobes_meta = []
         for k, lobe in enumerate(self.lobes):
             arrays[f"lobe{k}"] = lobe.azimuthal.astype(np.float32)
-            lobes_meta.append({"name": lobe.name, "longitudinal": lobe.longitudinal.to_dict()})
+            if lobe.reciprocal:
+                arrays[f"scale{k}"] = lobe.scale
+            lobes_meta.append({"name": lobe.name, "longitudinal": lobe.longitudinal.to_dict(),
+                               "reciprocal": lobe.reciprocal})
         header = {"format": FORMAT, "lobes": lobes_meta, "meta": self.meta}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
@@ -192,7 +214,8 @@ class FiberTable:
                 header = json.loads(str(z["header"]))
                 if header.get("format") != FORMAT:
                     raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
-                lobes = [Lobe(m["name"], Longitudinal(**m["longitudinal"]), z[f"lobe{k}"])
+                lobes = [Lobe(m["name"], Longitudinal(**m["longitudinal"]), z[f"lobe{k}"],
+                              z[f"scale{k}"] if m.get("reciprocal") else None)
                          for k, m in enumerate(header["lobes"])]
                 table = cls(z["theta_i"], z["theta_o"], z["phi"], z["wavelength"], lobes, header["meta"])
         except (OSError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
@@ -208,6 +231,12 @@ class FiberTable:
                 raise ValueError(f"lobe {lobe.name!r} has shape {s}, inconsistent with the axes")
             if not np.all(np.isfinite(lobe.azimuthal)) or np.any(lobe.azimuthal < 0):
                 raise ValueError(f"lobe {lobe.name!r} holds negative or non-finite values")
+            if lobe.reciprocal:
+                c = lobe.scale
+                if lobe.dense or c.ndim != 2 or c.shape[0] < 2 or c.shape[1] != shape[3] or \
+                        not np.all(np.isfinite(c)) or np.any(c <= 0):
+                    raise ValueError(f"lobe {lobe.name!r}: its reciprocal scale must be positive, finite and "
+                                     f"[nodes >= 2, {shape[3]} wavelengths] on a separable lobe")
 
 
 def _trapezoid_cos_weights(theta: np.ndarray) -> np.ndarray:

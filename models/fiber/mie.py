@@ -40,6 +40,7 @@ from scipy import special
 
 from .base import FiberModel, FiberTable, Lobe, check_theta
 from .longitudinal import Longitudinal
+from .reciprocal import half_angle, scale_at, symmetric_scale
 
 __all__ = [
     "coefficients",
@@ -227,7 +228,10 @@ class MieFiber(FiberModel):
 
     A smooth infinite cylinder scatters only onto the cone ``theta_o = -theta_i``
     with the azimuthal pattern ``N(Theta)``; a rough fiber spreads the cone with the
-    d'Eon lobe of standard deviation ``roughness_deg``. Normalized per geometric
+    d'Eon lobe of standard deviation ``roughness_deg``, in the reciprocal form of
+    :mod:`models.fiber.reciprocal` (the pattern at the half angle, a symmetric scale
+    that keeps every node's albedo), so that ``f(i -> o) cos(theta_i) = f(o -> i)
+    cos(theta_o)`` holds as for the exact cylinder. Normalized per geometric
     hit: the pattern is divided by the extinction ratio ``Q_ext / sin(zeta)``
     (about 2 for large fibers: the diffraction peak carries as much power as the
     geometric shadow), so that ``integral f d omega = Q_sca / Q_ext``, and that
@@ -280,20 +284,42 @@ class MieFiber(FiberModel):
                     N[i, 0, :, j] = pattern / ext[i, j]
                     bar.update()
         phi = -np.pi + 2 * np.pi * np.arange(self.n_phi) / self.n_phi
+        # the reciprocal form (N at the half angle), scaled to keep each node's albedo
+        dphi = 2 * np.pi / self.n_phi
+        scale = symmetric_scale(theta_i, self._lobe(), N[:, 0].astype(np.float64).sum(1) * dphi)
+        self._scale = (theta_i.copy(), scale)
         meta = {"model": self.name, "extinction_ratio": ext.tolist(), "albedo": (sca / ext).tolist(),
                 "radius_um": self.radius_um, "roughness_deg": float(np.rad2deg(self.beta)),
                 "zeta_min_deg": self.zeta_min_deg}
-        return FiberTable(theta_i, np.zeros(1), phi, self.wavelength.copy(), [Lobe("mie", self._lobe(), N)], meta)
+        return FiberTable(theta_i, np.zeros(1), phi, self.wavelength.copy(), [Lobe("mie", self._lobe(), N, scale)],
+                          meta)
+
+    def scale(self):
+        """The reciprocal form's ``(nodes, c[node, lambda])``: of the last :meth:`tabulate`,
+        or of a 5-degree tabulation."""
+        if not hasattr(self, "_scale"):
+            self.tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
+        return self._scale
 
     def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength):
-        """Direct evaluation (no table): the series summed at each requested angle."""
+        """Direct evaluation (no table): the series summed at each requested angle.
+
+        The reciprocal form of :mod:`models.fiber.reciprocal`: the pattern at the half
+        angle ``theta_d``, with the scale ``c`` of :meth:`scale` (per wavelength, held
+        at the nearest tabulated wavelength).
+        """
         ti, pi_, to, po, wl = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
                                                    for a in (theta_i, phi_i, theta_o, phi_o, wavelength)))
         check_theta(ti, "theta_i")
         check_theta(to, "theta_o")
         out = np.zeros(ti.shape)
         Theta = po - pi_ - np.pi
-        keys = np.stack([self.zeta_deg(ti), wl], -1).reshape(-1, 2)
+        abs_d, weight = half_angle(ti, to, np)
+        _, c = self.scale()
+        j = np.argmin(np.abs(self.wavelength[None, :] - wl.reshape(-1, 1)), axis=1).reshape(wl.shape)
+        pick = lambda cc: np.take_along_axis(cc, j[..., None], -1)[..., 0]  # noqa: E731
+        cc = pick(scale_at(c, np.abs(ti))) * pick(scale_at(c, np.abs(to)))
+        keys = np.stack([self.zeta_deg(abs_d), wl], -1).reshape(-1, 2)
         uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
         flat = out.reshape(-1)
         for u, (zeta, lam) in enumerate(uniq):
@@ -305,7 +331,7 @@ class MieFiber(FiberModel):
             ext = 0.5 * (Q["QextI"] + Q["QextII"]) / np.sin(np.deg2rad(zeta))
             T = amplitudes(coeffs, Theta.reshape(-1)[sel])
             flat[sel] = _intensity_from_amplitudes(T, x, zeta) / ext
-        return out * self._lobe()(ti, to)
+        return out * self._lobe()(ti, to) * weight * cc
 
     def extinction(self, theta_i):
         out = np.empty((len(theta_i), len(self.wavelength)))

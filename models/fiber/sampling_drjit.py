@@ -15,6 +15,7 @@ import sys
 import numpy as np
 
 from .base import FiberTable
+from .reciprocal import half_angle
 from .sampling import EDGE, FiberSampler
 
 
@@ -110,6 +111,8 @@ class DrJitFiber:
         self.packet = 1 << (self.n_lambda - 1).bit_length()
         self.ArrayXf = getattr(sys.modules[Float.__module__], "ArrayXf")  # packet type of this backend
         self.N = [Float(self._padded(l.azimuthal).ravel()) for l in table.lobes]
+        # the reciprocal lobes' scale c[|theta| node, lambda] on its own uniform nodes
+        self.scale = [Float(self._padded(l.scale).ravel()) if l.reciprocal else None for l in table.lobes]
         self.energy = Float(sampler.energy.astype(np.float32).ravel())        # [lobe, node]
         self.albedo_nodes = Float(self._padded(table.energy()).ravel())        # [node, lambda]
         # Flat CDF of every (lobe, node) row; a lane searches only its own row
@@ -158,6 +161,18 @@ class DrJitFiber:
         t = dr.clip(abs_theta * (1.0 / self.node_step), 0.0, float(self.n_nodes - 1))
         i0 = dr.minimum(dr.floor(t), float(self.n_nodes - 2))
         return self.UInt(i0), self.UInt(i0) + 1, t - i0
+
+    def _scale(self, p, abs_theta) -> list:
+        """Reciprocal lobe ``p``'s scale ``c(|theta|)`` at every wavelength (linear)."""
+        import drjit as dr
+
+        n = self.table.lobes[p].scale.shape[0]
+        t = dr.clip(abs_theta * float((n - 1) / (np.pi / 2)), 0.0, float(n - 1))
+        k0 = dr.minimum(dr.floor(t), float(n - 2))
+        w = t - k0
+        c0 = self._gather_spectrum(self.scale[p], self.UInt(k0))
+        c1 = self._gather_spectrum(self.scale[p], self.UInt(k0) + 1)
+        return [dr.lerp(a, b, w) for a, b in zip(c0, c1)]
 
     def _lobe_probabilities(self, i0, i1, w):
         import drjit as dr
@@ -283,13 +298,21 @@ class DrJitFiber:
             else:
                 o_corners = ((self.UInt(0), 1.0),)
             M = longitudinal(lb.longitudinal, theta_i, theta_o)
+            n0, n1, wd = i0, i1, w
+            if lb.reciprocal:  # N at the half angle, the symmetric weight and scale
+                abs_d, weight = half_angle(theta_i, theta_o, dr)
+                n0, n1, wd = self._nodes(abs_d)
+                M = M * weight
             acc = [dr.zeros(self.Float, dr.width(theta_i)) for _ in range(L)]
-            for node, wn in ((i0, 1 - w), (i1, w)):
+            for node, wn in ((n0, 1 - wd), (n1, wd)):
                 for o, wo_ in o_corners:
                     for cc, wcc in ((c0, 1 - wc), (c1, wc)):
                         weight = wn * wo_ * wcc
                         values = self._gather_spectrum(self.N[p], (node * n_o + o) * self.n_phi + cc)
                         acc = [dr.fma(weight, v, a_) for v, a_ in zip(values, acc)]
+            if lb.reciprocal:
+                acc = [a_ * ci * co for a_, ci, co in zip(acc, self._scale(p, dr.abs(theta_i)),
+                                                          self._scale(p, dr.abs(theta_o)))]
             out = [o_ + M * a_ for o_, a_ in zip(out, acc)]
         return out
 

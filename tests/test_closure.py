@@ -1,0 +1,201 @@
+"""Radiometric closure: every path that makes pixels reproduces the far field it was given.
+
+DESIGN's test (``pipeline.closure``): a long cylinder under a directional light from
+``w_i``, an orthographic camera along ``w_o``, box filter; the intensity per unit length
+``sum(pixels) * pixel_area / visible_length`` must equal ``E 2R cos(theta_i) S(w_i -> w_o)``
+with ``S`` what the renderer was given: the fiber model (one explicit fiber with
+``fiber_table``), the bundle's table or its MLP (``fiber_bundle``, each backend against
+its own evaluation), and, for explicit fibers in a ply, the bake of that ply. The
+directions: on and off the specular cone, backwards, sideways, obliquely forward and
+grazing (``closure.direction_pairs``), never exactly forward.
+"""
+
+import numpy as np
+import pytest
+
+from models.bundle_table import BundleTable, lookup
+from pipeline import closure
+from tests.synthetic import make_config, synthetic_table
+
+WL = np.array([450.0, 550.0, 650.0])
+NODES = np.deg2rad(np.arange(0, 91, 5.0))
+LAM = 550.0
+
+
+@pytest.fixture
+def mono(mi_llvm):
+    """Mitsuba's mono variant (one wavelength, ``LAM``) with the plugins registered."""
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    yield mi
+    mi.set_variant("llvm_ad_rgb")
+
+
+def pairs_deg(n_min=20, offsets=(0.0, 1.5, -3.0)):
+    pairs = closure.direction_pairs(cone_offsets_deg=offsets)
+    assert len(pairs) >= n_min
+    return pairs
+
+
+def ratios(mi, bsdf, R, S_of, pairs, twist_deg=0.0, **scene_kw):
+    """rendered / predicted for every direction pair (radians); ``S_of(pi, ti, po, to)``."""
+    hs = 1.5 * R
+    out = []
+    for pi_, ti, po, to in pairs:
+        w_i, w_o = closure.direction(pi_, ti), closure.direction(po, to)
+        sc = closure.scene(mi, {"f": closure.cylinder(R, bsdf, half_length=40 * hs)}, w_i, w_o, hs,
+                           spp=4, **scene_kw)
+        rendered = closure.rendered_intensity(mi, sc, w_o, hs)
+        tw = np.deg2rad(twist_deg)  # a constant twist turns the bundle frame: phi_bundle = phi + twist
+        predicted = closure.predicted_intensity(1.0, R, ti, S_of(pi_ + tw, ti, po + tw, to))
+        out.append(rendered / predicted)
+    return np.array(out, float)
+
+
+# ----------------------------------------------------------------------------------
+# One explicit fiber: fiber_table against the fiber model
+# ----------------------------------------------------------------------------------
+
+def fiber_models():
+    from models.fiber.mie import MieFiber
+    from models.fiber.patterns import PatternFiber
+    from models.fiber.ray import RayFiber
+
+    return {
+        "mie": lambda: MieFiber(WL, 3.0, [1.56, 1.555, 1.55], [1e-3, 0.0, 0.0], 3.0).tabulate(NODES),
+        "ray": lambda: RayFiber(WL, [1.56] * 3, [0.3, 0.1, 0.0], 0.3, 0.3, 2.0, n_h=64).tabulate(NODES),
+        "grid": lambda: PatternFiber(WL, "grid", n_stripes_theta=6, n_stripes_phi=8, albedo=0.9).tabulate(NODES),
+        "isotropic": lambda: PatternFiber(WL, "isotropic").tabulate(NODES),
+        "table": dense_table,
+    }
+
+
+def dense_table():
+    """A measured-style fiber (``fiber.model: table``): the ray model on a dense grid, via npz."""
+    import tempfile
+    from pathlib import Path
+
+    from models.fiber.ray import RayFiber
+    from models.fiber.table import load_npz
+
+    ray = RayFiber(WL, [1.5] * 3, [0.2, 0.1, 0.05], 0.4, 0.4, 0.0, n_h=32).tabulate(NODES)
+    theta_o = np.deg2rad(np.arange(-90, 91, 2.0))
+    phi = -np.pi + 2 * np.pi * np.arange(120) / 120
+    TI, TO, P = np.meshgrid(NODES, theta_o, phi, indexing="ij")
+    values = ray.eval_spectrum(TI, TO, P)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "fiber.npz"
+        np.savez(path, axes=np.array(["theta_i", "theta_o", "phi", "wavelength"]), values=values,
+                 theta_i=NODES, theta_o=theta_o, phi=phi, wavelength=WL)
+        return load_npz(path)
+
+
+@pytest.mark.parametrize("model", ["mie", "ray", "grid", "isotropic", "table"])
+def test_one_explicit_fiber_renders_its_model(mono, tmp_path, model):
+    """``fiber_table`` on a cylinder: rendered / predicted within 1% (deterministic render)."""
+    mi = mono
+    table = fiber_models()[model]()
+    table.save(tmp_path / "fiber.npz")
+    bsdf = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": LAM, "up": closure.UP}
+    # the grid's dark stripes (f = 0: nothing to compare) take more pairs to find 20 lit ones
+    pairs = pairs_deg(offsets=(0.0, 1.5, -3.0, 4.5, 7.0, -6.0, -12.0) if model == "grid" else (0.0, 1.5, -3.0))
+    # predicted from the model's numpy evaluation; grazing light at 80 deg included
+    S = lambda pi_, ti, po, to: float(table.eval(ti, pi_, to, po, LAM))  # noqa: E731
+    # a stripe's dark band is 0/0, and float32 angles at a stripe's edge may land on either side
+    near = lambda p, d: [S(p[0], p[1], p[2] + a, p[3] + b) for a in (-d, d) for b in (-d, d)]  # noqa: E731
+    keep = np.array([S(*p) > 1e-4 * max(S(*q) for q in pairs) and np.ptp(near(p, 2e-3)) < 1e-3 * S(*p)
+                     for p in pairs])
+    r = ratios(mi, bsdf, 0.02, S, pairs[keep])
+    print(model, np.round(r, 4))
+    assert keep.sum() >= 20
+    assert np.allclose(r, 1.0, atol=0.01), r
+
+
+# ----------------------------------------------------------------------------------
+# fiber_bundle: table, jitted MLP and ONNX, each against its own evaluation
+# ----------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tables(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("closure")
+    cfg = make_config(tmp)
+    synthetic_table(cfg, tmp / "circle.npz", relative=True, passthrough=0.3)
+    synthetic_table(cfg, tmp / "ellipse.npz", relative=False, passthrough=0.2)
+    return {"circle": tmp / "circle.npz", "ellipse": tmp / "ellipse.npz"}
+
+
+@pytest.mark.parametrize("which,twist", [("circle", 0.0), ("ellipse", 0.0), ("ellipse", 35.0)])
+def test_bundle_table_backend_renders_its_table(mono, tables, which, twist):
+    mi = mono
+    t = BundleTable.load(tables[which], expand=True)
+    lam = list(t.wavelength).index(LAM)
+    bsdf = {"type": "fiber_bundle", "table": str(tables[which]), "wavelength": LAM, "up": closure.UP,
+            "twist": twist}
+    S = lambda pi_, ti, po, to: float(lookup(t, pi_, ti, po, to)[..., lam])  # noqa: E731
+    r = ratios(mi, bsdf, 0.2, S, pairs_deg(), twist_deg=twist)
+    print(which, twist, np.round(r, 4))
+    assert np.allclose(r, 1.0, atol=0.01), r
+
+
+@pytest.mark.parametrize("backend", ["mlp", "onnx"])
+def test_bundle_neural_backends_render_their_model(mono, trained, backend):
+    import drjit as dr
+
+    from mitsuba_ext.neural import DrJitMLP, OnnxMLP
+
+    mi = mono
+    cfg, root = trained
+    size = sorted(cfg.train.models)[0]
+    export = root / cfg.name / "export" / size
+    path = export / ("weights.npz" if backend == "mlp" else "model.onnx")
+    lam = list(WL).index(LAM)
+    if backend == "mlp":
+        mlp = DrJitMLP(export / "weights.npz")
+
+        def S(*angles):
+            out = mlp.eval(*(mi.Float(float(a)) for a in angles))[lam]
+            dr.eval(out)
+            return float(out[0])
+    else:
+        onnx = OnnxMLP(export / "model.onnx")
+
+        def S(*angles):
+            return float(onnx.eval(*(np.array([a], np.float32) for a in angles))[0, lam])
+    bsdf = {"type": "fiber_bundle", "backend": backend, "model": str(path), "wavelength": LAM, "up": closure.UP}
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    saved = [dr.flag(f) for f in flags]
+    if backend == "onnx":
+        for f in flags:
+            dr.set_flag(f, False)
+    try:
+        r = ratios(mi, bsdf, 0.2, S, pairs_deg())
+    finally:
+        for f, v in zip(flags, saved):
+            dr.set_flag(f, v)
+    print(backend, np.round(r, 4))
+    assert np.allclose(r, 1.0, atol=0.01), r
+
+
+@pytest.mark.parametrize("which", ["circle", "ellipse"])
+def test_passthrough_shows_the_background_times_p_pass(mono, tables, which):
+    """Looking through the ply at a lit plane far behind it: the band shows ``P_pass`` of it
+    (the plane subtends 1e-4 sr, so what the bundle scatters into view is negligible)."""
+    mi = mono
+    t = BundleTable.load(tables[which], expand=True)
+    R, hs = 0.2, 0.3
+    bsdf = {"type": "fiber_bundle", "table": str(tables[which]), "wavelength": LAM, "up": closure.UP}
+    for phi, theta in [(0.3, 0.2), (1.4, -0.6), (2.5, 0.9)]:
+        w_o = closure.direction(phi, theta)
+        sc = closure.scene(mi, {"f": closure.cylinder(R, bsdf, half_length=40 * hs)}, -w_o, w_o, hs,
+                           irradiance=0.0, background=1.0, spp=16)
+        img = closure.render_image(mi, sc)
+        n = img.shape[1]
+        x = (np.arange(n) + 0.5) / n * 2 * hs - hs      # film x of each column (the axis runs up)
+        band, clear = np.abs(x) < 0.9 * R, np.abs(x) > 1.1 * R
+        assert img[:, clear].mean() == pytest.approx(1.0, rel=1e-3)
+        expected = float(np.interp(phi % (2 * np.pi), t.phi_i, t.passthrough, period=2 * np.pi))
+        assert img[:, band].mean() == pytest.approx(expected, abs=0.005), (phi, theta)
