@@ -35,7 +35,8 @@ def _periodic_linear(Float, values, nodes, phi):
 
 
 class TableBackend:
-    """Multilinear (or nearest) lookup of an expanded bundle table."""
+    """Lookup of an expanded bundle table: along the specular cone, bin averages kept
+    (``linear``), or the nearest node's bin (``nearest``)."""
 
     name = "table"
 
@@ -43,6 +44,8 @@ class TableBackend:
         from mitsuba_ext.table import DrJitTable
         from models.bundle_table import BundleTable
 
+        if lookup not in ("linear", "nearest"):
+            raise ValueError(f"fiber_bundle: lookup {lookup!r}; use 'linear' (default) or 'nearest'")
         self.Float = Float
         self.table = BundleTable.load(table_path, expand=True)
         self.lookup = lookup

@@ -1,16 +1,18 @@
 """Bundle-table lookups as Dr.Jit arithmetic (the numpy twin: ``models.bundle_table.lookup``).
 
-``DrJitTable(table)`` uploads an expanded :class:`~models.bundle_table.BundleTable` and
-returns ``S`` at every table wavelength for Dr.Jit arrays of directions, by nearest or
-multilinear lookup in (phi_i, theta_i, phi_o, theta_o): azimuths periodic, longitudes
-clamped, wavelengths gathered from the same row.
+``DrJitTable(table)`` uploads an expanded :class:`~models.bundle_table.BundleTable` with
+its limited bin slopes and returns ``S`` at every table wavelength for Dr.Jit arrays of
+directions: each bin its value plus slopes in ``phi_o`` and ``sin(theta_o)`` (so that it
+averages to its value), ``theta_i`` nodes read along their own specular cone and
+blended, ``phi_i`` nodes blended periodically (``linear``), or the nearest node's bin
+value (``nearest``). See the comment above ``models.bundle_table.lookup``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from models.bundle_table import BundleTable, lookup_axes
+from models.bundle_table import BundleTable
 
 
 def axis_corners(Float, x, grid, periodic: bool):
@@ -47,6 +49,8 @@ class DrJitTable:
     def __init__(self, table: BundleTable, Float):
         import drjit as dr
 
+        from models.bundle_table import bin_slopes
+
         red = table.meta.get("reductions", {})
         if red.get("theta_i") == "mirror" or red.get("phi_i") == "mirror_xz":
             raise ValueError("DrJitTable needs an expanded table: BundleTable.load(path, expand=True)")
@@ -54,32 +58,72 @@ class DrJitTable:
         self.UInt = dr.uint32_array_t(Float)
         self.relative = red["phi_o"] == "relative"
         self.n_lambda = len(table.wavelength)
-        self.axes = [(np.asarray(g, float), p) for g, p in lookup_axes(table)]
+        self.phi_i = np.asarray(table.phi_i, float)
+        self.theta_i = np.asarray(table.theta_i, float)
         self.shape = table.values.shape[:4]
-        self.values = Float(np.ascontiguousarray(table.values, dtype=np.float32).ravel())
-        self.nbytes = table.values.astype(np.float32).nbytes
+        self.phi_o0 = float(table.phi_o_edges[0])
+        self.u_edges = Float(np.sin(table.theta_o_edges).astype(np.float32))
+        self.sin_theta_i = Float(np.sin(self.theta_i).astype(np.float32))
+        flat = lambda a: Float(np.ascontiguousarray(a, dtype=np.float32).ravel())  # noqa: E731
+        self.values = flat(table.values)
+        self.s_phi, self.s_u = (flat(a) for a in bin_slopes(table))
+        self.nbytes = 3 * table.values.astype(np.float32).nbytes
+
+    def _corners(self, x, grid, periodic, nearest):
+        import drjit as dr
+
+        i0, i1, w = axis_corners(self.Float, x, grid, periodic)
+        if len(grid) == 1:
+            return [(i0, self.Float(1.0))]
+        if nearest:
+            return [(dr.select(w < 0.5, i0, i1), self.Float(1.0))]
+        return [(i0, 1.0 - w), (i1, w)]
+
+    def _read(self, a, b, phi, u, weight, out, nearest):
+        """Add ``weight`` x node (a, b) at (phi, u): bin value plus the slopes' offsets."""
+        import drjit as dr
+
+        n_a, n_b, n_p, n_t = self.shape
+        L = self.n_lambda
+        half_pi = float(np.pi / 2)
+        t = (phi - self.phi_o0) * float(n_p / (2 * np.pi))
+        t = t - dr.floor(t * (1.0 / n_p)) * n_p
+        kp = dr.minimum(self.UInt(dr.floor(t)), n_p - 1)
+        to = dr.safe_asin(dr.clip(u, -1.0, 1.0))
+        kt = self.UInt(dr.clip(dr.floor((to + half_pi) * float(n_t / np.pi)), 0, n_t - 1))
+        base = (((a * n_b + b) * n_p + kp) * n_t + kt) * L
+        active = weight != 0.0
+        if not nearest:
+            dp = (t - self.Float(kp) - 0.5) * float(2 * np.pi / n_p)
+            du = u - 0.5 * (dr.gather(self.Float, self.u_edges, kt, active) +
+                            dr.gather(self.Float, self.u_edges, kt + 1, active))
+        for l in range(L):
+            v = dr.gather(self.Float, self.values, base + l, active)
+            if not nearest:
+                v = v + dr.gather(self.Float, self.s_phi, base + l, active) * dp \
+                    + dr.gather(self.Float, self.s_u, base + l, active) * du
+            out[l] = dr.fma(weight, v, out[l])
 
     def eval(self, phi_i, theta_i, phi_o, theta_o, mode: str = "linear") -> list:
         import drjit as dr
 
+        if mode not in ("nearest", "linear"):
+            raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")
+        nearest = mode == "nearest"
         if self.relative:
             phi_o = phi_o - phi_i
         half_pi = float(np.pi / 2)
-        coords = [phi_i, dr.clip(theta_i, -half_pi, half_pi), phi_o, dr.clip(theta_o, -half_pi, half_pi)]
-        idx = [axis_corners(self.Float, x, g, p) for x, (g, p) in zip(coords, self.axes)]
-        strides = [int(np.prod(self.shape[k + 1:])) * self.n_lambda for k in range(4)]
-        if mode == "nearest":
-            base = sum((dr.select(w < 0.5, i0, i1) * s for (i0, i1, w), s in zip(idx, strides)), self.UInt(0))
-            return [dr.gather(self.Float, self.values, base + l) for l in range(self.n_lambda)]
-        if mode != "linear":
-            raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")
-        out = [dr.zeros(self.Float, dr.width(phi_i)) for _ in range(self.n_lambda)]
-        for corner in range(16):
-            base, weight = self.UInt(0), self.Float(1.0)
-            for axis, ((i0, i1, w), s) in enumerate(zip(idx, strides)):
-                hi = (corner >> axis) & 1
-                base = base + (i1 if hi else i0) * s
-                weight = weight * (w if hi else 1.0 - w)
-            for l in range(self.n_lambda):
-                out[l] = dr.fma(weight, dr.gather(self.Float, self.values, base + l), out[l])
+        theta_i = dr.clip(theta_i, -half_pi, half_pi)
+        u, sin_i = dr.sin(theta_o), dr.sin(theta_i)
+        out = [dr.zeros(self.Float, dr.width(u)) for _ in range(self.n_lambda)]
+        for a, wa in self._corners(phi_i, self.phi_i, True, nearest):
+            for b, wb in self._corners(theta_i, self.theta_i, False, nearest):
+                # this node read at the same distance from its own cone, in u = sin(theta_o) ...
+                s = sin_i - dr.gather(self.Float, self.sin_theta_i, b)
+                w = wa * wb
+                self._read(a, b, phi_o, u + s, dr.select(dr.abs(u + s) <= 1.0, w, 0.0), out, nearest)
+                # ... and its light shifted past a pole, which comes back over it at phi + pi
+                back = dr.select(s > 0, u <= s - 1.0, u >= 1.0 + s) & (s != 0)
+                u_back = dr.select(s > 0, -2.0 - u + s, 2.0 - u + s)
+                self._read(a, b, phi_o + float(np.pi), u_back, dr.select(back, w, 0.0), out, nearest)
         return out

@@ -179,54 +179,110 @@ class BundleTable:
 
 
 # ------------------------------------------------------------------------------
-# Lookup: nearest and multilinear, numpy (the Dr.Jit twin is mitsuba_ext/table.py)
+# Lookup: along the specular cone, bin-average preserving (the Dr.Jit twin is mitsuba_ext/table.py)
 # ------------------------------------------------------------------------------
+#
+# A bin's value is the average of S over the bin (per solid angle), and parallel fibers
+# put their light on the cone theta_o = -theta_i, a ridge one or two bins wide. So:
+#
+# * within a bin, S is the bin value plus limited slopes in phi_o and in u = sin(theta_o)
+#   (minmod of the neighbours' differences: never negative, never beyond a neighbour),
+#   centred so that the bin's average is its value exactly (u is uniform in solid angle);
+# * between theta_i nodes, each node is read at the same distance from its own cone,
+#   measured in u (the cone is u_o = -u_i): u_o + u_i - u_i[node], and the two are
+#   blended: the ridge moves with the cone instead of fading between two ridges. A shift
+#   in u moves each node's energy unchanged (d omega = du d phi), so the albedo between
+#   nodes is the nodes' blend (but for light shifted past a pole, which is dropped);
+#   azimuths phi_i blend linearly.
+#
+# ``nearest`` reads the bin value of the nearest node (no slopes), along the cone too.
 
 def lookup_axes(table: BundleTable):
     """The four lookup axes of a table: ``(grid, periodic)`` for phi_i, theta_i, phi_o, theta_o.
 
-    Values sit at ``phi_i`` and ``theta_i`` nodes and at output bin centres; azimuths
-    are periodic, longitudes are clamped to the first and last node or centre.
+    Values sit at ``phi_i`` and ``theta_i`` nodes and on output bins; azimuths are periodic,
+    ``theta_i`` is clamped to its first and last node.
     """
     return [(table.phi_i, True), (table.theta_i, False), (table.phi_o, True), (table.theta_o, False)]
 
 
-def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "linear") -> np.ndarray:
+def minmod(a, b):
+    """The smaller of two slopes of one sign, else zero (the classic slope limiter)."""
+    return np.where(a * b > 0, np.sign(a) * np.minimum(np.abs(a), np.abs(b)), 0.0)
+
+
+def bin_slopes(table: BundleTable) -> tuple[np.ndarray, np.ndarray]:
+    """Limited slopes of S per bin in ``phi_o`` (per radian) and in ``u = sin(theta_o)``.
+
+    Shapes as ``values``; ``phi_o`` is periodic, the first and last ``theta_o`` bins are flat.
+    """
+    v = table.values.astype(np.float64)
+    d_phi = 2 * np.pi / v.shape[2]
+    s_phi = minmod(np.roll(v, -1, 2) - v, v - np.roll(v, 1, 2)) / d_phi
+    u = np.sin(table.theta_o_edges)
+    uc = 0.5 * (u[1:] + u[:-1])
+    diff = np.diff(v, axis=3) / np.diff(uc)[:, None]
+    s_u = np.zeros_like(v)
+    s_u[:, :, :, 1:-1] = minmod(diff[:, :, :, 1:], diff[:, :, :, :-1])
+    return s_phi.astype(np.float32), s_u.astype(np.float32)
+
+
+def _node_corners(grid, x, periodic, nearest):
+    from models.fiber.base import _linear
+
+    if len(grid) == 1:
+        z = np.zeros(np.shape(x), np.int64)
+        return [(z, np.ones(np.shape(x)))]
+    i0, i1, w = _linear(grid, x, periodic=periodic) if periodic else _linear(grid, np.clip(x, grid[0], grid[-1]))
+    if nearest:
+        return [(np.where(w < 0.5, i0, i1), np.ones(np.shape(x)))]
+    return [(i0, 1 - w), (i1, w)]
+
+
+def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "linear", slopes=None) -> np.ndarray:
     """``S`` at arbitrary directions (radians, broadcast), all wavelengths: [..., n_lambda].
 
     The table must be expanded (``BundleTable.load(..., expand=True)``); relative tables
-    take ``phi_o - phi_i`` on their output axis.
+    take ``phi_o - phi_i`` on their output axis. ``slopes``: :func:`bin_slopes`, if
+    already computed.
     """
-    from models.fiber.base import _linear
-
-    if table.meta.get("reductions", {}).get("theta_i") == "mirror" or \
-            table.meta.get("reductions", {}).get("phi_i") == "mirror_xz":
+    reductions = table.meta.get("reductions", {})
+    if reductions.get("theta_i") == "mirror" or reductions.get("phi_i") == "mirror_xz":
         raise ValueError("lookup needs an expanded table: BundleTable.load(path, expand=True)")
+    if mode not in ("nearest", "linear"):
+        raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")
     phi_i, theta_i, phi_o, theta_o = np.broadcast_arrays(*(np.asarray(a, np.float64)
                                                            for a in (phi_i, theta_i, phi_o, theta_o)))
-    if table.meta["reductions"]["phi_o"] == "relative":
+    if reductions["phi_o"] == "relative":
         phi_o = phi_o - phi_i
-    coords = [phi_i, theta_i, phi_o, theta_o]
-    idx = []
-    for (grid, periodic), x in zip(lookup_axes(table), coords):
-        if periodic and len(grid) > 1:
-            # periodic grids here are uniform with their first node at grid[0]
-            i0, i1, w = _linear(grid, x, periodic=True)
-        else:
-            i0, i1, w = _linear(grid, np.clip(x, -np.pi / 2, np.pi / 2) if not periodic else x)
-        idx.append((i0, i1, w))
-    V = table.values
-    if mode == "nearest":
-        sel = tuple(np.where(w < 0.5, i0, i1) for i0, i1, w in idx)
-        return V[sel].astype(np.float64)
-    if mode != "linear":
-        raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")
+    nearest = mode == "nearest"
+    s_phi, s_u = (None, None) if nearest else (slopes or bin_slopes(table))
+    n_p, n_t = len(table.phi_o_edges) - 1, len(table.theta_o_edges) - 1
+    u_edges = np.sin(table.theta_o_edges)
+
+    def read(a, b, phi, u):
+        """Node (a, b) at (phi, u): its bin value plus the slopes' offsets."""
+        t = np.mod(phi - table.phi_o_edges[0], 2 * np.pi) * (n_p / (2 * np.pi))
+        kp = np.minimum(np.floor(t).astype(np.int64), n_p - 1)
+        to = np.arcsin(np.clip(u, -1.0, 1.0))
+        kt = np.clip(np.floor((to + np.pi / 2) * (n_t / np.pi)).astype(np.int64), 0, n_t - 1)
+        value = table.values[a, b, kp, kt].astype(np.float64)
+        if not nearest:
+            dp = (t - kp - 0.5) * (2 * np.pi / n_p)
+            du = u - 0.5 * (u_edges[kt] + u_edges[kt + 1])
+            value = value + s_phi[a, b, kp, kt] * dp[..., None] + s_u[a, b, kp, kt] * du[..., None]
+        return value
+
+    u = np.sin(theta_o)
     out = np.zeros(phi_i.shape + (len(table.wavelength),))
-    for corner in range(16):
-        pick, weight = [], np.ones(phi_i.shape)
-        for axis, (i0, i1, w) in enumerate(idx):
-            hi = (corner >> axis) & 1
-            pick.append(i1 if hi else i0)
-            weight = weight * (w if hi else 1 - w)
-        out += weight[..., None] * V[tuple(pick)]
+    for a, wa in _node_corners(table.phi_i, phi_i, True, nearest):
+        for b, wb in _node_corners(table.theta_i, np.clip(theta_i, -np.pi / 2, np.pi / 2), False, nearest):
+            # this node read at the same distance from its own cone, in u = sin(theta_o) ...
+            s = np.sin(theta_i) - np.sin(table.theta_i[b])
+            out += (wa * wb * (np.abs(u + s) <= 1.0))[..., None] * read(a, b, phi_o, u + s)
+            # ... and its light shifted past a pole, which comes back over it at phi + pi
+            u_back = np.where(s > 0, -2.0 - u + s, 2.0 - u + s)
+            back = np.where(s > 0, u <= s - 1.0, u >= 1.0 + s) & (s != 0)
+            if np.any(back):
+                out += (wa * wb * back)[..., None] * read(a, b, phi_o + np.pi, np.where(back, u_back, 0.0))
     return out
