@@ -120,6 +120,54 @@ def rendered_intensity(mi, scene_dict: dict, w_o, half_size) -> float:
     return float(img.sum() * pixel_area / visible_length(half_size, theta_o))
 
 
+def explicit_shapes(bundle, fiber_bsdf: dict, turn: float, half_length: float, unit: float = 1e-3) -> dict:
+    """Every fiber of ``bundle`` (micrometres, centres in the bundle frame's x-z plane)
+    as its own cylinder along ``+y``, the arrangement turned by ``turn`` (radians) about
+    the axis; ``unit`` converts micrometres into scene units."""
+    c, s = np.cos(turn), np.sin(turn)
+    shapes = {}
+    for k, ((x, z), r) in enumerate(zip(np.asarray(bundle.centers, float), np.asarray(bundle.radii, float))):
+        xr, zr = c * x - s * z, s * x + c * z  # turned by +turn in phi = atan2(z, x)
+        shapes[f"fiber_{k:05d}"] = cylinder(r * unit, fiber_bsdf, (xr * unit, zr * unit), half_length)
+    return shapes
+
+
+def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, resolution: int = 48,
+                       unit: float = 1e-3):
+    """Intensity per unit length of the explicit fibers lit from ``w_i``, averaged over
+    ``len(views)`` evenly spaced turns of the arrangement, turn ``k`` seen along
+    ``views[k]`` (one direction, or directions spread over a table bin: the average is
+    then the bin average of the rotation average, which is what a circle's bake holds).
+
+    Returns the mean and an error estimate: half the difference of the even and the odd
+    turns' means (each turn its own seed), which holds the render noise and the rule's.
+    """
+    Rb = bundle.bounding_radius * unit
+    hs = 1.2 * Rb
+    values = []
+    for k, w_o in enumerate(views):
+        shapes = explicit_shapes(bundle, fiber_bsdf, 2 * np.pi * k / len(views), 40 * hs, unit)
+        sc = scene(mi, shapes, w_i, w_o, hs, resolution=resolution, spp=spp, seed=k)
+        values.append(rendered_intensity(mi, sc, w_o, hs))
+    values = np.array(values)
+    return float(values.mean()), float(abs(values[0::2].mean() - values[1::2].mean()) / 2)
+
+
+def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
+    """``n x n`` directions stratified over output bin ``(k_phi, k_theta)`` of ``table``
+    (uniform in ``phi`` and ``sin(theta)``, i.e. in solid angle), in a shuffled order so
+    that the even and the odd ones each cover the bin; ``phi`` relative to ``phi_i`` for
+    a relative table."""
+    pe, te = table.phi_o_edges, table.theta_o_edges
+    rel = table.meta["reductions"]["phi_o"] == "relative"
+    u0, u1 = np.sin(te[k_theta]), np.sin(te[k_theta + 1])
+    views = [direction(pe[k_phi] + (a + 0.5) / n * (pe[k_phi + 1] - pe[k_phi]) + (phi_i if rel else 0.0),
+                       np.arcsin(u0 + (b + 0.5) / n * (u1 - u0)))
+             for a in range(n) for b in range(n)]
+    order = [(a * n + (b + a) % n) for b in range(n) for a in range(n)]  # Latin-square order
+    return [views[j] for j in order]
+
+
 # -- direction sets ------------------------------------------------------------------
 def direction_pairs(cone_offsets_deg=(0.0, 1.5, -3.0), kinds=("backward", "sideways", "oblique"), grazing=True):
     """Test directions ``(phi_i, theta_i, phi_o, theta_o)`` in radians.

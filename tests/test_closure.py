@@ -252,3 +252,53 @@ def test_table_lookup_keeps_its_bin_averages_and_moves_the_ridge_with_the_cone(t
         ridge = lookup(t, 0.0, ti, 0.0, theta)[:, 1]
         assert abs(theta[np.argmax(ridge)] + ti) < np.diff(te)[0]  # the peak within a bin of -theta_i
     del table
+
+
+# ----------------------------------------------------------------------------------
+# Explicit fibers against the bake (light version; the full sweep: pipeline.bench_closure)
+# ----------------------------------------------------------------------------------
+
+def test_explicit_ply_renders_its_bake(mono, tmp_path):
+    """Six ray-optics fibers in a circle, every one its own cylinder with ``fiber_table``,
+    against the bundle table baked from the same arrangement, bin by bin: 16 turns of the
+    arrangement, each seen from its own direction of a 4 x 4 stratification of the bin,
+    estimate the rotation-averaged bin average that the bake holds. Within 3 standard
+    errors (bake and render) + 2%, at 20 (theta_i node, bin) pairs: on the cone (the bins
+    on either side of it), off it, backwards, sideways, obliquely forward, grazing."""
+    import mitsuba as mi
+
+    import mitsuba_ext
+    from models.bundle import poisson
+    from models.fiber.ray import RayFiber
+    from tests.test_bake import bake
+
+    fiber = RayFiber(WL, [1.56] * 3, [0.3, 0.1, 0.0], 0.3, 0.3, 0.0, n_h=64).tabulate(NODES)
+    fiber.save(tmp_path / "fiber.npz")
+    bundle = poisson((80.0, 80.0), 20.0, packing=0.4, seed=2)
+    mi.set_variant("llvm_ad_rgb")  # the baker's own variant
+    table = bake(bundle, fiber, paths=2_000_000, theta_i=(10, 30, 60, 80), n_theta_o=18, n_phi_o=36)
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    lam = list(WL).index(LAM)
+    bsdf = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": LAM, "up": closure.UP}
+    n_t = len(table.theta_o_edges) - 1
+    cases = []
+    for j, ti in enumerate(table.theta_i):
+        cone = int(np.floor((np.pi / 2 - ti) / np.pi * n_t))           # the bin just above -theta_i
+        for k_phi in (1, 9, 15):                                         # dphi 15, 95, 155 deg
+            for k_theta in {cone, cone - 1, min(cone + 2, n_t - 1)} - {-1}:
+                cases.append((j, k_phi, k_theta))
+    cases = cases[:24]
+    assert len(cases) >= 20
+    res = []
+    for j, k_phi, k_theta in cases:
+        ti = table.theta_i[j]
+        w_i = closure.direction(0.0, ti)
+        views = closure.bin_views(table, 0.0, k_phi, k_theta)
+        I, se = closure.explicit_intensity(mi, bundle, bsdf, w_i, views, spp=8, resolution=32)
+        S, S_err = table.values[0, j, k_phi, k_theta, lam], table.stderr[0, j, k_phi, k_theta, lam]
+        predicted = closure.predicted_intensity(1.0, bundle.bounding_radius * 1e-3, ti, S)
+        res.append((I / predicted - 1, np.hypot(S_err / S, se / I)))
+    res = np.array(res)
+    print("explicit / bake - 1:", np.round(res[:, 0], 3).tolist(), "sigma:", np.round(res[:, 1], 3).tolist())
+    assert np.all(np.abs(res[:, 0]) <= 0.02 + 3 * res[:, 1]), res
