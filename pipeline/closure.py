@@ -133,11 +133,12 @@ def explicit_shapes(bundle, fiber_bsdf: dict, turn: float, half_length: float, u
 
 
 def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, resolution: int = 48,
-                       unit: float = 1e-3):
+                       unit: float = 1e-3, turns: bool = True):
     """Intensity per unit length of the explicit fibers lit from ``w_i``, averaged over
     ``len(views)`` evenly spaced turns of the arrangement, turn ``k`` seen along
     ``views[k]`` (one direction, or directions spread over a table bin: the average is
     then the bin average of the rotation average, which is what a circle's bake holds).
+    ``turns=False`` keeps the arrangement as it is (an ellipse's bake is not rotated).
 
     Returns the mean and an error estimate: half the difference of the even and the odd
     turns' means (each turn its own seed), which holds the render noise and the rule's.
@@ -146,7 +147,8 @@ def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, 
     hs = 1.2 * Rb
     values = []
     for k, w_o in enumerate(views):
-        shapes = explicit_shapes(bundle, fiber_bsdf, 2 * np.pi * k / len(views), 40 * hs, unit)
+        turn = 2 * np.pi * k / len(views) if turns else 0.0
+        shapes = explicit_shapes(bundle, fiber_bsdf, turn, 40 * hs, unit)
         sc = scene(mi, shapes, w_i, w_o, hs, resolution=resolution, spp=spp, seed=k)
         values.append(rendered_intensity(mi, sc, w_o, hs))
     values = np.array(values)
@@ -166,6 +168,102 @@ def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
              for a in range(n) for b in range(n)]
     order = [(a * n + (b + a) % n) for b in range(n) for a in range(n)]  # Latin-square order
     return [views[j] for j in order]
+
+
+# -- measurements over many directions (the render stage and bench_closure) ------------
+def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False) -> list:
+    """``[theta_i, theta_o + theta_i, dphi (deg), rendered / predicted]`` per direction pair
+    (radians) for one cylinder of radius ``R`` with ``bsdf``; ``S_of(pi, ti, po, to)`` is
+    what the BSDF was given. ``evaluated``: Dr.Jit's evaluated mode (the onnx backend)."""
+    import drjit as dr
+
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    saved = [dr.flag(f) for f in flags]
+    rows = []
+    try:
+        for f in flags:
+            dr.set_flag(f, dr.flag(f) and not evaluated)
+        for pi_, ti, po, to in pairs:
+            predicted = predicted_intensity(1.0, R, ti, S_of(pi_, ti, po, to))
+            if not predicted > 0:
+                continue
+            w_i, w_o = direction(pi_, ti), direction(po, to)
+            hs = 1.5 * R
+            sc = scene(mi, {"f": cylinder(R, bsdf, half_length=40 * hs)}, w_i, w_o, hs, spp=4)
+            rows.append([float(np.rad2deg(ti)), float(np.rad2deg(to + ti)), float(np.rad2deg(po - pi_)),
+                         rendered_intensity(mi, sc, w_o, hs) / float(predicted)])
+    finally:
+        for f, v in zip(flags, saved):
+            dr.set_flag(f, v)
+    return rows
+
+
+def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: float = 0.0, spp: int = 8,
+                  resolution: int = 32, unit: float = 1e-3) -> list:
+    """Explicit fibers against a bake, bin by bin: for each ``(theta_i index, phi bin,
+    theta bin)`` of ``cases``, the explicit intensity over the bin (16 views; 16 turns
+    for a circle) against ``E 2 R_b cos(theta_i) S_bin``, with 1-sigma errors of both."""
+    rows = []
+    for j, k_phi, k_theta in cases:
+        ti = table.theta_i[j]
+        views = bin_views(table, phi_i, k_phi, k_theta)
+        I, se = explicit_intensity(mi, bundle, fiber_bsdf, direction(phi_i, ti), views, spp=spp,
+                                   resolution=resolution, unit=unit, turns=bundle.is_circle)
+        a = int(np.argmin(np.abs(np.angle(np.exp(1j * (table.phi_i - phi_i))))))
+        S, S_err = table.values[a, j, k_phi, k_theta, lam], table.stderr[a, j, k_phi, k_theta, lam]
+        predicted = predicted_intensity(1.0, bundle.bounding_radius * unit, ti, S)
+        rows.append({"theta_i": float(np.rad2deg(ti)), "phi_o": float(np.rad2deg(table.phi_o[k_phi])),
+                     "theta_o": float(np.rad2deg(table.theta_o[k_theta])), "ratio": float(I / predicted),
+                     "sigma": float(np.hypot(S_err / S, se / I))})
+    return rows
+
+
+def cone_cases(table, phi_bins, beside: bool = True) -> list:
+    """``(theta_i index, phi bin, theta bin)``: for each node the bin just beside its
+    specular cone (and, with ``beside``, the one two bins further), at ``phi_bins``."""
+    n_t = len(table.theta_o_edges) - 1
+    cases = []
+    for j, ti in enumerate(table.theta_i):
+        cone = int(np.clip(np.floor((np.pi / 2 - ti) / np.pi * n_t), 0, n_t - 1))
+        for k_phi in phi_bins:
+            cases.append((j, k_phi, cone))
+            if beside and cone + 2 < n_t:
+                cases.append((j, k_phi, cone + 2))
+    return cases
+
+
+def plot(far_field: dict, explicit: dict, path, title="") -> None:
+    """Left: rendered / predicted - 1 per direction pair and backend; right: explicit
+    fibers / bake - 1 per bin with 1-sigma error bars, per (fiber, ply)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import atomic_path
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.2))
+    for k, (name, rows) in enumerate(far_field.items()):
+        r = np.array([row[3] for row in rows])
+        ax1.plot(np.arange(len(r)) + 0.15 * k, r - 1, "o", ms=3, label=name)
+    ax1.axhspan(-0.01, 0.01, color="0.9", zorder=0)
+    ax1.set(xlabel="direction pair (theta_i 10..80 deg; backwards, sideways, oblique; on and off the cone)",
+            ylabel="rendered / predicted - 1", title="far-field closure (deterministic: 1% band)")
+    ax1.legend(fontsize=8)
+    for k, (label, rows) in enumerate(explicit.items()):
+        x = np.arange(len(rows)) + 0.12 * k
+        ax2.errorbar(x, [r["ratio"] - 1 for r in rows], yerr=[r["sigma"] for r in rows], fmt="o", ms=3,
+                     capsize=2, label=label)
+    ax2.axhspan(-0.02, 0.02, color="0.9", zorder=0)
+    ax2.set(xlabel="(theta_i node, output bin) beside the specular cone", ylabel="explicit fibers / bake - 1",
+            title="explicit fibers against the bake (1 sigma: bake and render)")
+    ax2.legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
 
 
 # -- direction sets ------------------------------------------------------------------

@@ -8,9 +8,10 @@ error maps and one side-by-side picture. Then two checks:
 
 * ``mono_check``: the spectral variant against the thesis's way, one mono render per
   table wavelength combined with CIE 1931 and D65 into sRGB (mean colour of the ply);
-* ``explicit``: the ply with every fiber of the bake's arrangement as its own curve
-  (``fiber_table``), against the bundle BSDF: mean radiance across the ply, and the
-  time each needs to reach the same pixel noise (noise from two seeds).
+* ``explicit``: the chain's closure (``pipeline.closure``): the bundle BSDF's far field
+  against its table and MLP, the bake's own fibers rendered one by one against the
+  bake bin by bin, and the ply scene with every fiber its own cylinder (16 turns of
+  the arrangement averaged) against the bundle with the table and the MLP.
 
 Everything lands in ``artifacts/<name>/render/`` with ``summary.json``. The neural
 backends read only their exported files: no table is loaded for them.
@@ -189,7 +190,7 @@ def run(cfg, out_root="artifacts") -> Path:
         mi.set_variant(r.variant)
         mitsuba_ext.register()
     if r.explicit and "table" in props:
-        summary["explicit"] = explicit_check(mi, cfg, props["table"], out_root, out)
+        summary["explicit"] = explicit_check(mi, cfg, props, out_root, out)
 
     write_text(out / "summary.json", json.dumps(summary, indent=2))
     return out
@@ -259,49 +260,97 @@ def mono_check(mi, cfg, table_props: dict, out: Path) -> dict:
             "spectral_seconds": t_spec, "mono_seconds": t_mono, "n_wavelengths": len(wl)}
 
 
-def explicit_check(mi, cfg, table_props: dict, out_root, out: Path) -> dict:
-    """Every fiber as its own curve against the bundle BSDF: appearance and time at equal noise."""
+def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
+    """The chain's closure, measured (``pipeline.closure``), and the ply with explicit fibers.
+
+    * **far field** (mono, one wavelength): ``fiber_bundle`` with the table and with the
+      MLP, rendered / predicted at the closure direction pairs;
+    * **explicit fibers against the bake**, bin by bin (mono): the bake's own arrangement
+      and fiber, each fiber a cylinder, 16 turns x 16 views per bin beside the cone;
+    * **the ply scene** (this stage's variant, sun and sky): the explicit fibers averaged
+      over 16 turns of the arrangement (a circle's table is the rotation average) against
+      the bundle with the table and with the MLP: mean radiance over the ply, FLIP.
+
+    Writes ``closure.png`` (the first two) and ``explicit_vs_bundle.png``.
+    """
+    import mitsuba_ext
+    from mitsuba_ext.neural import DrJitMLP
+    from models.bundle_table import BundleTable, lookup
+
+    from . import closure, scenes
     from .bake import build_bundle
-    from . import scenes
 
     r = cfg.render
-    fiber_table = Path(out_root) / cfg.name / "fiber" / "fiber_table.npz"
+    root = Path(out_root) / cfg.name
+    fiber_table = root / "fiber" / "fiber_table.npz"
     bundle = build_bundle(cfg)
-    runs = {}
-    for kind, spp in (("bundle", r.spp), ("explicit", r.explicit_spp)):
-        imgs, secs = [], []
-        for seed in (0, 1):
-            if kind == "bundle":
-                scene = scenes.ply_scene(mi, cfg, table_props, spp, seed, twist_turns=0.0)
-            else:
-                scene = scenes.explicit_scene(mi, cfg, bundle, fiber_table, spp, seed)
-            img, seconds, _ = render_timed(mi, scene)
-            imgs.append(img)
-            secs.append(seconds)
-        runs[kind] = (imgs, float(np.mean(secs)), spp)
-    expo = exposure_of(runs["bundle"][0][0])
-    for kind, (imgs, _, _) in runs.items():
-        save_images(mi, imgs[0], out / f"explicit_{kind}", expo)
-    h = imgs[0].shape[0]
-    half = (cfg.bundle.radius_um * scenes.UM) / (0.5 * scenes.ply_length(cfg)) * (0.5 * r.width)  # ply half-height in px
+    t = BundleTable.load(props["table"]["table"], expand=True)
+    raw = BundleTable.load(props["table"]["table"])
+    lam = int(np.argmin(np.abs(t.wavelength - 550.0)))
+    wl = float(t.wavelength[lam])
+    result = {"fibers": len(bundle.centers), "wavelength_nm": wl}
+
+    # -- far field and explicit bins, one wavelength ------------------------------------
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    Rb = bundle.bounding_radius * scenes.UM
+    pairs = closure.direction_pairs(cone_offsets_deg=(0.0, -1.7))
+    far = {"table": closure.far_field_ratios(
+        mi, {**props["table"], "wavelength": wl, "up": closure.UP}, Rb,
+        lambda pi_, ti, po, to: float(lookup(t, pi_, ti, po, to)[..., lam]), pairs)}
+    if "mlp" in props:
+        mlp = DrJitMLP(props["mlp"]["model"])
+
+        def mlp_S(*a):
+            out_ = mlp.eval(*(mi.Float(float(x)) for x in a))[lam]
+            return float(out_.numpy()[0])
+        far["mlp"] = closure.far_field_ratios(mi, {**props["mlp"], "wavelength": wl, "up": closure.UP}, Rb, mlp_S,
+                                              pairs)
+    fiber_bsdf = {"type": "fiber_table", "filename": str(fiber_table), "wavelength": wl, "up": closure.UP}
+    phi_bins = [int(len(raw.phi_o) * f) for f in (0.55, 0.75, 0.95)]  # dphi ~ 20, 90, 160 deg
+    nodes = [j for j, ti in enumerate(raw.theta_i) if 5 < np.rad2deg(ti) < 85][::2]
+    cases = [c for c in closure.cone_cases(raw, phi_bins, beside=False) if c[0] in nodes]
+    explicit = closure.explicit_bins(mi, bundle, fiber_bsdf, raw, cases, lam, spp=8, resolution=32)
+    result["far_field"] = far
+    result["explicit_bins"] = explicit
+    closure.plot(far, {f"{cfg.fiber.model} fiber, {cfg.name} ply ({len(bundle.centers)} fibers)": explicit},
+                 out / "closure.png", f"{cfg.name}: rendered against what each renderer was given ({wl:.0f} nm)")
+    within = np.mean([abs(e["ratio"] - 1) <= 0.02 + 3 * e["sigma"] for e in explicit])
+    ff = np.concatenate([[row[3] for row in rows] for rows in far.values()])
+    print(f"[render] closure: far field {ff.min():.4f} .. {ff.max():.4f} ({len(ff)} renders); explicit fibers vs "
+          f"bake {within:.0%} of {len(explicit)} bins within 3 sigma + 2%")
+
+    # -- the ply scene: explicit fibers, 16 turns, against the bundle ----------------------
+    mi.set_variant(r.variant)
+    mitsuba_ext.register()
+    turns = 16
+    per_turn = max(1, r.explicit_spp // turns)
+    imgs, t_explicit = [], 0.0
+    for k in range(turns):
+        scene = scenes.explicit_scene(mi, cfg, bundle, fiber_table, per_turn, k, turn=2 * np.pi * k / turns)
+        img, seconds, _ = render_timed(mi, scene)
+        imgs.append(img)
+        t_explicit += seconds
+    explicit_img = np.mean(imgs, 0)
+    h = explicit_img.shape[0]
+    half = (cfg.bundle.radius_um * scenes.UM) / (0.5 * scenes.ply_length(cfg)) * (0.5 * r.width)  # ply half-height
     rows = slice(int(h / 2 - 0.9 * half), int(np.ceil(h / 2 + 0.9 * half)))
-    bands = np.array_split(np.arange(rows.start, rows.stop), 4)
-    result = {}
-    for kind, (imgs, seconds, spp) in runs.items():
-        a, b = imgs[0][rows], imgs[1][rows]
-        noise = float(np.sqrt(np.mean((a - b) ** 2) / 2))
-        result[kind] = {"spp": spp, "seconds": seconds, "noise": noise,
-                        "mean_radiance": a.reshape(-1, 3).mean(0).tolist(),
-                        "band_means": [float(imgs[0][band].mean()) for band in bands]}
-    # time to the bundle's noise: noise ~ 1/sqrt(spp), time ~ spp
-    b, e = result["bundle"], result["explicit"]
-    e["seconds_at_bundle_noise"] = e["seconds"] * (e["noise"] / b["noise"]) ** 2
-    slower = e["seconds_at_bundle_noise"] / b["seconds"]
-    diff = float(np.max(np.abs(np.array(b["band_means"]) / np.array(e["band_means"]) - 1)))
-    result.update(slower_at_equal_noise=slower, band_max_rel_diff=diff,
-                  fibers=len(bundle.centers))
-    save_png(np.concatenate([to_srgb(runs["explicit"][0][0], expo), to_srgb(runs["bundle"][0][0], expo)], 0),
-             out / "explicit_vs_bundle.png")
-    print(f"[render] explicit fibers ({len(bundle.centers)}) vs bundle BSDF: mean radiance per band differs by "
-          f"<= {diff:.1%}; explicit is {slower:.0f}x slower at equal noise")
+    expo = exposure_of(explicit_img)
+    save_images(mi, explicit_img, out / "explicit_fibers", expo)
+    ply = {"explicit": {"spp": per_turn * turns, "seconds": t_explicit,
+                        "mean_radiance": explicit_img[rows].reshape(-1, 3).mean(0).tolist()}}
+    strip = [to_srgb(explicit_img, expo)]
+    for backend in [b for b in ("table", "mlp") if b in props]:
+        img, seconds, _ = render_timed(mi, scenes.ply_scene(mi, cfg, props[backend], r.spp, 0, twist_turns=0.0),
+                                       backend)
+        flip, psnr, _ = flip_and_psnr(explicit_img, img, expo)
+        mean = img[rows].reshape(-1, 3).mean(0)
+        ratio = float(mean.sum() / explicit_img[rows].reshape(-1, 3).mean(0).sum())
+        ply[backend] = {"spp": r.spp, "seconds": seconds, "mean_radiance": mean.tolist(),
+                        "mean_vs_explicit": ratio, "flip_vs_explicit": flip}
+        strip.append(to_srgb(img, expo))
+        print(f"[render] ply: bundle ({backend}) / explicit fibers (16 turns) mean radiance {ratio:.4f}, "
+              f"FLIP {flip:.4f}; {seconds:.2f} s against {t_explicit:.1f} s")
+    save_png(np.concatenate(strip, 0), out / "explicit_vs_bundle.png")
+    result["ply"] = ply
     return result

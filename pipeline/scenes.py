@@ -63,8 +63,9 @@ def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) ->
     return scene
 
 
-def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0) -> dict:
-    """The same ply, every fiber its own cylinder with the fiber model (``fiber_table``).
+def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, turn: float = 0.0) -> dict:
+    """The same ply, every fiber its own cylinder with the fiber model (``fiber_table``),
+    the arrangement turned by ``turn`` (radians) about the ply's axis.
 
     Cylinders, not one ``bsplinecurve`` of all fibers: rays that leave a fiber next to
     a touching neighbour made Mitsuba 3.9's curve intersection read past its segment
@@ -75,7 +76,9 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0) -
     fiber = {"type": "fiber_table", "filename": str(fiber_table_path)}
     # the bundle frame (x, t, z) of ply_scene without twist is (y, x, -z) of the scene;
     # the fibers run past the image edges so that their ends stay out of view
-    for k, ((cx, cz), r) in enumerate(zip(bundle.centers * UM, bundle.radii * UM)):
+    c, s = np.cos(turn), np.sin(turn)
+    centers = np.asarray(bundle.centers, float) @ np.array([[c, s], [-s, c]])  # (x, z) turned by +turn
+    for k, ((cx, cz), r) in enumerate(zip(centers * UM, bundle.radii * UM)):
         scene[f"fiber_{k:05d}"] = {"type": "cylinder", "p0": [-0.6 * L, cx, -cz], "p1": [0.6 * L, cx, -cz],
                                    "radius": float(r), "bsdf": {**fiber, "radius": float(r)}}
     return scene

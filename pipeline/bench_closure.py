@@ -1,0 +1,199 @@
+"""Closure benchmark: the whole chain's error budget, measured (docs/BENCHMARKS.md).
+
+    python -m pipeline.bench_closure [CONFIG] [--artifacts DIR] [--quick]
+
+Three parts, all printed and written to ``artifacts/<name>/closure/bench_closure.json``
+with a figure ``closure.png``:
+
+1. **Reciprocity of the fiber models**: ``f(i -> o) cos(theta_i) / (f(o -> i) cos(theta_o)) - 1``
+   at random direction pairs where ``f`` exceeds 1e-3 of its maximum, for the config's
+   Mie fiber and for the ray fiber of ``configs/fiber_ray.yaml`` (Chiang's model is only
+   approximately reciprocal: this measures how far).
+2. **Far-field closure** on the config's artifacts (``bcsdf run`` first): one explicit
+   fiber (``fiber_table``) and ``fiber_bundle`` with the table, the jitted MLP and ONNX,
+   rendered / predicted (``pipeline.closure``) at the closure direction pairs.
+3. **Explicit fibers against the bake**, bin by bin: the config's ply, a sparse ply and
+   an ellipse, each with the Mie and the ray fiber, baked here (small bakes), every fiber
+   rendered as its own cylinder; a circle averaged over 16 turns of its arrangement,
+   each turn seen from its own direction of a 4 x 4 stratification of the bin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .config import load_config
+from .io import write_text
+
+LAM = 550.0
+
+
+# -- 1. reciprocity ------------------------------------------------------------------
+def reciprocity(table, n: int = 40_000, seed: int = 0) -> dict:
+    """Relative departure from ``f(i->o) cos(theta_i) = f(o->i) cos(theta_o)`` of a fiber table."""
+    rng = np.random.default_rng(seed)
+    ti = rng.uniform(-np.pi / 2, np.pi / 2, n)
+    to = np.where(rng.uniform(size=n) < 0.5, rng.uniform(-np.pi / 2, np.pi / 2, n),
+                  np.clip(-ti + rng.normal(0, 0.2, n), -np.pi / 2, np.pi / 2))
+    dphi = rng.uniform(-np.pi, np.pi, n)
+    a = table.eval_spectrum(ti, to, dphi) * np.cos(ti)[:, None]
+    b = table.eval_spectrum(to, ti, -dphi) * np.cos(to)[:, None]
+    big = a > 1e-3 * a.max()
+    rel = np.abs(a[big] / b[big] - 1)
+    return {"pairs": int(big.sum()), "median": float(np.median(rel)), "p95": float(np.percentile(rel, 95)),
+            "max": float(rel.max())}
+
+
+# -- 2. far-field closure ------------------------------------------------------------
+def far_field(mi, cfg, out_root) -> dict:
+    """rendered / predicted of one fiber and of the bundle in every backend (config's artifacts)."""
+    import drjit as dr
+
+    from mitsuba_ext.neural import DrJitMLP, OnnxMLP
+    from models.bundle_table import BundleTable, lookup
+    from models.fiber.base import FiberTable
+
+    from . import closure, render
+    from .bake import build_bundle
+
+    root = Path(out_root) / cfg.name
+    pairs = closure.direction_pairs(cone_offsets_deg=(0.0, 0.8, -1.7, -3.0))
+    fiber_path = root / "fiber" / "fiber_table.npz"
+    fiber = FiberTable.load(fiber_path)
+    t = BundleTable.load(root / "bake" / "bundle_table.npz", expand=True)
+    lam = int(np.argmin(np.abs(t.wavelength - LAM)))
+    size = render.model_size(cfg)
+    mlp = DrJitMLP(root / "export" / size / "weights.npz")
+    onnx = OnnxMLP(root / "export" / size / "model.onnx")
+
+    def mlp_S(*a):
+        out = mlp.eval(*(mi.Float(float(x)) for x in a))[lam]
+        dr.eval(out)
+        return float(out[0])
+
+    Rf, Rb = cfg.fiber.radius_um * 1e-3, build_bundle(cfg).bounding_radius * 1e-3
+    cases = {
+        "fiber_table": ({"type": "fiber_table", "filename": str(fiber_path)}, Rf,
+                        lambda pi_, ti, po, to: float(fiber.eval(ti, pi_, to, po, LAM))),
+        "table": (render.backend_props(cfg, out_root, "table"), Rb,
+                  lambda pi_, ti, po, to: float(lookup(t, pi_, ti, po, to)[..., lam])),
+        "mlp": (render.backend_props(cfg, out_root, "mlp"), Rb, mlp_S),
+        "onnx": (render.backend_props(cfg, out_root, "onnx"), Rb,
+                 lambda *a: float(onnx.eval(*(np.array([x], np.float32) for x in a))[0, lam])),
+    }
+    return {name: closure.far_field_ratios(mi, {**bsdf, "wavelength": float(t.wavelength[lam]), "up": closure.UP},
+                                           R, S, pairs, evaluated=name == "onnx")
+            for name, (bsdf, R, S) in cases.items()}
+
+
+# -- 3. explicit fibers against the bake ---------------------------------------------
+def small_bake(bundle, fiber, phi_i_deg, theta_i_deg, paths, seed=1):
+    from models.baker import Baker, BakeSpec
+
+    from .bake import tally_to_table
+
+    spec = BakeSpec(np.deg2rad(theta_i_deg), np.deg2rad(phi_i_deg), 18, 36, relative_phi=bundle.is_circle)
+    baker = Baker(bundle, fiber, spec)
+    tally = None
+    for a in range(len(spec.phi_i)):
+        t = baker.trace(a, paths, np.random.SeedSequence([seed, a]))
+        tally = t if tally is None else (tally.add(t) or tally)
+    return tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None,
+                                               "phi_o": "relative" if spec.relative_phi else "absolute"})
+
+
+def explicit_vs_bake(mi, cfg, out_root, quick: bool) -> list:
+    import mitsuba_ext
+    from models import fiber as fibers
+    from models.bundle import poisson
+
+    from . import closure
+    from .bake import build_bundle
+    from .config import load_config as load
+
+    wl = np.array([450.0, 550.0, 650.0])
+    nodes = np.deg2rad(np.arange(0, 91, 5.0))
+    ray_cfg = load(Path(__file__).resolve().parents[1] / "configs" / "fiber_ray.yaml")
+    r = cfg.fiber.radius_um
+    fiber_models = {"mie": fibers.build(cfg.fiber, wl), "ray": fibers.build(ray_cfg.fiber, wl)}
+    base = build_bundle(cfg)
+    Rb = base.bounding_radius
+    plies = {"default": base,
+             "sparse": poisson((Rb, Rb), r, packing=0.15, seed=3),
+             "ellipse": poisson((1.25 * Rb, 0.75 * Rb), r, packing=0.35, seed=4)}
+    if quick:
+        plies = {"default": plies["default"]}
+    tmp = Path(out_root) / cfg.name / "closure"
+    rows = []
+    for fname, model in fiber_models.items():
+        table_f = model.tabulate(nodes)
+        fpath = tmp / f"fiber_{fname}.npz"
+        table_f.save(fpath)
+        for pname, bundle in plies.items():
+            mi.set_variant("llvm_ad_rgb")
+            phi_i = 0.0 if bundle.is_circle else 30.0
+            t0 = time.perf_counter()
+            table = small_bake(bundle, table_f, [phi_i], [10.0, 30.0, 60.0, 80.0], 400_000 if quick else 2_000_000)
+            bake_s = time.perf_counter() - t0
+            mi.set_variant("llvm_ad_mono")
+            mitsuba_ext.register()
+            bsdf = {"type": "fiber_table", "filename": str(fpath), "wavelength": LAM, "up": closure.UP}
+            phi_bins = (1, 9, 15) if bundle.is_circle else (4, 12, 22)
+            found = closure.explicit_bins(mi, bundle, bsdf, table, closure.cone_cases(table, phi_bins, not quick),
+                                          lam=1, phi_i=np.deg2rad(phi_i))
+            rows += [{"fiber": fname, "ply": pname, "fibers": len(bundle.centers), "bake_seconds": bake_s, **r_}
+                     for r_ in found]
+            print(f"[closure] {fname:3} {pname:8} ({len(bundle.centers)} fibers): explicit / bake - 1 = "
+                  + " ".join(f"{r_['ratio'] - 1:+.3f}" for r_ in rows if r_["fiber"] == fname and r_["ply"] == pname))
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("config", nargs="?", default="configs/default.yaml")
+    p.add_argument("--artifacts", default="artifacts")
+    p.add_argument("--quick", action="store_true", help="the default ply only, smaller bakes")
+    args = p.parse_args(argv)
+    cfg = load_config(args.config)
+    import mitsuba as mi
+
+    import mitsuba_ext
+    from models import fiber as fibers
+
+    wl = np.linspace(cfg.wavelengths.start_nm, cfg.wavelengths.stop_nm, cfg.wavelengths.count)
+    ray_cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "fiber_ray.yaml")
+    nodes = np.deg2rad(np.arange(0, 91, 5.0))
+    result = {"reciprocity": {"mie": reciprocity(fibers.build(cfg.fiber, wl[::6]).tabulate(nodes)),
+                              "ray": reciprocity(fibers.build(ray_cfg.fiber, wl[::6]).tabulate(nodes))}}
+    for name, r in result["reciprocity"].items():
+        print(f"[closure] reciprocity of the {name} fiber: |f(i->o) cos ti / f(o->i) cos to - 1| median "
+              f"{r['median']:.2e}, 95% {r['p95']:.2e}, max {r['max']:.2e} ({r['pairs']} pairs)")
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    result["far_field"] = far_field(mi, cfg, args.artifacts)
+    for name, rows in result["far_field"].items():
+        r = np.array([row[3] for row in rows])
+        print(f"[closure] far field, {name:11}: rendered / predicted {r.min():.4f} .. {r.max():.4f} "
+              f"({len(r)} direction pairs)")
+    result["explicit"] = explicit_vs_bake(mi, cfg, args.artifacts, args.quick)
+    out = Path(args.artifacts) / cfg.name / "closure"
+    write_text(out / "bench_closure.json", json.dumps(result, indent=2))
+    groups = {}
+    for r_ in result["explicit"]:
+        groups.setdefault(f"{r_['fiber']}, {r_['ply']} ({r_['fibers']} fibers)", []).append(r_)
+    from . import closure
+    closure.plot(result["far_field"], groups, out / "closure.png", f"{cfg.name}: the chain's closure")
+    z = np.array([(r["ratio"] - 1) / r["sigma"] for r in result["explicit"]])
+    within = np.mean([abs(r["ratio"] - 1) <= 0.02 + 3 * r["sigma"] for r in result["explicit"]])
+    print(f"[closure] explicit vs bake: {within:.0%} of {len(z)} bins within 3 sigma + 2%; |z| median "
+          f"{np.median(np.abs(z)):.2f}; wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
