@@ -3,7 +3,7 @@
 #   make test   set up, then run the default test suite
 CONFIG ?= configs/default.yaml
 
-.PHONY: setup run test bench bench-bake bench-neural bench-render stability clean
+.PHONY: setup run test bench bench-bake bench-neural bench-render bench-closure stability clean
 setup:
 	./scripts/setup.sh
 
@@ -24,6 +24,9 @@ bench-neural: run
 
 bench-render: run
 	.venv/bin/python -m pipeline.bench_render $(CONFIG)
+
+bench-closure: run
+	.venv/bin/python -m pipeline.bench_closure $(CONFIG)
 
 stability: setup
 	.venv/bin/bcsdf stability $(CONFIG)

@@ -223,7 +223,9 @@ def bsdf_classes() -> dict:
            * - model
              - ``weights.npz`` (``mlp``) or ``model.onnx`` (``onnx``) from ``bcsdf export``.
            * - lookup
-             - ``linear`` (default: multilinear in all four angles) or ``nearest``.
+             - ``linear`` (default: each bin its value plus limited slopes, so that it
+               averages to its value; theta_i nodes read along their own specular cone
+               and blended) or ``nearest`` (the nearest node's bin value).
            * - passthrough
              - Let rays cross the bundle with the baked probability (default ``true``).
            * - twist, twist_rate
@@ -235,13 +237,27 @@ def bsdf_classes() -> dict:
              - Mono variants: the wavelength (nm) to render; default CIE luminance.
            * - radius
              - Bundle radius in scene units, for the displaced exit point of
-               ``bundle_path`` on ``bsplinecurve`` shapes (cylinders measure it).
+               ``bundle_path`` on shapes other than ``cylinder`` and ``bsplinecurve``
+               (those two give it per hit: ``|dp/du| = 2 pi r``).
            * - sampling_uniform
              - Fraction of direction samples drawn uniformly on the sphere (default 0.1).
 
-        ``eval`` returns ``S(w_i, w_o)`` with the cosine included, as Mitsuba's ``hair``:
-        it integrates over ``w_o`` to the fraction of the light reaching the bundle's
-        projected width that is scattered. The remaining passthrough is a null lobe
+        **Which direction is incident.** The table's ``S(w_i -> w_o)`` has ``w_i`` on the
+        light's side (the bake's incidence). In ``eval(ctx, si, wo)`` of a path tracer
+        (``TransportMode.Radiance``) the light side is ``wo`` and the camera side
+        ``si.wi``, so ``eval = S(w_i = wo -> w_o = si.wi) cos(theta_wo) / cos(theta_si.wi)``:
+        then a cylinder of radius ``R`` under a directional light ``E`` from ``w_i`` and
+        seen from ``w_o`` sends ``I = E 2R cos(theta_i) S(w_i -> w_o)`` per unit length,
+        the far field the table describes (``pipeline.closure`` tests it in every
+        backend). For a reciprocal ``S`` this is ``S(si.wi -> wo)``; a baked table is
+        reciprocal only within its noise and an MLP within its error, so the order is
+        kept exactly. In ``TransportMode.Importance`` (light tracing) ``si.wi`` is the
+        light side and ``eval = S(si.wi -> wo)``. ``sample`` proposes ``wo`` from the
+        table (or the model's own tabulation) conditioned on ``si.wi``, mixed with a
+        uniform share; ``pdf`` is that proposal's density (Mitsuba's chi-square test),
+        and the weight ``eval / pdf`` is exact whatever the proposal.
+
+        The passthrough is a null lobe
         (``sample`` returns ``w_o = -w_i`` with probability ``P_pass(phi_i)``); a hit from
         the inside of the shape always passes, so the far wall of a cylinder is not a
         second interaction. Spectral variants interpolate the table's wavelengths
@@ -336,8 +352,10 @@ def bsdf_classes() -> dict:
         One fiber's tabulated scattering model (a ``fiber_table.npz`` from ``bcsdf fiber``)
         on a ``cylinder`` or ``bsplinecurve`` of the fiber's radius: the ground truth that a
         bundle BSDF is compared with, with every fiber of a ply as its own shape. ``eval``
-        is the far-field (offset-averaged) fiber function, cosine included, as Mitsuba's
-        ``hair``; sampling follows the table's own importance sampler (the baker's).
+        is the far-field (offset-averaged) fiber function ``f(w_i -> w_o)``, cosine
+        included, with ``w_i`` the light side, read as ``fiber_bundle`` reads its table
+        (``f(wo -> si.wi) cos(theta_wo) / cos(theta_si.wi)`` in radiance mode); sampling
+        follows the fiber's own importance sampler (the baker's) from ``si.wi``.
         With ``bundle_path`` the light leaves the fiber from the displaced exit point,
         as in the baker. Parameters: ``filename`` (the table), ``radius`` (scene units,
         for curves), ``wavelength`` (mono variants).

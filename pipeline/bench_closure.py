@@ -1,12 +1,12 @@
 """Closure benchmark: the whole chain's error budget, measured (docs/BENCHMARKS.md).
 
-    python -m pipeline.bench_closure [CONFIG] [--artifacts DIR] [--quick]
+    python -m pipeline.bench_closure [CONFIG] [--artifacts DIR] [--quick] [--spp N]
 
 Three parts, all printed and written to ``artifacts/<name>/closure/bench_closure.json``
 with a figure ``closure.png``:
 
-1. **Reciprocity of the fiber models**: ``f(i -> o) cos(theta_i) / (f(o -> i) cos(theta_o)) - 1``
-   at random direction pairs where ``f`` exceeds 1e-3 of its maximum, for the config's
+1. **Reciprocity of the fiber models**: ``|a - b| / max(a, b)`` with ``a = f(i -> o) cos(theta_i)``
+   and ``b = f(o -> i) cos(theta_o)``, at random direction pairs where ``f`` exceeds 1e-3 of its maximum, for the config's
    Mie fiber and for the ray fiber of ``configs/fiber_ray.yaml`` (Chiang's model is only
    approximately reciprocal: this measures how far).
 2. **Far-field closure** on the config's artifacts (``bcsdf run`` first): one explicit
@@ -35,7 +35,9 @@ LAM = 550.0
 
 # -- 1. reciprocity ------------------------------------------------------------------
 def reciprocity(table, n: int = 40_000, seed: int = 0) -> dict:
-    """Relative departure from ``f(i->o) cos(theta_i) = f(o->i) cos(theta_o)`` of a fiber table."""
+    """Departure from ``f(i->o) cos(theta_i) = f(o->i) cos(theta_o)`` of a fiber table:
+    ``|a - b| / max(a, b)`` of the two sides (0: reciprocal, 1: one side dark), where
+    ``f(i->o)`` exceeds 1e-3 of its maximum."""
     rng = np.random.default_rng(seed)
     ti = rng.uniform(-np.pi / 2, np.pi / 2, n)
     to = np.where(rng.uniform(size=n) < 0.5, rng.uniform(-np.pi / 2, np.pi / 2, n),
@@ -44,7 +46,7 @@ def reciprocity(table, n: int = 40_000, seed: int = 0) -> dict:
     a = table.eval_spectrum(ti, to, dphi) * np.cos(ti)[:, None]
     b = table.eval_spectrum(to, ti, -dphi) * np.cos(to)[:, None]
     big = a > 1e-3 * a.max()
-    rel = np.abs(a[big] / b[big] - 1)
+    rel = np.abs(a[big] - b[big]) / np.maximum(a[big], b[big])
     return {"pairs": int(big.sum()), "median": float(np.median(rel)), "p95": float(np.percentile(rel, 95)),
             "max": float(rel.max())}
 
@@ -107,7 +109,7 @@ def small_bake(bundle, fiber, phi_i_deg, theta_i_deg, paths, seed=1):
                                                "phi_o": "relative" if spec.relative_phi else "absolute"})
 
 
-def explicit_vs_bake(mi, cfg, out_root, quick: bool) -> list:
+def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
     import mitsuba_ext
     from models import fiber as fibers
     from models.bundle import poisson
@@ -145,7 +147,7 @@ def explicit_vs_bake(mi, cfg, out_root, quick: bool) -> list:
             bsdf = {"type": "fiber_table", "filename": str(fpath), "wavelength": LAM, "up": closure.UP}
             phi_bins = (1, 9, 15) if bundle.is_circle else (4, 12, 22)
             found = closure.explicit_bins(mi, bundle, bsdf, table, closure.cone_cases(table, phi_bins, not quick),
-                                          lam=1, phi_i=np.deg2rad(phi_i))
+                                          lam=1, phi_i=np.deg2rad(phi_i), spp=spp)
             rows += [{"fiber": fname, "ply": pname, "fibers": len(bundle.centers), "bake_seconds": bake_s, **r_}
                      for r_ in found]
             print(f"[closure] {fname:3} {pname:8} ({len(bundle.centers)} fibers): explicit / bake - 1 = "
@@ -158,6 +160,7 @@ def main(argv=None) -> int:
     p.add_argument("config", nargs="?", default="configs/default.yaml")
     p.add_argument("--artifacts", default="artifacts")
     p.add_argument("--quick", action="store_true", help="the default ply only, smaller bakes")
+    p.add_argument("--spp", type=int, default=32, help="samples per pixel of each explicit render")
     args = p.parse_args(argv)
     cfg = load_config(args.config)
     import mitsuba as mi
@@ -171,7 +174,8 @@ def main(argv=None) -> int:
     result = {"reciprocity": {"mie": reciprocity(fibers.build(cfg.fiber, wl[::6]).tabulate(nodes)),
                               "ray": reciprocity(fibers.build(ray_cfg.fiber, wl[::6]).tabulate(nodes))}}
     for name, r in result["reciprocity"].items():
-        print(f"[closure] reciprocity of the {name} fiber: |f(i->o) cos ti / f(o->i) cos to - 1| median "
+        print(f"[closure] reciprocity of the {name} fiber: |a - b| / max(a, b), a = f(i->o) cos ti, "
+              f"b = f(o->i) cos to: median "
               f"{r['median']:.2e}, 95% {r['p95']:.2e}, max {r['max']:.2e} ({r['pairs']} pairs)")
     mi.set_variant("llvm_ad_mono")
     mitsuba_ext.register()
@@ -180,7 +184,7 @@ def main(argv=None) -> int:
         r = np.array([row[3] for row in rows])
         print(f"[closure] far field, {name:11}: rendered / predicted {r.min():.4f} .. {r.max():.4f} "
               f"({len(r)} direction pairs)")
-    result["explicit"] = explicit_vs_bake(mi, cfg, args.artifacts, args.quick)
+    result["explicit"] = explicit_vs_bake(mi, cfg, args.artifacts, args.quick, args.spp)
     out = Path(args.artifacts) / cfg.name / "closure"
     write_text(out / "bench_closure.json", json.dumps(result, indent=2))
     groups = {}

@@ -41,15 +41,6 @@ def pairs_deg(n_min=20, offsets=(0.0, 1.5, -3.0)):
     return pairs
 
 
-def stable(S, pairs, d=1e-5):
-    """Pairs where ``S`` is lit and continuous: a stripe's dark band is 0/0, and a float32
-    angle at a discontinuity (a grid stripe's edge, a table bin's edge) may land on
-    either side of it."""
-    peak = max(S(*q) for q in pairs)
-    near = lambda p: [S(p[0] + a, p[1] + b, p[2] + a, p[3] - b) for a in (-d, 0, d) for b in (-d, d)]  # noqa: E731
-    return np.array([S(*p) > 1e-4 * peak and np.ptp(near(p) + [S(*p)]) < 1e-3 * S(*p) for p in pairs])
-
-
 def ratios(mi, bsdf, R, S_of, pairs, twist_deg=0.0, **scene_kw):
     """rendered / predicted for every direction pair (radians); ``S_of(pi, ti, po, to)``."""
     hs = 1.5 * R
@@ -114,7 +105,7 @@ def test_one_explicit_fiber_renders_its_model(mono, tmp_path, model):
     pairs = pairs_deg(offsets=(0.0, 1.5, -3.0, 4.5, 7.0, -6.0, -12.0) if model == "grid" else (0.0, 1.5, -3.0))
     # predicted from the model's numpy evaluation; grazing light at 80 deg included
     S = lambda pi_, ti, po, to: float(table.eval(ti, pi_, to, po, LAM))  # noqa: E731
-    keep = stable(S, pairs) if model == "grid" else np.ones(len(pairs), bool)
+    keep = closure.continuous(S, pairs) if model == "grid" else np.ones(len(pairs), bool)
     r = ratios(mi, bsdf, 0.02, S, pairs[keep])
     print(model, np.round(r, 4))
     assert keep.sum() >= 20
@@ -145,7 +136,7 @@ def test_bundle_table_backend_renders_its_table(mono, tables, which, twist):
     # a table knows no position inside a bin: "on the cone" is read anywhere in its bin, and
     # pairs on a bin's edge (where the bin-average preserving lookup jumps) are left out
     pairs = pairs_deg(offsets=(0.0, 0.8, 1.5, -1.7, -3.0))
-    pairs = pairs[stable(S, pairs)]
+    pairs = pairs[closure.continuous(S, pairs)]
     assert len(pairs) >= 20
     r = ratios(mi, bsdf, 0.2, S, pairs, twist_deg=twist)
     print(which, twist, np.round(r, 4))
