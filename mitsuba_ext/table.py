@@ -117,13 +117,20 @@ class DrJitTable:
         u, sin_i = dr.sin(theta_o), dr.sin(theta_i)
         out = [dr.zeros(self.Float, dr.width(u)) for _ in range(self.n_lambda)]
         for a, wa in self._corners(phi_i, self.phi_i, True, nearest):
-            for b, wb in self._corners(theta_i, self.theta_i, False, nearest):
-                # this node read at the same distance from its own cone, in u = sin(theta_o) ...
-                s = sin_i - dr.gather(self.Float, self.sin_theta_i, b)
-                w = wa * wb
-                self._read(a, b, phi_o, u + s, dr.select(dr.abs(u + s) <= 1.0, w, 0.0), out, nearest)
-                # ... and its light shifted past a pole, which comes back over it at phi + pi
-                back = dr.select(s > 0, u <= s - 1.0, u >= 1.0 + s) & (s != 0)
-                u_back = dr.select(s > 0, -2.0 - u + s, 2.0 - u + s)
-                self._read(a, b, phi_o + float(np.pi), u_back, dr.select(back, w, 0.0), out, nearest)
+            corners = self._corners(theta_i, self.theta_i, False, nearest)
+            shifts = [sin_i - dr.gather(self.Float, self.sin_theta_i, b) for b, _ in corners]
+            # each node read at the same distance from its own cone, in u = sin(theta_o) ...
+            for (b, wb), s in zip(corners, shifts):
+                self._read(a, b, phi_o, u + s, dr.select(dr.abs(u + s) <= 1.0, wa * wb, 0.0), out, nearest)
+            # ... and its light shifted past a pole comes back over it at phi + pi. A lane
+            # near the lower pole takes it from the node below (s >= 0), near the upper pole
+            # from the node above (s <= 0): one read per lane, not one per node
+            (b0, w0), (b1, w1) = corners[0], corners[-1]
+            s0, s1 = shifts[0], shifts[-1]
+            lower = u < 0.0
+            s = dr.select(lower, s0, s1)
+            back = dr.select(lower, (s0 > 0) & (u <= s0 - 1.0), (s1 < 0) & (u >= 1.0 + s1))
+            u_back = dr.select(lower, -2.0 - u + s, 2.0 - u + s)
+            self._read(a, dr.select(lower, b0, b1), phi_o + float(np.pi), u_back,
+                       dr.select(back, wa * dr.select(lower, w0, w1), 0.0), out, nearest)
         return out

@@ -145,7 +145,7 @@ def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
             mi.set_variant("llvm_ad_mono")
             mitsuba_ext.register()
             bsdf = {"type": "fiber_table", "filename": str(fpath), "wavelength": LAM, "up": closure.UP}
-            phi_bins = (1, 9, 15) if bundle.is_circle else (4, 12, 22)
+            phi_bins = (1, 9, 15) if bundle.is_circle else (4, 12, 22)  # 15, 95, 155 deg from forward
             found = closure.explicit_bins(mi, bundle, bsdf, table, closure.cone_cases(table, phi_bins, not quick),
                                           lam=1, phi_i=np.deg2rad(phi_i), spp=spp)
             rows += [{"fiber": fname, "ply": pname, "fibers": len(bundle.centers), "bake_seconds": bake_s, **r_}

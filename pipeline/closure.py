@@ -217,14 +217,17 @@ def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: f
                   resolution: int = 32, unit: float = 1e-3) -> list:
     """Explicit fibers against a bake, bin by bin: for each ``(theta_i index, phi bin,
     theta bin)`` of ``cases``, the explicit intensity over the bin (16 views; 16 turns
-    for a circle) against ``E 2 R_b cos(theta_i) S_bin``, with 1-sigma errors of both."""
+    for a circle) against ``E 2 R_b cos(theta_i) S_bin``, with 1-sigma errors of both.
+    Bins the bake found dark (below 1e-3 of the brightest bin of their row) are left out."""
     rows = []
+    a = int(np.argmin(np.abs(np.angle(np.exp(1j * (table.phi_i - phi_i))))))
     for j, k_phi, k_theta in cases:
+        if not table.values[a, j, k_phi, k_theta, lam] > 1e-3 * table.values[a, j, ..., lam].max():
+            continue
         ti = table.theta_i[j]
         views = bin_views(table, phi_i, k_phi, k_theta)
         I, se = explicit_intensity(mi, bundle, fiber_bsdf, direction(phi_i, ti), views, spp=spp,
                                    resolution=resolution, unit=unit, turns=bundle.is_circle)
-        a = int(np.argmin(np.abs(np.angle(np.exp(1j * (table.phi_i - phi_i))))))
         S, S_err = table.values[a, j, k_phi, k_theta, lam], table.stderr[a, j, k_phi, k_theta, lam]
         predicted = predicted_intensity(1.0, bundle.bounding_radius * unit, ti, S)
         rows.append({"theta_i": float(np.rad2deg(ti)), "phi_o": float(np.rad2deg(table.phi_o[k_phi])),
