@@ -106,9 +106,11 @@ def wi_of(theta_deg, phi_deg):
 
 @pytest.mark.parametrize("which,backend", [("circle", "table"), ("ellipse", "table"), ("circle", "mlp")])
 @pytest.mark.parametrize("theta,phi", [(0, 90), (40, 20), (-75, 160)])  # wi.z > 0: from outside
-def test_sampling_passes_mitsuba_chi2(mi_plug, tables, trained, which, backend, theta, phi):
+def test_sampling_passes_mitsuba_chi2(mi_plug, tables, trained, which, backend, theta, phi, tmp_path, monkeypatch):
     mi = mi_plug
     from mitsuba.chi2 import ChiSquareTest
+
+    monkeypatch.chdir(tmp_path)  # a failing test writes chi2_data.py into the working directory
 
     if backend == "mlp":
         _, tmp = trained
@@ -480,10 +482,12 @@ def test_fiber_table_bsdf_matches_mitsuba_hair_with_light_and_camera_swapped(mi_
 
 
 @pytest.mark.parametrize("theta,phi", [(30, 90), (0, 45), (-60, 120)])
-def test_fiber_table_sampling_passes_mitsuba_chi2(mi_plug, tmp_path, theta, phi):
+def test_fiber_table_sampling_passes_mitsuba_chi2(mi_plug, tmp_path, theta, phi, monkeypatch):
     """The single-fiber plugin samples its table's own importance sampler; its pdf is
     the sampler's density per d(theta) d(phi) turned into one per steradian."""
     from mitsuba.chi2 import ChiSquareTest
+
+    monkeypatch.chdir(tmp_path)  # a failing test writes chi2_data.py into the working directory
 
     from models.fiber.ray import RayFiber
 
