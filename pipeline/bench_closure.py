@@ -12,6 +12,8 @@ with a figure ``closure.png``:
 2. **Far-field closure** on the config's artifacts (``bcsdf run`` first): one explicit
    fiber (``fiber_table``) and ``fiber_bundle`` with the table, the jitted MLP and ONNX,
    rendered / predicted (``pipeline.closure``) at the closure direction pairs.
+4. **The ply scene** (``--ply-only`` runs this part alone): mean radiance of the bundle
+   (table, MLP) against independent averages of the explicit fibers over 16 turns.
 3. **Explicit fibers against the bake**, bin by bin: the config's ply, a sparse ply and
    an ellipse, each with the Mie and the ray fiber, baked here (small bakes), every fiber
    rendered as its own cylinder; a circle averaged over 16 turns of its arrangement,
@@ -155,14 +157,57 @@ def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
     return rows
 
 
+# -- 4. the ply scene: explicit fibers against the bundle, many seeds -------------------
+def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
+    """Mean radiance over the ply (render stage's scene, sun and sky, spectral): the bundle
+    with the table and the MLP (256 spp) against ``seeds`` independent averages of the
+    explicit fibers over 16 turns (``16 x spp_per_turn`` samples each). A Mie ply's
+    explicit image is a few glints per pixel, so one average is noisy (a few per cent):
+    the seeds give its standard error."""
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    from . import render, scenes
+    from .bake import build_bundle
+
+    r = cfg.render
+    mi.set_variant(r.variant)
+    mitsuba_ext.register()
+    bundle = build_bundle(cfg)
+    fiber = Path(out_root) / cfg.name / "fiber" / "fiber_table.npz"
+    half = (cfg.bundle.radius_um * scenes.UM) / (0.5 * scenes.ply_length(cfg)) * (0.5 * r.width)
+    rows = slice(int(r.height / 2 - 0.9 * half), int(np.ceil(r.height / 2 + 0.9 * half)))
+    mean = lambda sc: float(np.asarray(mi.render(mi.load_dict(sc)))[rows].mean())  # noqa: E731
+    bundle_means = {b: mean(scenes.ply_scene(mi, cfg, render.backend_props(cfg, out_root, b), 256, 5,
+                                             twist_turns=0.0)) for b in ("table", "mlp")}
+    explicit = []
+    for s in range(seeds):
+        explicit.append(np.mean([mean(scenes.explicit_scene(mi, cfg, bundle, fiber, spp_per_turn, 1000 * (s + 1) + k,
+                                                            turn=2 * np.pi * k / 16)) for k in range(16)]))
+    explicit = np.array(explicit)
+    out = {"explicit_means": explicit.tolist(), **{f"{b}_mean": v for b, v in bundle_means.items()}}
+    for b, v in bundle_means.items():
+        ratios = v / explicit
+        out[f"{b}_vs_explicit"] = [float(v / explicit.mean()), float(ratios.std(ddof=1) / np.sqrt(seeds))]
+        print(f"[closure] ply scene: bundle ({b}) / explicit fibers = {v / explicit.mean():.4f} "
+              f"+- {out[f'{b}_vs_explicit'][1]:.4f} ({seeds} explicit averages of {16 * spp_per_turn} spp)")
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("config", nargs="?", default="configs/default.yaml")
     p.add_argument("--artifacts", default="artifacts")
     p.add_argument("--quick", action="store_true", help="the default ply only, smaller bakes")
     p.add_argument("--spp", type=int, default=32, help="samples per pixel of each explicit render")
+    p.add_argument("--ply-only", action="store_true", help="only part 4: the ply scene against explicit fibers")
     args = p.parse_args(argv)
     cfg = load_config(args.config)
+    if args.ply_only:
+        result = ply_scene(cfg, args.artifacts)
+        write_text(Path(args.artifacts) / cfg.name / "closure" / "bench_closure_ply.json", json.dumps(result, indent=2))
+        return 0
     import mitsuba as mi
 
     import mitsuba_ext
