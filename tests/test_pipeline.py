@@ -49,7 +49,9 @@ def test_run_writes_every_stage_and_a_complete_report(tmp_path):
 
 def test_run_skips_up_to_date_stages_and_reruns_what_changed(tmp_path):
     cfg = tmp_path / "tiny.yaml"
-    data = dict(TINY, train={"models": {"s": [8]}, "epochs": 5, "batch_size": 256})
+    # the closure check is the first test's: this one is about which stages rerun
+    data = dict(TINY, train={"models": {"s": [8]}, "epochs": 5, "batch_size": 256},
+                render={**TINY["render"], "explicit": False})
     cfg.write_text(yaml.safe_dump(data))
     art = tmp_path / "art"
 
