@@ -83,7 +83,7 @@ class DrJitTable:
         """Add ``weight`` x node (a, b) at (phi, u): bin value plus the slopes' offsets."""
         import drjit as dr
 
-        n_a, n_b, n_p, n_t = self.shape
+        _, n_b, n_p, n_t = self.shape
         L = self.n_lambda
         half_pi = float(np.pi / 2)
         t = (phi - self.phi_o0) * float(n_p / (2 * np.pi))

@@ -197,15 +197,6 @@ class BundleTable:
 #
 # ``nearest`` reads the bin value of the nearest node (no slopes), along the cone too.
 
-def lookup_axes(table: BundleTable):
-    """The four lookup axes of a table: ``(grid, periodic)`` for phi_i, theta_i, phi_o, theta_o.
-
-    Values sit at ``phi_i`` and ``theta_i`` nodes and on output bins; azimuths are periodic,
-    ``theta_i`` is clamped to its first and last node.
-    """
-    return [(table.phi_i, True), (table.theta_i, False), (table.phi_o, True), (table.theta_o, False)]
-
-
 def minmod(a, b):
     """The smaller of two slopes of one sign, else zero (the classic slope limiter)."""
     return np.where(a * b > 0, np.sign(a) * np.minimum(np.abs(a), np.abs(b)), 0.0)

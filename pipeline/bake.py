@@ -194,6 +194,18 @@ def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50
             "full_incidences": [len(full.phi_i), len(full.theta_i)], "probe_paths": probe_paths}
 
 
+def bake_unreduced(bundle, fiber: FiberTable, spec: BakeSpec, paths: int, seed: int = 1) -> BundleTable:
+    """``paths`` per incident azimuth of ``spec`` in one go (no checkpoints, no symmetry
+    reductions): the small bakes of tests and benchmarks."""
+    baker = Baker(bundle, fiber, spec)
+    tally = None
+    for a in range(len(spec.phi_i)):
+        t = baker.trace(a, paths, np.random.SeedSequence([seed, a]))
+        tally = t if tally is None else (tally.add(t) or tally)
+    return tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None,
+                                               "phi_o": "relative" if spec.relative_phi else "absolute"})
+
+
 def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: dict) -> BundleTable:
     n = tally.paths[:, None, None, None, None]
     omega = spec.bin_solid_angle()[None, None, :, :, None]

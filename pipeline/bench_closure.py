@@ -56,68 +56,32 @@ def reciprocity(table, n: int = 40_000, seed: int = 0) -> dict:
 # -- 2. far-field closure ------------------------------------------------------------
 def far_field(mi, cfg, out_root) -> dict:
     """rendered / predicted of one fiber and of the bundle in every backend (config's artifacts)."""
-    import drjit as dr
-
-    from mitsuba_ext.neural import DrJitMLP, OnnxMLP
-    from models.bundle_table import BundleTable, lookup
-    from models.fiber.base import FiberTable
-
     from . import closure, render
     from .bake import build_bundle
 
     root = Path(out_root) / cfg.name
     pairs = closure.direction_pairs(cone_offsets_deg=(0.0, 0.8, -1.7, -3.0))
-    fiber_path = root / "fiber" / "fiber_table.npz"
-    fiber = FiberTable.load(fiber_path)
-    t = BundleTable.load(root / "bake" / "bundle_table.npz", expand=True)
-    lam = int(np.argmin(np.abs(t.wavelength - LAM)))
-    size = render.model_size(cfg)
-    mlp = DrJitMLP(root / "export" / size / "weights.npz")
-    onnx = OnnxMLP(root / "export" / size / "model.onnx")
-
-    def mlp_S(*a):
-        out = mlp.eval(*(mi.Float(float(x)) for x in a))[lam]
-        dr.eval(out)
-        return float(out[0])
-
+    fiber = {"type": "fiber_table", "filename": str(root / "fiber" / "fiber_table.npz")}
+    bundles = {b: render.backend_props(cfg, out_root, b) for b in ("table", "mlp", "onnx")}
     Rf, Rb = cfg.fiber.radius_um * 1e-3, build_bundle(cfg).bounding_radius * 1e-3
-    cases = {
-        "fiber_table": ({"type": "fiber_table", "filename": str(fiber_path)}, Rf,
-                        lambda pi_, ti, po, to: float(fiber.eval(ti, pi_, to, po, LAM))),
-        "table": (render.backend_props(cfg, out_root, "table"), Rb,
-                  lambda pi_, ti, po, to: float(lookup(t, pi_, ti, po, to)[..., lam])),
-        "mlp": (render.backend_props(cfg, out_root, "mlp"), Rb, mlp_S),
-        "onnx": (render.backend_props(cfg, out_root, "onnx"), Rb,
-                 lambda *a: float(onnx.eval(*(np.array([x], np.float32) for x in a))[0, lam])),
-    }
-    return {name: closure.far_field_ratios(mi, {**bsdf, "wavelength": float(t.wavelength[lam]), "up": closure.UP},
+    cases = {"fiber_table": (fiber, Rf, closure.evaluator(mi, "fiber", fiber["filename"], LAM)),
+             **{b: (p, Rb, closure.evaluator(mi, b, p.get("table") or p.get("model"), LAM))
+                for b, p in bundles.items()}}
+    return {name: closure.far_field_ratios(mi, {**bsdf, "wavelength": LAM, "up": closure.UP},
                                            R, S, pairs, evaluated=name == "onnx")
             for name, (bsdf, R, S) in cases.items()}
 
 
 # -- 3. explicit fibers against the bake ---------------------------------------------
-def small_bake(bundle, fiber, phi_i_deg, theta_i_deg, paths, seed=1):
-    from models.baker import Baker, BakeSpec
-
-    from .bake import tally_to_table
-
-    spec = BakeSpec(np.deg2rad(theta_i_deg), np.deg2rad(phi_i_deg), 18, 36, relative_phi=bundle.is_circle)
-    baker = Baker(bundle, fiber, spec)
-    tally = None
-    for a in range(len(spec.phi_i)):
-        t = baker.trace(a, paths, np.random.SeedSequence([seed, a]))
-        tally = t if tally is None else (tally.add(t) or tally)
-    return tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None,
-                                               "phi_o": "relative" if spec.relative_phi else "absolute"})
-
-
 def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
     import mitsuba_ext
     from models import fiber as fibers
     from models.bundle import poisson
 
+    from models.baker import BakeSpec
+
     from . import closure
-    from .bake import build_bundle
+    from .bake import bake_unreduced, build_bundle
     from .config import load_config as load
 
     wl = np.array([450.0, 550.0, 650.0])
@@ -142,7 +106,9 @@ def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
             mi.set_variant("llvm_ad_rgb")
             phi_i = 0.0 if bundle.is_circle else 30.0
             t0 = time.perf_counter()
-            table = small_bake(bundle, table_f, [phi_i], [10.0, 30.0, 60.0, 80.0], 400_000 if quick else 2_000_000)
+            spec = BakeSpec(np.deg2rad([10.0, 30.0, 60.0, 80.0]), np.deg2rad([phi_i]), 18, 36,
+                            relative_phi=bundle.is_circle)
+            table = bake_unreduced(bundle, table_f, spec, 400_000 if quick else 2_000_000)
             bake_s = time.perf_counter() - t0
             mi.set_variant("llvm_ad_mono")
             mitsuba_ext.register()

@@ -171,6 +171,39 @@ def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
 
 
 # -- measurements over many directions (the render stage and bench_closure) ------------
+def evaluator(mi, kind: str, path, wavelength_nm: float):
+    """``S_of(pi, ti, po, to)``: what a renderer is given, at the wavelength nearest
+    ``wavelength_nm``, evaluated the way its own code does, outside any render.
+
+    ``kind``: ``fiber`` (a ``fiber_table.npz``, numpy), ``table`` (a ``bundle_table.npz``,
+    the numpy lookup), ``mlp`` (``weights.npz``, Dr.Jit) or ``onnx`` (``model.onnx``,
+    onnxruntime).
+    """
+    if kind == "fiber":
+        from models.fiber.base import FiberTable
+
+        fiber = FiberTable.load(path)
+        return lambda pi_, ti, po, to: float(fiber.eval(ti, pi_, to, po, wavelength_nm))
+    if kind == "table":
+        from models.bundle_table import BundleTable, lookup
+
+        t = BundleTable.load(path, expand=True)
+        k = int(np.argmin(np.abs(t.wavelength - wavelength_nm)))
+        return lambda pi_, ti, po, to: float(lookup(t, pi_, ti, po, to)[..., k])
+    from mitsuba_ext.neural import DrJitMLP, OnnxMLP
+
+    if kind == "mlp":
+        mlp = DrJitMLP(path)
+        k = int(np.argmin(np.abs(np.asarray(mlp.spec.wavelength) - wavelength_nm)))
+        return lambda *angles: float(mlp.eval(*(mi.Float(float(a)) for a in angles))[k].numpy()[0])
+    if kind == "onnx":
+        onnx = OnnxMLP(path)
+        k = int(np.argmin(np.abs(np.asarray(onnx.spec.wavelength) - wavelength_nm)))
+        return lambda *angles: float(onnx.eval(*(np.array([a], np.float32) for a in angles))[0, k])
+    raise ValueError(f"evaluator: kind {kind!r}; use fiber, table, mlp or onnx")
+
+
+
 def continuous(S_of, pairs, d: float = 1e-6) -> np.ndarray:
     """Which pairs have ``S`` lit and continuous around them: a table's lookup jumps at
     its bin edges (it keeps bin averages), a grid pattern at its stripes' edges, and a

@@ -274,8 +274,7 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     Writes ``closure.png`` (the first two) and ``explicit_vs_bundle.png``.
     """
     import mitsuba_ext
-    from mitsuba_ext.neural import DrJitMLP
-    from models.bundle_table import BundleTable, lookup
+    from models.bundle_table import BundleTable
 
     from . import closure, scenes
     from .bake import build_bundle
@@ -284,10 +283,9 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     root = Path(out_root) / cfg.name
     fiber_table = root / "fiber" / "fiber_table.npz"
     bundle = build_bundle(cfg)
-    t = BundleTable.load(props["table"]["table"], expand=True)
     raw = BundleTable.load(props["table"]["table"])
-    lam = int(np.argmin(np.abs(t.wavelength - 550.0)))
-    wl = float(t.wavelength[lam])
+    lam = int(np.argmin(np.abs(raw.wavelength - 550.0)))
+    wl = float(raw.wavelength[lam])
     result = {"fibers": len(bundle.centers), "wavelength_nm": wl}
 
     # -- far field and explicit bins, one wavelength ------------------------------------
@@ -296,17 +294,10 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     Rb = bundle.bounding_radius * scenes.UM
     # off the cone's exact line: a node's cone lies on a bin edge of the table, where it jumps
     pairs = closure.direction_pairs(cone_offsets_deg=(0.8, -1.7))
-    far = {"table": closure.far_field_ratios(
-        mi, {**props["table"], "wavelength": wl, "up": closure.UP}, Rb,
-        lambda pi_, ti, po, to: float(lookup(t, pi_, ti, po, to)[..., lam]), pairs)}
-    if "mlp" in props:
-        mlp = DrJitMLP(props["mlp"]["model"])
-
-        def mlp_S(*a):
-            out_ = mlp.eval(*(mi.Float(float(x)) for x in a))[lam]
-            return float(out_.numpy()[0])
-        far["mlp"] = closure.far_field_ratios(mi, {**props["mlp"], "wavelength": wl, "up": closure.UP}, Rb, mlp_S,
-                                              pairs)
+    far = {b: closure.far_field_ratios(mi, {**props[b], "wavelength": wl, "up": closure.UP}, Rb,
+                                       closure.evaluator(mi, b, props[b].get("table") or props[b].get("model"), wl),
+                                       pairs)
+           for b in ("table", "mlp") if b in props}
     fiber_bsdf = {"type": "fiber_table", "filename": str(fiber_table), "wavelength": wl, "up": closure.UP}
     phi_bins = [int(len(raw.phi_o) * f) for f in (0.55, 0.75, 0.95)]  # dphi ~ 20, 90, 160 deg
     nodes = [j for j, ti in enumerate(raw.theta_i) if 5 < np.rad2deg(ti) < 85][::2]

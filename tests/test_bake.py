@@ -14,7 +14,7 @@ from models.bundle import Bundle, poisson
 from models.bundle_table import BundleTable
 from models.fiber.patterns import PatternFiber
 from models.fiber.ray import RayFiber
-from pipeline.bake import tally_to_table
+from pipeline.bake import bake_unreduced
 
 WL = np.array([450.0, 650.0])
 NODES = np.deg2rad(np.arange(0, 91, 5.0))
@@ -46,13 +46,7 @@ def bake(bundle, fiber, estimator="fast", paths=100_000, theta_i=(0.0, 30.0, 60.
     spec = BakeSpec(np.deg2rad(theta_i), np.deg2rad(phi_i), n_theta_o, n_phi_o,
                     relative_phi=bundle.is_circle if relative is None else relative,
                     estimator=estimator, max_bounces=max_bounces)
-    baker = Baker(bundle, fiber, spec)
-    tally = None
-    for a in range(len(spec.phi_i)):
-        t = baker.trace(a, paths, np.random.SeedSequence([seed, a]))
-        tally = t if tally is None else (tally.add(t) or tally)
-    return tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None,
-                                               "phi_o": "relative" if spec.relative_phi else "absolute"})
+    return bake_unreduced(bundle, fiber, spec, paths, seed)
 
 
 def bin_average(fiber, table, j, n_sub=12):

@@ -41,19 +41,14 @@ def pairs_deg(n_min=20, offsets=(0.0, 1.5, -3.0)):
     return pairs
 
 
-def ratios(mi, bsdf, R, S_of, pairs, twist_deg=0.0, **scene_kw):
-    """rendered / predicted for every direction pair (radians); ``S_of(pi, ti, po, to)``."""
-    hs = 1.5 * R
-    out = []
-    for pi_, ti, po, to in pairs:
-        w_i, w_o = closure.direction(pi_, ti), closure.direction(po, to)
-        sc = closure.scene(mi, {"f": closure.cylinder(R, bsdf, half_length=40 * hs)}, w_i, w_o, hs,
-                           spp=4, **scene_kw)
-        rendered = closure.rendered_intensity(mi, sc, w_o, hs)
-        tw = np.deg2rad(twist_deg)  # a constant twist turns the bundle frame: phi_bundle = phi + twist
-        predicted = closure.predicted_intensity(1.0, R, ti, S_of(pi_ + tw, ti, po + tw, to))
-        out.append(rendered / predicted)
-    return np.array(out, float)
+def ratios(mi, bsdf, R, S_of, pairs, twist_deg=0.0, evaluated=False):
+    """rendered / predicted for every direction pair (radians; ``closure.far_field_ratios``);
+    a constant twist turns the bundle frame, ``phi_bundle = phi + twist``."""
+    tw = np.deg2rad(twist_deg)
+    rows = closure.far_field_ratios(mi, bsdf, R, lambda pi_, ti, po, to: S_of(pi_ + tw, ti, po + tw, to), pairs,
+                                    evaluated)
+    assert len(rows) == len(pairs), "a pair was left out as not continuous"
+    return np.array([row[3] for row in rows])
 
 
 # ----------------------------------------------------------------------------------
@@ -104,7 +99,7 @@ def test_one_explicit_fiber_renders_its_model(mono, tmp_path, model):
     # the grid's dark stripes (f = 0: nothing to compare) take more pairs to find 20 lit ones
     pairs = pairs_deg(offsets=(0.0, 1.5, -3.0, 4.5, 7.0, -6.0, -12.0) if model == "grid" else (0.0, 1.5, -3.0))
     # predicted from the model's numpy evaluation; grazing light at 80 deg included
-    S = lambda pi_, ti, po, to: float(table.eval(ti, pi_, to, po, LAM))  # noqa: E731
+    S = closure.evaluator(mi, "fiber", tmp_path / "fiber.npz", LAM)
     keep = closure.continuous(S, pairs) if model == "grid" else np.ones(len(pairs), bool)
     r = ratios(mi, bsdf, 0.02, S, pairs[keep])
     print(model, np.round(r, 4))
@@ -128,15 +123,14 @@ def tables(tmp_path_factory):
 @pytest.mark.parametrize("which,twist", [("circle", 0.0), ("ellipse", 0.0), ("ellipse", 35.0)])
 def test_bundle_table_backend_renders_its_table(mono, tables, which, twist):
     mi = mono
-    t = BundleTable.load(tables[which], expand=True)
-    lam = list(t.wavelength).index(LAM)
     bsdf = {"type": "fiber_bundle", "table": str(tables[which]), "wavelength": LAM, "up": closure.UP,
             "twist": twist}
-    S = lambda pi_, ti, po, to: float(lookup(t, pi_, ti, po, to)[..., lam])  # noqa: E731
+    S = closure.evaluator(mi, "table", tables[which], LAM)
+    tw = np.deg2rad(twist)
     # a table knows no position inside a bin: "on the cone" is read anywhere in its bin, and
     # pairs on a bin's edge (where the bin-average preserving lookup jumps) are left out
     pairs = pairs_deg(offsets=(0.0, 0.8, 1.5, -1.7, -3.0))
-    pairs = pairs[closure.continuous(S, pairs)]
+    pairs = pairs[closure.continuous(lambda pi_, ti, po, to: S(pi_ + tw, ti, po + tw, to), pairs)]
     assert len(pairs) >= 20
     r = ratios(mi, bsdf, 0.2, S, pairs, twist_deg=twist)
     print(which, twist, np.round(r, 4))
@@ -145,39 +139,12 @@ def test_bundle_table_backend_renders_its_table(mono, tables, which, twist):
 
 @pytest.mark.parametrize("backend", ["mlp", "onnx"])
 def test_bundle_neural_backends_render_their_model(mono, trained, backend):
-    import drjit as dr
-
-    from mitsuba_ext.neural import DrJitMLP, OnnxMLP
-
     mi = mono
     cfg, root = trained
     size = sorted(cfg.train.models)[0]
-    export = root / cfg.name / "export" / size
-    path = export / ("weights.npz" if backend == "mlp" else "model.onnx")
-    lam = list(WL).index(LAM)
-    if backend == "mlp":
-        mlp = DrJitMLP(export / "weights.npz")
-
-        def S(*angles):
-            out = mlp.eval(*(mi.Float(float(a)) for a in angles))[lam]
-            dr.eval(out)
-            return float(out[0])
-    else:
-        onnx = OnnxMLP(export / "model.onnx")
-
-        def S(*angles):
-            return float(onnx.eval(*(np.array([a], np.float32) for a in angles))[0, lam])
+    path = root / cfg.name / "export" / size / ("weights.npz" if backend == "mlp" else "model.onnx")
     bsdf = {"type": "fiber_bundle", "backend": backend, "model": str(path), "wavelength": LAM, "up": closure.UP}
-    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
-    saved = [dr.flag(f) for f in flags]
-    if backend == "onnx":
-        for f in flags:
-            dr.set_flag(f, False)
-    try:
-        r = ratios(mi, bsdf, 0.2, S, pairs_deg())
-    finally:
-        for f, v in zip(flags, saved):
-            dr.set_flag(f, v)
+    r = ratios(mi, bsdf, 0.2, closure.evaluator(mi, backend, path, LAM), pairs_deg(), evaluated=backend == "onnx")
     print(backend, np.round(r, 4))
     assert np.allclose(r, 1.0, atol=0.01), r
 

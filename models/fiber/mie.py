@@ -287,16 +287,16 @@ class MieFiber(FiberModel):
         # the reciprocal form (N at the half angle), scaled to keep each node's albedo
         dphi = 2 * np.pi / self.n_phi
         scale = symmetric_scale(theta_i, self._lobe(), N[:, 0].astype(np.float64).sum(1) * dphi)
-        self._scale = (theta_i.copy(), scale)
+        self._scale = scale
         meta = {"model": self.name, "extinction_ratio": ext.tolist(), "albedo": (sca / ext).tolist(),
                 "radius_um": self.radius_um, "roughness_deg": float(np.rad2deg(self.beta)),
                 "zeta_min_deg": self.zeta_min_deg}
         return FiberTable(theta_i, np.zeros(1), phi, self.wavelength.copy(), [Lobe("mie", self._lobe(), N, scale)],
                           meta)
 
-    def scale(self):
-        """The reciprocal form's ``(nodes, c[node, lambda])``: of the last :meth:`tabulate`,
-        or of a 5-degree tabulation."""
+    def scale(self) -> np.ndarray:
+        """The reciprocal form's ``c[node, lambda]`` (its own nodes, ``reciprocal.scale_nodes``):
+        of the last :meth:`tabulate`, or of a 5-degree tabulation."""
         if not hasattr(self, "_scale"):
             self.tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
         return self._scale
@@ -315,7 +315,7 @@ class MieFiber(FiberModel):
         out = np.zeros(ti.shape)
         Theta = po - pi_ - np.pi
         abs_d, weight = half_angle(ti, to, np)
-        _, c = self.scale()
+        c = self.scale()
         j = np.argmin(np.abs(self.wavelength[None, :] - wl.reshape(-1, 1)), axis=1).reshape(wl.shape)
         pick = lambda cc: np.take_along_axis(cc, j[..., None], -1)[..., 0]  # noqa: E731
         cc = pick(scale_at(c, np.abs(ti))) * pick(scale_at(c, np.abs(to)))
