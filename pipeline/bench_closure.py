@@ -142,8 +142,7 @@ def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
     mitsuba_ext.register()
     bundle = build_bundle(cfg)
     fiber = Path(out_root) / cfg.name / "fiber" / "fiber_table.npz"
-    half = (cfg.bundle.radius_um * scenes.UM) / (0.5 * scenes.ply_length(cfg)) * (0.5 * r.width)
-    rows = slice(int(r.height / 2 - 0.9 * half), int(np.ceil(r.height / 2 + 0.9 * half)))
+    rows = scenes.ply_rows(cfg, r.height)
     mean = lambda sc: float(np.asarray(mi.render(mi.load_dict(sc)))[rows].mean())  # noqa: E731
     bundle_means = {b: mean(scenes.ply_scene(mi, cfg, render.backend_props(cfg, out_root, b), 256, 5,
                                              twist_turns=0.0)) for b in ("table", "mlp")}

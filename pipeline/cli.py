@@ -20,6 +20,13 @@ from __future__ import annotations
 import argparse
 import sys
 
+EPILOG = """\
+The config's keys are documented in configs/default.yaml and pipeline/config.py.
+--set changes keys for one run without editing the file; the artifacts still go to
+artifacts/<name>/ and carry the changed settings' hash, so later stages see the
+change (a quick trial: --set name=trial keeps it apart from the real artifacts).
+Errors print what is wrong and exit with status 2; earlier artifacts stay intact."""
+
 STAGES = ("fiber", "bake", "train", "export", "render", "stability", "report")
 
 
@@ -35,8 +42,13 @@ def main(argv=None) -> int:
                         ("stability", "numerical stability on stiff and extreme cases"),
                         ("report", "write the HTML report"),
                         ("run", "run every stage in order")):
-        p = sub.add_parser(name, help=help_)
+        p = sub.add_parser(name, help=help_, description=f"bcsdf {name}: {help_}.", epilog=EPILOG,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
         p.add_argument("config", help="YAML config, e.g. configs/default.yaml")
+        p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
+                       help="override a config key for this run (repeatable), e.g. "
+                            "--set bake.paths_per_phi_i=20000 --set 'train.models={s: [16]}'")
+        p.add_argument("--artifacts", default=argparse.SUPPRESS, help="output root (default: artifacts/)")
         if name == "run":
             p.add_argument("--force", action="store_true", help="rerun stages that are up to date")
     args = parser.parse_args(argv)
@@ -44,7 +56,7 @@ def main(argv=None) -> int:
     from .config import ConfigError, load_config
 
     try:
-        cfg = load_config(args.config)
+        cfg = load_config(args.config, args.overrides)
         stages = [s for s in STAGES if s in ("fiber", "stability", "report") or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
         for stage in stages:

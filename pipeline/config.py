@@ -157,7 +157,16 @@ class BundleCfg(Strict):
         return self
 
     def semi_axes(self):
+        """The bounding ellipse (um); a Zhao 2016 ply's from its row of the CSV."""
+        if self.arrangement == "zhao2016":
+            from models.bundle import zhao2016_row
+            row = zhao2016_row(self.yarn)
+            return (row["eX_um"], row["eY_um"])
         return (self.radius_um, self.radius_um) if self.shape == "circle" else tuple(self.semi_axes_um)
+
+    def bounding_radius_um(self) -> float:
+        """Radius of the circle around the bundle: the cylinder a ply renders as, the bake's beam."""
+        return float(max(self.semi_axes()))
 
 
 class BakeCfg(Strict):
@@ -293,22 +302,60 @@ def _format_errors(err: ValidationError) -> str:
     return "\n".join(lines)
 
 
-def load_config(path) -> Config:
-    """Read and validate a YAML config; raise :class:`ConfigError` naming every bad key."""
+def apply_overrides(data: dict, overrides) -> dict:
+    """``data`` with ``KEY=VALUE`` overrides applied (``bake.paths_per_phi_i=20000``).
+
+    ``KEY`` is a dotted path into the config; ``VALUE`` is read as YAML, so numbers,
+    lists (``train.models={s: [8]}``) and ``null`` work. Missing sections are created;
+    the result is validated like any config, so a misspelt key is named as unknown.
+    """
+    data = json.loads(json.dumps(data))  # a deep copy
+    for item in overrides or ():
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set {item!r}: write KEY=VALUE, e.g. --set bake.paths_per_phi_i=20000")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML ({e})") from None
+        node, parts = data, key.strip().split(".")
+        for i, part in enumerate(parts[:-1]):
+            if node.get(part) is None:
+                node[part] = {}
+            if not isinstance(node[part], dict):
+                raise ConfigError(f"--set {item!r}: {'.'.join(parts[:i + 1])} is a value, not a section")
+            node = node[part]
+        node[parts[-1]] = value
+    return data
+
+
+def load_config(path, overrides=()) -> Config:
+    """Read and validate a YAML config; raise :class:`ConfigError` naming every bad key.
+
+    ``overrides``: ``KEY=VALUE`` strings applied before validation (:func:`apply_overrides`).
+    """
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"config file {path} does not exist") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path} is a folder; give a YAML file, e.g. configs/default.yaml") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start}); save the config as UTF-8") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot be read ({e.strerror})") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML ({e})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of keys at the top level")
+    data = apply_overrides(data, overrides)
     data.setdefault("name", path.stem)
     try:
         cfg = Config.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(f"{path}: invalid config\n{_format_errors(e)}") from None
+        where = f"{path} with --set {' '.join(overrides)}" if overrides else str(path)
+        raise ConfigError(f"{where}: invalid config\n{_format_errors(e)}") from None
     if cfg.bundle is not None and cfg.bundle.file:
         cfg = cfg.model_copy(update={"bundle": cfg.bundle.model_copy(
             update={"file": str((path.parent / cfg.bundle.file).resolve())})})

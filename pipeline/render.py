@@ -324,9 +324,7 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
         imgs.append(img)
         t_explicit += seconds
     explicit_img = np.mean(imgs, 0)
-    h = explicit_img.shape[0]
-    half = (cfg.bundle.radius_um * scenes.UM) / (0.5 * scenes.ply_length(cfg)) * (0.5 * r.width)  # ply half-height
-    rows = slice(int(h / 2 - 0.9 * half), int(np.ceil(h / 2 + 0.9 * half)))
+    rows = scenes.ply_rows(cfg, explicit_img.shape[0])
     expo = exposure_of(explicit_img)
     save_images(mi, explicit_img, out / "explicit_fibers", expo)
     ply = {"explicit": {"spp": per_turn * turns, "seconds": t_explicit,
