@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .io import atomic_path
+
 # Zhao et al. 2016, Table 2 (a copy of ../shared/data/zhao2016_table2.csv, kept in the
 # repository so that a fresh clone needs nothing beside it)
 ZHAO_CSV = Path(__file__).resolve().parents[1] / "data" / "zhao2016_table2.csv"
@@ -98,7 +100,6 @@ class Bundle:
         from matplotlib.collections import EllipseCollection
         from matplotlib.patches import Circle, Ellipse
 
-        from pipeline.io import atomic_path
 
         a, b = self.semi_axes
         fig, ax = plt.subplots(figsize=(6, 6 * max(b / a, 0.35)), dpi=120)

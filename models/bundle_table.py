@@ -39,6 +39,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .io import atomic_path
+
 FORMAT = "bcsdf.bundle_table/1"
 ARRAYS = ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost",
           "phi_i", "theta_i", "phi_o_edges", "theta_o_edges", "wavelength")
@@ -87,7 +89,6 @@ class BundleTable:
 
     # -- storage -------------------------------------------------------------
     def save(self, path) -> None:
-        from pipeline.io import atomic_path
 
         arrays = {k: getattr(self, k) for k in ARRAYS}
         arrays["values"] = arrays["values"].astype(np.float32)

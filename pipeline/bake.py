@@ -28,9 +28,10 @@ from models import bundle as bundles
 from models.baker import Baker, BakeSpec, Tally
 from models.bundle_table import BundleTable
 from models.fiber.base import FiberTable
+from models.io import atomic_path, write_text
 
 from .config import BAKE_SECTIONS, FIBER_SECTIONS
-from .io import atomic_path, write_text
+from .metrics import write_metrics
 from .plots import save_figure, spectral_image
 
 
@@ -149,6 +150,10 @@ def run(cfg, out_root="artifacts", stop_after=None) -> Path:
                "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1)))}
     summary["reductions"] = {"used": reductions, **reduction_cost(cfg, baker, elapsed)}
     write_text(out / "summary.json", json.dumps(summary, indent=1))
+    write_metrics(cfg, out_root, "bake", {
+        "passthrough": float(np.mean(table.passthrough)), "albedo": summary.get("scattered", np.nan),
+        "max_abs_energy_error": summary["max_abs_energy_error"], "bake_seconds": elapsed,
+        "vertices_per_second": summary["vertices_per_second"]})
     plot_table(table, out / "slices")
     plot_balance(table, out / "energy.png")
     ckpt.unlink(missing_ok=True)

@@ -29,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from models.io import write_text
+
 from .config import load_config
-from .io import write_text
 
 LAM = 550.0
 
@@ -76,9 +77,8 @@ def far_field(mi, cfg, out_root) -> dict:
 def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
     import mitsuba_ext
     from models import fiber as fibers
-    from models.bundle import poisson
-
     from models.baker import BakeSpec
+    from models.bundle import poisson
 
     from . import closure
     from .bake import bake_unreduced, build_bundle

@@ -14,7 +14,8 @@ trained model (PyTorch, onnxruntime, Dr.Jit), on the same queries:
   query), best of 3, and bytes of storage.
 
 Prints a table, writes ``error_vs_time.png`` (marker area ~ bytes) and
-``error_vs_time.json`` under ``artifacts/<name>/report/``.
+``error_vs_time.json`` under ``artifacts/<name>/export/``. The export stage runs it on
+``report.queries`` queries (the report shows its figures); this command on 1M.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from models.io import write_text
 
 
 def _best_of(fn, repeat=3):
@@ -174,11 +177,11 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
         jit_timed()  # compile once; the kernel cache serves the timed runs
         report(f"mlp {name}", "drjit", nbytes, jit_run, jit_timed)
 
-    out = Path(artifacts) / cfg.name / "report"
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(artifacts) / cfg.name / "export"
     noise_l1 = float(np.sqrt(2 / np.pi) * table.stderr.reshape(-1, n_l)[val].sum() / truth[val].sum())
     print(f"the table's own Monte Carlo noise on these bins: relative L1 {noise_l1:.2%}")
-    (out / "error_vs_time.json").write_text(json.dumps({"rows": rows, "table_noise_l1": noise_l1}, indent=1))
+    write_text(out / "error_vs_time.json", json.dumps({"rows": rows, "table_noise_l1": noise_l1,
+                                                       "queries": n}, indent=1))
     plot(rows, noise_l1, out / "error_vs_time.png", n)
     table_bytes = rows[0]["bytes"]
     lin_jit = next(r for r in rows if r["method"] == "table linear" and r["backend"] == "drjit")

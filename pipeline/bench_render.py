@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from models.io import write_text
+
 from .config import load_config
-from .io import write_text
 
 
 def measure(cfg, out_root="artifacts", spp=None) -> dict:

@@ -8,8 +8,8 @@
     bcsdf stability CONFIG check finiteness, energy and references on stiff and extreme cases
     bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
     bcsdf run CONFIG       every stage in order, skipping those that are up to date
-                           (their config sections unchanged since they last ran; --force
-                           reruns all; code changes are tracked by DVC, see dvc.yaml)
+                           (code, config sections and input artifacts unchanged, outputs
+                           intact: the same notion as DVC's, from dvc.yaml; --force reruns)
 
 Errors in the config or the data print what is wrong and exit with status 2;
 artifacts from earlier runs are left as they were.
@@ -18,6 +18,7 @@ artifacts from earlier runs are left as they were.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 EPILOG = """\
@@ -52,7 +53,13 @@ def main(argv=None) -> int:
         if name == "run":
             p.add_argument("--force", action="store_true", help="rerun stages that are up to date")
     args = parser.parse_args(argv)
+    if not sys.stderr.isatty():
+        # a log file, not a terminal: one progress line per 30 s instead of per 0.1 s (a
+        # default run wrote 7,000 lines); tqdm reads its defaults from TQDM_* variables
+        os.environ.setdefault("TQDM_MININTERVAL", "30")
+        os.environ.setdefault("TQDM_MAXINTERVAL", "60")
 
+    from . import stages as stages_
     from .config import ConfigError, load_config
 
     try:
@@ -60,11 +67,14 @@ def main(argv=None) -> int:
         stages = [s for s in STAGES if s in ("fiber", "stability", "report") or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
         for stage in stages:
-            if args.command == "run" and not args.force and _up_to_date(cfg, stage, args.artifacts):
-                print(f"[run] {stage}: up to date, skipped")
-                continue
+            if args.command == "run":
+                fresh, why = stages_.up_to_date(stage, cfg, args.artifacts)
+                if fresh and not args.force:
+                    print(f"[run] {stage}: up to date, skipped")
+                    continue
+                print(f"[run] {stage}: {'forced' if fresh else why}")
             _stage(stage).run(cfg, args.artifacts)
-            _stamp(cfg, stage, args.artifacts)
+            stages_.stamp(stage, cfg, args.artifacts)
     except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
         print(f"bcsdf {args.command}: error: {e}", file=sys.stderr)
         return 2
@@ -72,31 +82,6 @@ def main(argv=None) -> int:
         print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
         return 130
     return 0
-
-
-def _stage_hash(cfg, stage):
-    from .config import BAKE_SECTIONS, FIBER_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
-
-    sections = {"fiber": FIBER_SECTIONS, "bake": BAKE_SECTIONS, "train": TRAIN_SECTIONS,
-                "export": TRAIN_SECTIONS, "render": RENDER_SECTIONS}.get(stage)
-    return None if sections is None else cfg.hash(*sections)  # the report always runs
-
-
-def _stamp_path(cfg, stage, root):
-    from pathlib import Path
-    return Path(root) / cfg.name / stage / ".stage_hash"
-
-
-def _up_to_date(cfg, stage, root) -> bool:
-    h, path = _stage_hash(cfg, stage), _stamp_path(cfg, stage, root)
-    return h is not None and path.exists() and path.read_text().strip() == h
-
-
-def _stamp(cfg, stage, root) -> None:
-    from .io import write_text
-    h = _stage_hash(cfg, stage)
-    if h is not None:
-        write_text(_stamp_path(cfg, stage, root), h + "\n")
 
 
 def _stage(name):

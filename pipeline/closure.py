@@ -293,7 +293,7 @@ def plot(far_field: dict, explicit: dict, path, title="") -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io import atomic_path
+    from models.io import atomic_path
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.2))
     for k, (name, rows) in enumerate(far_field.items()):

@@ -18,10 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
+from models.io import atomic_path
 from models.neural import NeuralSpec, make_export_module, make_torch_model
 
+from . import bench_neural
 from .config import TRAIN_SECTIONS
-from .io import atomic_path
+from .metrics import folder as metrics_folder
+from .metrics import write_curve, write_metrics
 
 
 def run(cfg, out_root="artifacts") -> Path:
@@ -68,4 +71,14 @@ def run(cfg, out_root="artifacts") -> Path:
         size = sum(a.nbytes for a in arrays.values())
         print(f"[export] {name}: {d / 'model.onnx'} ({(d / 'model.onnx').stat().st_size} bytes), "
               f"weights {size} bytes")
+
+    # -- error against run time of the table and every export (the report's figure) ----
+    result = bench_neural.measure(cfg, out_root, cfg.report.queries)
+    rows = result["rows"]
+    write_curve(metrics_folder(cfg, out_root) / "error_vs_time.csv",
+                [{"method": f"{r['method']} ({r['backend']})", "ns_per_query": r["ns_per_query"],
+                  "relative_l1": r["relative_l1"], "albedo_error": r["albedo_error"]} for r in rows])
+    write_metrics(cfg, out_root, "export", {
+        f"{r['method']} ({r['backend']})": {k: r[k] for k in ("ns_per_query", "relative_l1", "albedo_error", "bytes")}
+        for r in rows})
     return out

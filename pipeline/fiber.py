@@ -20,8 +20,10 @@ import numpy as np
 
 from models import fiber as fiber_models
 from models.fiber.base import FiberTable, _linear
+from models.io import write_text
+
 from .config import FIBER_SECTIONS
-from .io import write_text
+from .metrics import write_metrics
 from .plots import save_figure, spectral_image
 
 
@@ -50,6 +52,8 @@ def run(cfg, out_root="artifacts") -> Path:
         "energy": energy.tolist(), "extinction_ratio": None if ext is None else ext.tolist(),
     }
     write_text(out / "summary.json", json.dumps(summary, indent=1))
+    write_metrics(cfg, out_root, "fiber", {"albedo_min": energy.min(), "albedo_max": energy.max(),
+                                           "tabulate_seconds": seconds})
 
     # -- Pictures -----------------------------------------------------------
     for i in range(len(table.theta_i)):

@@ -45,7 +45,7 @@ def spectral_image(f: np.ndarray, wavelength, path: Path, title: str,
 def save_figure(fig, path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    from .io import atomic_path
+    from models.io import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")

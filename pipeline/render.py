@@ -25,9 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import BAKE_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
-from .io import atomic_path, write_text
+from models.io import atomic_path, write_text
 
+from .config import BAKE_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
+from .metrics import write_metrics
 
 
 # -- inputs ------------------------------------------------------------------------
@@ -42,7 +43,6 @@ def model_size(cfg) -> str:
 def backend_props(cfg, out_root, backend: str) -> dict:
     """The ``fiber_bundle`` parameters of one backend, checked against this config."""
     from mitsuba_ext.neural import check_compatible, load_weights
-
     from models.bundle_table import BundleTable
 
     root = Path(out_root) / cfg.name
@@ -193,6 +193,19 @@ def run(cfg, out_root="artifacts") -> Path:
         summary["explicit"] = explicit_check(mi, cfg, props, out_root, out)
 
     write_text(out / "summary.json", json.dumps(summary, indent=2))
+    write_metrics(cfg, out_root, "render", headline(summary))
+    return out
+
+
+def headline(summary: dict) -> dict:
+    """The render summary's figures for ``dvc metrics``: times, FLIP, closure ratios."""
+    keys = ("seconds", "flip", "psnr", "time_ratio")
+    out = {name: {b: {k: v[k] for k in keys if k in v} for b, v in scene.items() if isinstance(v, dict)}
+           for name, scene in summary["scenes"].items()}
+    if "mono_check" in summary:
+        out["mono_check_max_rel_diff"] = summary["mono_check"]["max_rel_diff"]
+    ply = summary.get("explicit", {}).get("ply", {})
+    out.update({f"ply_{b}_vs_explicit": v["mean_vs_explicit"] for b, v in ply.items() if "mean_vs_explicit" in v})
     return out
 
 
@@ -208,8 +221,9 @@ def _scene(mi, cfg, name, bsdf, spp, out, seed=0):
 
 def side_by_side(images: dict, flip_maps: dict, entry: dict, path: Path, name: str) -> None:
     """Each backend's image, and the FLIP map of each neural image, with their figures."""
-    from .plots import save_figure
     import matplotlib.pyplot as plt
+
+    from .plots import save_figure
 
     cols = list(images)
     fig, axes = plt.subplots(2, len(cols), figsize=(3.6 * len(cols), 4.2), squeeze=False)

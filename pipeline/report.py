@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .io import write_text
+from models.io import write_text
+
 from .plots import save_figure, spectral_image
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
@@ -92,13 +93,15 @@ def run(cfg, out_root="artifacts") -> Path:
         body += "".join(_img(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
                         if (train / n / "loss.png").exists())
         body += compare_slices(cfg, out_root, out)
-        from .bench_neural import measure
-
-        result = measure(cfg, out_root, cfg.report.queries)
-        body += (f"<p>Error against run time ({result['queries']:,} queries per timing; the table's own Monte "
-                 f"Carlo noise: relative L1 {result['table_noise_l1']:.2%}).</p>")
-        body += _img(out, out / "error_vs_time.png", "error against run time")
-        body += _rows_table(result["rows"])
+        bench = root / "export" / "error_vs_time.json"
+        if bench.exists():  # measured by the export stage
+            result = json.loads(bench.read_text())
+            body += (f"<p>Error against run time ({result['queries']:,} queries per timing; the table's own "
+                     f"Monte Carlo noise: relative L1 {result['table_noise_l1']:.2%}).</p>")
+            body += _img(out, root / "export" / "error_vs_time.png", "error against run time")
+            body += _rows_table(result["rows"])
+        else:
+            body += _missing("bcsdf export")
         sections.append(("Neural compression", body))
     else:
         sections.append(("Neural compression", _missing("bcsdf train && bcsdf export")))

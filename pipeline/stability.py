@@ -32,7 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import write_text
+from models.io import write_text
+
+from .metrics import write_metrics
 
 
 @dataclass
@@ -156,7 +158,7 @@ def ray_extremes() -> list[Check]:
 def _bake(bundle, fiber_table, theta_i_deg, paths, max_bounces=100_000, n_phi=24, n_theta=18):
     import mitsuba as mi
 
-    from models.baker import BakeSpec, Baker
+    from models.baker import Baker, BakeSpec
 
     from . import bake as bake_stage
 
@@ -444,6 +446,7 @@ def run(cfg, out_root="artifacts") -> Path:
            f"{'pass' if c.passed else '**FAIL**'} |" for c in checks]
     write_text(out / "stability.md", "\n".join(md) + "\n")
     failed = [c for c in checks if not c.passed]
+    write_metrics(cfg, out_root, "stability", {"checks": len(checks), "passed": len(checks) - len(failed)})
     print(f"[stability] {len(checks) - len(failed)}/{len(checks)} checks passed; wrote {out}")
     if failed:
         raise FloatingPointError(f"{len(failed)} stability checks failed:\n" + "\n".join(c.line() for c in failed))

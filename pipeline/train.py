@@ -46,11 +46,13 @@ from pathlib import Path
 import numpy as np
 
 from models.bundle_table import BundleTable
+from models.io import atomic_path, write_text
 from models.neural import (NeuralSpec, bin_average, features, fold_table, make_export_module, make_torch_model,
                            points_in_bins)
 
 from .config import BAKE_SECTIONS, TRAIN_SECTIONS
-from .io import atomic_path, write_text
+from .metrics import folder as metrics_folder
+from .metrics import write_curve, write_metrics
 from .plots import save_figure
 
 
@@ -135,6 +137,7 @@ def run(cfg, out_root="artifacts") -> Path:
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
     w = (w / w[train_idx].mean()).astype(np.float32)
+    headline = {}
     for name, hidden in c.models.items():
         spec = dataclasses.replace(base, hidden=list(hidden))
         model, history, best, seconds, calibration = fit(spec, data, train_idx, val_idx, w, c, name)
@@ -168,6 +171,10 @@ def run(cfg, out_root="artifacts") -> Path:
             torch.save({"spec": spec.to_dict(), "state": model.state_dict(), "metrics": metrics}, tmp)
         write_text(d / "summary.json", json.dumps(metrics, indent=1))
         plot_loss(history, d / "loss.png", name)
+        write_curve(metrics_folder(cfg, out_root) / "loss" / f"{name}.csv",
+                    [{"epoch": k + 1, "train": t, "validation": v} for k, (t, v) in enumerate(history)])
+        headline[name] = {k: metrics[k] for k in ("relative_l1", "noise_ratio", "parameters", "train_seconds",
+                                                   "worst_albedo_error_after") if k in metrics}
         line = (f"[train] {name} {hidden}: {metrics['parameters']} parameters, {len(history)} epochs in "
                 f"{seconds:.1f} s; held-out relative L1 {metrics['relative_l1']:.3%}, error / table noise "
                 f"{metrics['noise_ratio']:.2f}")
@@ -175,6 +182,7 @@ def run(cfg, out_root="artifacts") -> Path:
             line += (f"; worst albedo error {calibration['worst_albedo_error_before']:.2%} -> "
                      f"{calibration['worst_albedo_error_after']:.2%} by the calibration")
         print(line)
+    write_metrics(cfg, out_root, "train", headline)
     return out
 
 
@@ -300,13 +308,19 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
         opt = torch.optim.LBFGS(last.parameters(), max_iter=c.calibration_steps, history_size=20,
                                 line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
 
+        # L-BFGS evaluates at most max_eval = 1.25 max_iter times (PyTorch's default): the
+        # bar's total, so that a long calibration (a big table) shows its time left
+        bar = tqdm(total=int(1.25 * c.calibration_steps), desc=f"calibrate {name}", unit="eval")
+
         def closure():
             opt.zero_grad()
             y, S = bin_means(every, last(hidden))
             loss = fit_loss(tr, y[tr]) + c.albedo_weight * energy_loss(S)
             loss.backward()
+            bar.update()
             return loss
-        opt.step(closure)
+        with bar:
+            opt.step(closure)
         if not all(torch.isfinite(p).all() for p in last.parameters()):
             raise FloatingPointError(f"the energy calibration of {name} diverged; lower train.albedo_weight")
         calibration = {"worst_albedo_error_before": before, "worst_albedo_error_after": worst_albedo_error()}
@@ -324,7 +338,7 @@ def plot_loss(history, path, name) -> None:
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
     ax.semilogy(h[:, 0], label="train")
     ax.semilogy(h[:, 1], label="validation (held-out bins)")
-    ax.set(xlabel="epoch", ylabel="loss (weighted log-space MSE + energy term)", title=f"model {name}")
+    ax.set(xlabel="epoch", ylabel="loss (weighted log-space MSE of the bin means)", title=f"model {name}")
     ax.legend()
     fig.tight_layout()
     save_figure(fig, path)

@@ -88,7 +88,7 @@ def test_atomic_writes_keep_the_old_file_on_failure_and_give_the_usual_mode(tmp_
     import os
     import stat
 
-    from pipeline.io import atomic_path, write_text
+    from models.io import atomic_path, write_text
 
     path = tmp_path / "a.txt"
     write_text(path, "old")

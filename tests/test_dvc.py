@@ -1,15 +1,21 @@
-"""`dvc repro` runs the pipeline, and a training change reruns only what depends on it.
+"""DVC as a DVC user expects it, on a fresh clone and a tiny config.
 
-The repository is cloned into a temporary folder (DVC needs a git repository), its
-dvc.yaml pointed at a tiny config; `bcsdf` is this interpreter's `pipeline.cli`.
+The repository is cloned into a temporary folder (DVC needs a git repository), dvc.yaml's
+config lists pointed at a tiny config, and ``.venv/bin/bcsdf`` (the stages' command) is
+this interpreter's ``pipeline.cli`` with Python's import trace on, so that the test sees
+every module each stage really ran and can hold it against the stage's declared deps.
 """
 
+import json
 import os
+import re
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+import yaml
 
 from tests.test_cli import ROOT
 
@@ -19,40 +25,141 @@ fiber: {model: mie, radius_um: 3.0, ior: {k: 0.001}, mie: {roughness_deg: 5.0}}
 tabulate: {theta_i_step_deg: 15}
 bundle: {shape: circle, radius_um: 20.0, seed: 1}
 bake: {paths_per_phi_i: 20000, batch_paths: 8192, theta_i_step_deg: 30, n_theta_o: 12, n_phi_o: 16}
-train: {models: {s: [8]}, epochs: 5, batch_size: 256}
+train: {models: {s: [8]}, epochs: 5, batch_size: 256, calibration_steps: 5}
 render: {width: 24, height: 12, spp: 2, scenes: [ply], mono_check: false, explicit: false}
 report: {queries: 5000}
 """
+STAGES = ("fiber", "bake", "train", "export", "render", "stability", "report")
+RUNNER = {"pipeline", "pipeline.cli", "pipeline.stages", "models", "mitsuba_ext"}  # packages and the runner
 
 
-def test_dvc_repro_reruns_only_what_changed(tmp_path):
+def _clone(tmp_path):
     dvc = shutil.which("dvc", path=os.path.dirname(sys.executable)) or shutil.which("dvc")
     if dvc is None or not (ROOT / ".git").exists():
         pytest.fail("dvc (test extra) and a git checkout are needed for this test")
     repo = tmp_path / "repo"
     subprocess.run(["git", "clone", "-q", str(ROOT), str(repo)], check=True)
+    for path in ("dvc.yaml", "pipeline", "models", "mitsuba_ext", "configs"):  # this working tree's state
+        src, dst = ROOT / path, repo / path
+        if src.is_dir():
+            shutil.rmtree(dst)
+            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(src, dst)
     (repo / "configs" / "tiny.yaml").write_text(TINY)
-    dvc_yaml = (repo / "dvc.yaml").read_text()
-    (repo / "dvc.yaml").write_text(dvc_yaml.replace("configs/default.yaml", "configs/tiny.yaml")
-                                   .replace("artifacts/default", "artifacts/tiny"))
-    shim = tmp_path / "bin"
-    shim.mkdir()
-    (shim / "bcsdf").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m pipeline.cli "$@"\n')
-    (shim / "bcsdf").chmod(0o755)
-    env = dict(os.environ, PATH=f"{shim}:{os.environ['PATH']}", PYTHONPATH=str(repo), TQDM_DISABLE="1")
+    text = (repo / "dvc.yaml").read_text()
+    text = re.sub(r"  - configs: \[[^\]]*\]", "  - configs: [tiny]", text)
+    text = re.sub(r"  - bundles: \[[^\]]*\]", "  - bundles: [tiny]", text)
+    text = re.sub(r"  - fibers_only: \[[^\]]*\]", "  - fibers_only: []", text)
+    (repo / "dvc.yaml").write_text(text)
+    trace = tmp_path / "trace"
+    trace.mkdir()
+    (repo / ".venv" / "bin").mkdir(parents=True)
+    shim = repo / ".venv" / "bin" / "bcsdf"
+    shim.write_text(f'#!/bin/sh\nPYTHONPROFILEIMPORTTIME=1 exec "{sys.executable}" -m pipeline.cli "$@" '
+                    f'2>> "{trace}/$1.err"\n')
+    shim.chmod(0o755)
+    env = dict(os.environ, PYTHONPATH=str(repo), TQDM_DISABLE="1")
 
-    def run(*args):
+    def run(*args, ok=True):
         r = subprocess.run([dvc, *args], cwd=repo, env=env, capture_output=True, text=True, timeout=900)
-        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-        return r.stdout
+        if ok:
+            logs = "".join(f"\n--- {p.name}\n" + p.read_text()[-1500:] for p in trace.glob("*.err"))
+            assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:] + logs
+        return r
+    return repo, trace, env, run
+
+
+def _imported(err_log: Path) -> set:
+    """Project modules in a ``-X importtime`` log."""
+    names = re.findall(r"\|\s*((?:pipeline|models|mitsuba_ext)(?:\.\w+)*)\s*$", err_log.read_text(), re.M)
+    return set(names)
+
+
+def _covered(module: str, deps: list) -> bool:
+    path = module.replace(".", "/")
+    return any(path == d.removesuffix(".py") or path.startswith(d.rstrip("/") + "/") for d in deps)
+
+
+def _stale(run) -> set:
+    out = run("status", "--json").stdout
+    return {name.split("@")[0] for name in json.loads(out or "{}")}
+
+
+def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
+    repo, trace, env, run = _clone(tmp_path)
     assert (repo / ".dvc").is_dir()  # committed: `dvc repro` works on a fresh clone
-    out = run("repro")
-    for stage in ("fiber", "bake", "train", "export", "render", "report"):
-        assert f"Running stage '{stage}'" in out
+
+    # -- the whole pipeline of the tiny config, each stage once --------------------------
+    out = run("repro", "report@tiny").stdout
+    for stage in STAGES:
+        assert f"Running stage '{stage}@tiny'" in out
     assert (repo / "artifacts" / "tiny" / "report" / "index.html").exists()
-    assert "up to date" in run("status")
+    assert _stale(run) == set()
+
+    # -- every module a stage ran is among its declared deps ---------------------------
+    stages = yaml.safe_load((repo / "dvc.yaml").read_text())["stages"]
+    for stage in STAGES:
+        deps = [d for d in stages[stage]["do"]["deps"] if not d.startswith("artifacts/")]
+        assert f"pipeline/{stage}.py" in deps or "pipeline" in deps, (stage, "its own module")
+        missing = sorted(m for m in _imported(trace / f"{stage}.err") - RUNNER if not _covered(m, deps))
+        assert not missing, f"stage {stage} ran {missing}, which dvc.yaml does not list in its deps"
+
+    # -- metrics and plots --------------------------------------------------------------
+    metrics = run("metrics", "show", "--json").stdout
+    for key in ("passthrough", "relative_l1", "albedo_max", "passed", "ns_per_query"):
+        assert key in metrics, key
+    run("plots", "show", "-o", str(tmp_path / "plots"))
+    page = (tmp_path / "plots" / "index.html").read_text()
+    assert "loss" in page and "error_vs_time" in page
+
+    # -- bcsdf run and DVC agree: all up to date, then the same stages stale after a code edit
+    bcsdf = [sys.executable, "-m", "pipeline.cli", "run", "configs/tiny.yaml"]
+    r = subprocess.run(bcsdf, cwd=repo, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and r.stdout.count("up to date, skipped") == len(STAGES), r.stdout + r.stderr
+    with open(repo / "mitsuba_ext" / "bsdf.py", "a") as fh:
+        fh.write("\n# an edit\n")
+    expected = {"export", "render", "stability", "report"}  # what runs mitsuba_ext
+    assert _stale(run) == expected
+    probe = ("import sys, json; from pipeline.config import load_config; from pipeline import stages; "
+             "cfg = load_config('configs/tiny.yaml'); "
+             "print(json.dumps([s for s in sys.argv[1:] if not stages.up_to_date(s, cfg)[0]]))")
+    r = subprocess.run([sys.executable, "-c", probe, *STAGES], cwd=repo, env=env, capture_output=True, text=True)
+    assert set(json.loads(r.stdout)) == expected, r.stderr
+
+    # -- a failing stage leaves its last good outputs -----------------------------------
+    render = repo / "artifacts" / "tiny" / "render"
+    before = {p.name: p.read_bytes() for p in render.iterdir() if p.is_file()}
+    (repo / "configs" / "tiny.yaml").write_text(TINY.replace("width: 24", "width: -24"))
+    r = run("repro", "render@tiny", ok=False)
+    assert r.returncode != 0
+    assert {p.name: p.read_bytes() for p in render.iterdir() if p.is_file()} == before
+
+    # -- a config change reruns what depends on it, and only that -----------------------
     (repo / "configs" / "tiny.yaml").write_text(TINY.replace("epochs: 5", "epochs: 6"))
-    out = run("repro")
-    assert "Stage 'fiber' didn't change" in out and "Stage 'bake' didn't change" in out
+    out = run("repro", "report@tiny").stdout
+    assert "Stage 'fiber@tiny' didn't change" in out and "Stage 'bake@tiny' didn't change" in out
     for stage in ("train", "export", "render", "report"):
-        assert f"Running stage '{stage}'" in out
+        assert f"Running stage '{stage}@tiny'" in out
+
+
+def test_shipped_configs_match_dvc_yaml():
+    """Every config is a DVC stage; each spells out the sections its stages track."""
+    from pipeline.config import load_config
+
+    dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
+    lists = {k: v for entry in dvc["vars"] for k, v in entry.items()}
+    shipped = {p.stem: p for p in sorted((ROOT / "configs").glob("*.yaml"))}
+    assert set(lists["configs"]) == set(shipped)
+    with_bundle = {n for n, p in shipped.items() if load_config(p).bundle is not None}
+    assert set(lists["bundles"]) == with_bundle
+    assert set(lists["fibers_only"]) == set(shipped) - with_bundle
+    for name, path in shipped.items():
+        assert load_config(path).name == name, f"{path}: its name must be its file's stem (artifacts/<name>)"
+        keys = set(yaml.safe_load(path.read_text()))
+        for stage, spec in dvc["stages"].items():
+            if name not in lists[spec["foreach"].strip("${}")]:
+                continue
+            for entry in spec["do"].get("params", []):
+                tracked = next(iter(entry.values()))
+                assert set(tracked) <= keys, f"{path} lacks {set(tracked) - keys}, which stage {stage} tracks"

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..io import atomic_path
 from .longitudinal import Longitudinal
 from .reciprocal import half_angle, scale_at
 
@@ -188,7 +189,6 @@ class FiberTable:
     # -- storage -----------------------------------------------------------
     def save(self, path) -> None:
         """Write an ``.npz`` (atomically: temporary file, then rename)."""
-        from pipeline.io import atomic_path
 
         arrays = {
             "theta_i": self.theta_i, "theta_o": self.theta_o, "phi": self.phi,

@@ -1,4 +1,4 @@
-"""Artifact I/O: nothing half-written ever replaces a good file."""
+"""Artifact I/O: nothing half-written ever replaces a good file (every stage and model writes through it)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,45 @@
+"""What ``dvc metrics`` and ``dvc plots`` read: ``artifacts/<name>/metrics/``.
+
+Each stage keeps its full record beside its artifacts (``summary.json``); here it also
+writes its headline scalars (``<stage>.json``, flat, for ``dvc metrics show/diff``) and
+the data of its curves (CSV, for ``dvc plots show/diff``). The folder sits beside the
+stages' output folders, not in them: DVC refuses metrics inside another output.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+from models.io import write_text
+
+
+def folder(cfg, root) -> Path:
+    return Path(root) / cfg.name / "metrics"
+
+
+def _clean(v):
+    if isinstance(v, dict):
+        return {k: _clean(x) for k, x in v.items()}
+    v = float(v)
+    return v if math.isfinite(v) else None  # JSON has no NaN; DVC shows null as '-'
+
+
+def write_metrics(cfg, root, stage: str, values: dict) -> Path:
+    """``values``: name -> number, or nested dicts of them (DVC shows ``a.b.c``)."""
+    path = folder(cfg, root) / f"{stage}.json"
+    write_text(path, json.dumps(_clean(values), indent=1))
+    return path
+
+
+def write_curve(path: Path, rows: list[dict]) -> Path:
+    """One CSV of ``rows`` (same keys each), for a ``plots:`` entry."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(path, buf.getvalue())
+    return path

@@ -1,0 +1,116 @@
+"""The stage graph, declared once in ``dvc.yaml`` and read by ``bcsdf run`` too.
+
+Each stage of ``dvc.yaml`` is a ``foreach`` template over the configs; its ``deps`` are
+the code it runs and the artifacts it reads, its ``params`` the config sections it
+depends on, its ``outs`` and ``metrics`` what it writes. ``bcsdf run`` instantiates the
+same template for a config's name, so the two tools share one notion of up to date:
+
+    fingerprint = sha256(the stage's config sections, as validated (defaults and --set
+                  included), the bytes of every code file and every input artifact)
+
+A stage is up to date when its stamp (``artifacts/<name>/.stamps/<stage>.json``) holds
+the current fingerprint and every output it recorded is still there, byte for byte.
+Every ``bcsdf`` stage command writes its stamp when it succeeds (also when DVC ran it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+DVC_YAML = ROOT / "dvc.yaml"
+SKIP = ("__pycache__", ".stamps")
+
+
+def template(stage: str, cfg) -> str:
+    """The ``dvc.yaml`` stage that runs ``stage`` for this config (reports differ by kind)."""
+    if stage == "report" and cfg.bundle is None:
+        return "report_fiber"
+    return stage
+
+
+def spec(stage: str, cfg, root="artifacts") -> dict:
+    """``{"code": [...], "inputs": [...], "params": [...], "outs": [...]}`` of one stage for
+    this config, paths resolved (code against the repository, artifacts under ``root``)."""
+    try:
+        stages = yaml.safe_load(DVC_YAML.read_text())["stages"]
+        do = stages[template(stage, cfg)]["do"]
+    except (OSError, KeyError, TypeError, yaml.YAMLError) as e:
+        raise ValueError(f"{DVC_YAML}: no usable stage {template(stage, cfg)!r} ({e}); "
+                         "restore dvc.yaml from the repository") from None
+
+    def path(p: str) -> Path:
+        p = p.replace("${item}", cfg.name)
+        return Path(root) / p.removeprefix("artifacts/") if p.startswith("artifacts/") else ROOT / p
+
+    def names(entries):
+        return [next(iter(e)) if isinstance(e, dict) else e for e in entries or []]
+
+    deps = names(do.get("deps"))
+    params = [key for entry in do.get("params") or [] for keys in entry.values() for key in keys]
+    return {"code": [path(d) for d in deps if not d.startswith("artifacts/")],
+            "inputs": [path(d) for d in deps if d.startswith("artifacts/")],
+            "params": params,
+            "outs": [path(o) for o in names(do.get("outs")) + names(do.get("metrics"))]}
+
+
+def _files(path: Path):
+    if path.is_dir():
+        return sorted(p for p in path.rglob("*") if p.is_file() and not any(s in p.parts for s in SKIP))
+    return [path] if path.exists() else []
+
+
+def digest(paths, relative_to: Path) -> str:
+    """sha256 over the names and bytes of every file under ``paths`` (missing ones count)."""
+    h = hashlib.sha256()
+    for top in paths:
+        files = _files(top)
+        if not files:
+            h.update(f"missing:{top}\n".encode())
+        for f in files:
+            h.update(str(f.relative_to(relative_to) if f.is_relative_to(relative_to) else f).encode())
+            h.update(hashlib.sha256(f.read_bytes()).digest())
+    return h.hexdigest()
+
+
+def fingerprint(stage: str, cfg, root="artifacts") -> str:
+    s = spec(stage, cfg, root)
+    settings = cfg.model_dump(mode="json")
+    h = hashlib.sha256(json.dumps({k: settings.get(k) for k in s["params"]}, sort_keys=True).encode())
+    h.update(digest(s["code"], ROOT).encode())
+    h.update(digest(s["inputs"], Path(root)).encode())
+    return h.hexdigest()[:24]
+
+
+def _stamp_path(stage: str, cfg, root) -> Path:
+    return Path(root) / cfg.name / ".stamps" / f"{stage}.json"
+
+
+def stamp(stage: str, cfg, root="artifacts") -> None:
+    """Record that ``stage`` just ran for this config: its fingerprint and its outputs."""
+    from models.io import write_text
+
+    outs = {str(p.relative_to(root)): digest([p], Path(root)) for p in spec(stage, cfg, root)["outs"]}
+    write_text(_stamp_path(stage, cfg, root),
+               json.dumps({"fingerprint": fingerprint(stage, cfg, root), "outs": outs}, indent=1))
+
+
+def up_to_date(stage: str, cfg, root="artifacts") -> tuple[bool, str]:
+    """Whether ``stage`` can be skipped, and why not."""
+    path = _stamp_path(stage, cfg, root)
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False, "never ran"
+    if record.get("fingerprint") != fingerprint(stage, cfg, root):
+        return False, "its code, config or inputs changed"
+    for out, d in record.get("outs", {}).items():
+        if not _files(Path(root) / out):
+            return False, f"{out} is gone"
+        if digest([Path(root) / out], Path(root)) != d:
+            return False, f"{out} changed since the stage wrote it"
+    return True, ""
