@@ -8,6 +8,8 @@ the variant's ``mi.BSDF``).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from mitsuba_ext.backends import load_backend
@@ -15,13 +17,29 @@ from models.spectrum import spectrum_to_srgb
 
 
 # -- small pure functions: the geometry of the bundle frame -----------------------
+def arc_length(si):
+    """Distance along the shape from its start, ``v |dp/dv|``.
+
+    On ``cylinder`` and ``bsplinecurve``, ``v = si.uv.y`` runs from 0 to 1 along the
+    shape (on a curve file, along all its curves in turn), so ``v |dp/dv|`` is the arc
+    length exactly on a cylinder and on curves of constant parametric speed (evenly
+    spaced control points); elsewhere it is the local estimate. Zero where the shape
+    gives no derivative.
+    """
+    import drjit as dr
+
+    s = si.uv.y * dr.norm(si.dp_dv)
+    return dr.select(dr.isfinite(s), s, 0.0)
+
+
 def bundle_frame(si, up, twist, twist_rate):
     """World axes ``(x, t, z)`` of the bundle frame at ``si``.
 
     ``t`` is the curve tangent (the shading frame's second axis on ``cylinder`` and
     ``bsplinecurve``); ``x`` is ``up`` projected perpendicular to ``t`` and turned about
-    ``t`` by ``twist + twist_rate * v`` (``v = si.uv.y`` runs along the shape), so an
-    elliptical bundle's major axis winds along the curve. Degenerate tangents or an
+    ``t`` by ``twist + twist_rate * s`` (radians, and radians per scene unit of the
+    :func:`arc_length` ``s``), so an elliptical bundle's major axis winds along the
+    curve at the same pitch whatever the curve's length. Degenerate tangents or an
     ``up`` parallel to the tangent fall back to a frame built from the normal.
     """
     import drjit as dr
@@ -35,7 +53,7 @@ def bundle_frame(si, up, twist, twist_rate):
     x0 = up - dr.dot(up, t) * t
     x_alt, _ = mi.coordinate_system(t)
     x0 = dr.select(dr.squared_norm(x0) < 1e-6, x_alt, dr.normalize(x0))
-    s, c = dr.sincos(twist + twist_rate * si.uv.y)
+    s, c = dr.sincos(twist + twist_rate * arc_length(si))
     x = c * x0 + s * dr.cross(t, x0)
     z = dr.cross(x, t)
     return x, t, z
@@ -125,6 +143,33 @@ def adjoint_factor(theta_light, theta_camera):
     return dr.cos(theta_light) / dr.maximum(dr.cos(theta_camera), 1e-4)
 
 
+def number(plugin: str, name: str, value, lo=-np.inf, hi=np.inf) -> float:
+    """A finite parameter within ``[lo, hi]``, or an error naming it and its domain."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{plugin}: '{name}' must be a number, got {value!r}") from None
+    if not (np.isfinite(x) and lo <= x <= hi):
+        domain = f"[{lo:g}, {hi:g}]" if np.isfinite(lo) and np.isfinite(hi) else (
+            f">= {lo:g}" if np.isfinite(lo) else "finite")
+        raise ValueError(f"{plugin}: '{name}' must be {domain}, got {value!r}")
+    return x
+
+
+def resolve_path(plugin: str, name: str, value) -> str | None:
+    """A file parameter resolved as Mitsuba resolves its own ``filename``s: against the
+    file resolver, which holds the scene file's folder while an XML scene loads."""
+    import mitsuba as mi
+
+    if value is None:
+        return None
+    found = str(mi.Thread.thread().file_resolver().resolve(str(value)))
+    if not Path(found).exists():
+        raise ValueError(f"{plugin}: '{name}' file {value} not found (looked in the current folder and in the "
+                         "scene file's folder); give a path relative to the scene file or an absolute one")
+    return found
+
+
 def bsdf_classes() -> dict:
     """``{"fiber_bundle": ..., "fiber_table": ...}`` plugin classes for the active variant."""
     import drjit as dr
@@ -137,13 +182,13 @@ def bsdf_classes() -> dict:
             def get(name, default):
                 return props.get(name, default)
 
-            self.twist = float(np.radians(get("twist", 0.0)))
-            self.twist_rate = float(np.radians(get("twist_rate", 0.0)))
+            self.twist = float(np.radians(number(self.plugin, "twist", get("twist", 0.0))))
+            self.twist_rate = float(np.radians(number(self.plugin, "twist_rate", get("twist_rate", 0.0))))
             up = np.asarray(get("up", [0.0, 0.0, 1.0]), float).ravel()
             if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) == 0:
                 raise ValueError(f"{self.plugin}: 'up' must be a non-zero 3-vector, got {up}")
             self.up = [float(v) for v in up / np.linalg.norm(up)]
-            self.radius = float(get("radius", 0.0))
+            self.radius = number(self.plugin, "radius", get("radius", 0.0), lo=0.0)
 
             # how the table's wavelengths become this variant's Spectrum
             self.wavelength = wl = np.asarray(wavelength, float)
@@ -230,18 +275,31 @@ def bsdf_classes() -> dict:
              - Let rays cross the bundle with the baked probability (default ``true``).
            * - twist, twist_rate
              - Orientation of an elliptical cross-section about the tangent, in degrees,
-               and its change per unit of ``v`` along the shape (default 0, 0).
+               and its change in degrees per scene unit of length along the shape
+               (default 0, 0; the length is ``v |dp/dv|``, exact on cylinders and on
+               curves with evenly spaced control points).
            * - up
              - Reference vector for the cross-section's major axis (default ``[0, 0, 1]``).
            * - wavelength
              - Mono variants: the wavelength (nm) to render; default CIE luminance.
            * - radius
-             - Bundle radius in scene units, for the displaced exit point of
-               ``bundle_path`` on shapes other than ``cylinder`` and ``bsplinecurve``
-               (those two give it per hit: ``|dp/du| = 2 pi r``).
+             - Optional: the bundle radius in scene units. ``bundle_path`` reads it from
+               the shape (``|dp/du| = 2 pi r`` per hit on ``cylinder`` and
+               ``bsplinecurve``) and warns once if this one disagrees. Must be >= 0.
            * - sampling_uniform
-             - Fraction of direction samples drawn uniformly on the sphere (default 0.1).
+             - Fraction of direction samples drawn uniformly on the sphere, in [0, 1]
+               (default 0.1).
 
+        File parameters (``table``, ``model``) resolve like Mitsuba's own ``filename``:
+        relative to the XML scene's folder, else to the current one. Every parameter
+        is checked at load (a value outside its domain is refused, naming it).
+
+        **Supported**: ``cylinder`` and ``bsplinecurve`` shapes whose radius is the
+        bundle's bounding radius (``bundle_path`` warns once about any other shape:
+        the frame follows a tangent only these two have); every Mitsuba variant (the
+        ``onnx`` backend in evaluated mode only); ``path`` and ``bundle_path``
+        integrators (only ``bundle_path`` crosses bundles with their passthrough in
+        shadow rays and leaves them from the displaced exit point).
         **Which direction is incident.** The table's ``S(w_i -> w_o)`` has ``w_i`` on the
         light's side (the bake's incidence). In ``eval(ctx, si, wo)`` of a path tracer
         (``TransportMode.Radiance``) the light side is ``wo`` and the camera side
@@ -277,9 +335,12 @@ def bsdf_classes() -> dict:
 
         def __init__(self, props):
             super().__init__(props)
-            self.backend = load_backend(props.get("backend", "table"), mi.Float, table=props.get("table", None),
-                                        model=props.get("model", None), lookup=props.get("lookup", "linear"))
-            self.grid = self.backend.sampling_grid(float(props.get("sampling_uniform", 0.1)))
+            self.backend = load_backend(props.get("backend", "table"), mi.Float,
+                                        table=resolve_path(self.plugin, "table", props.get("table", None)),
+                                        model=resolve_path(self.plugin, "model", props.get("model", None)),
+                                        lookup=props.get("lookup", "linear"))
+            uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
+            self.grid = self.backend.sampling_grid(uniform)
             self.use_passthrough = bool(props.get("passthrough", True))
             self._init_curve(props, self.backend.wavelength)
             scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
@@ -357,8 +418,32 @@ def bsdf_classes() -> dict:
         (``f(wo -> si.wi) cos(theta_wo) / cos(theta_si.wi)`` in radiance mode); sampling
         follows the fiber's own importance sampler (the baker's) from ``si.wi``.
         With ``bundle_path`` the light leaves the fiber from the displaced exit point,
-        as in the baker. Parameters: ``filename`` (the table), ``radius`` (scene units,
-        for curves), ``wavelength`` (mono variants).
+        as in the baker.
+
+        .. list-table::
+           :header-rows: 1
+
+           * - Parameter
+             - Description
+           * - filename
+             - ``fiber_table.npz`` written by ``bcsdf fiber`` (resolved like Mitsuba's own
+               ``filename``: relative to the XML scene's folder).
+           * - radius
+             - Optional fiber radius in scene units (>= 0); ``bundle_path`` reads it from
+               the shape and warns once if this one disagrees.
+           * - up, twist, twist_rate
+             - As ``fiber_bundle`` (a fiber table is rotation invariant: they only set
+               the frame's azimuth origin).
+           * - wavelength
+             - Mono variants: the wavelength (nm) to render; default CIE luminance.
+
+        Defined on ``cylinder`` and ``bsplinecurve`` shapes, like ``fiber_bundle``.
+
+        .. code-block:: python
+
+            fiber = {"type": "fiber_table", "filename": "artifacts/default/fiber/fiber_table.npz"}
+            scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
+                                "bsdf": fiber}
         """
 
         plugin = "fiber_table"
@@ -371,7 +456,7 @@ def bsdf_classes() -> dict:
 
             if "filename" not in props:
                 raise ValueError("fiber_table: needs 'filename' (a fiber_table.npz written by `bcsdf fiber`)")
-            table = FiberTable.load(props["filename"])
+            table = FiberTable.load(resolve_path(self.plugin, "filename", props["filename"]))
             self.fiber = DrJitFiber(table, FiberSampler(table), mi.Float)
             self._init_curve(props, table.wavelength)
             scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |

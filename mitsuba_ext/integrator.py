@@ -93,6 +93,57 @@ def offset_ray(p, n, d, wavelengths, maxt=None):
     return ray
 
 
+def shape_radius(shape):
+    """The bundle radius a ``cylinder`` or ``bsplinecurve`` holds, else ``None``.
+
+    A cylinder's ``to_world`` scales its unit cylinder by the radius across the axis;
+    a curve's control points carry it as their fourth coordinate (a range if it varies).
+    """
+    import mitsuba as mi
+    import numpy as np
+
+    kind = shape.shape_type()
+    params = mi.traverse(shape)
+    if kind == int(mi.ShapeType.Cylinder):
+        m = np.asarray(params["to_world"].matrix).reshape(4, 4)
+        r = float(np.linalg.norm(m[:3, 0]))
+        return r, r
+    if kind == int(mi.ShapeType.BSplineCurve):
+        radii = np.asarray(params["control_points"]).reshape(-1, 4)[:, 3]
+        return float(radii.min()), float(radii.max())
+    return None
+
+
+def check_bundles(scene) -> list[str]:
+    """What is wrong with the bundles of a scene, in words (one line per shape).
+
+    ``fiber_bundle`` and ``fiber_table`` are defined on cylinders and B-spline curves
+    (the frame follows their tangent, the radius comes from their parametrization); a
+    BSDF ``radius`` that disagrees with the shape's is named (the shape's is used).
+    """
+    import mitsuba as mi
+
+    problems = []
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        plugin = getattr(bsdf, "plugin", None)
+        if plugin not in ("fiber_bundle", "fiber_table"):
+            continue
+        kind = shape.shape_type()
+        if kind not in (int(mi.ShapeType.Cylinder), int(mi.ShapeType.BSplineCurve)):
+            problems.append(f"shape '{shape.id()}' ({mi.ShapeType(kind).name}) has a {plugin} BSDF, which is "
+                            "defined on 'cylinder' and 'bsplinecurve' shapes only: its frame and radius are "
+                            "meaningless on this shape")
+            continue
+        lo, hi = shape_radius(shape)
+        r = float(getattr(bsdf, "radius", 0.0))
+        if r > 0 and not (0.99 * lo <= r <= 1.01 * hi):
+            problems.append(f"shape '{shape.id()}': the {plugin} BSDF's radius {r:g} disagrees with the shape's "
+                            f"({lo:g}" + (f" .. {hi:g}" if hi > lo else "") + "); the shape's is used, drop the "
+                            "BSDF's 'radius' or make them agree")
+    return problems
+
+
 def integrator_class():
     """The ``bundle_path`` plugin class for the active Mitsuba variant."""
     import drjit as dr
@@ -113,8 +164,9 @@ def integrator_class():
           them as opaque and find those paths by BSDF sampling only).
         * **displaced exit**: scattered light, and the shadow ray of next-event
           estimation, leave from :func:`displaced_exit`, with ``h`` uniform in [-1, 1].
-          The radius is the BSDF's ``radius`` if given, otherwise measured by a ray
-          from the hit through the bundle (works on ``cylinder`` shapes).
+          The radius comes from the shape (``|dp/du| = 2 pi r`` per hit on
+          ``cylinder`` and ``bsplinecurve``), else the BSDF's ``radius``, else a probe
+          ray across the shape.
 
         On scenes without bundles it is ``path``, sample for sample.
 
@@ -131,6 +183,11 @@ def integrator_class():
              - Leave bundles from the displaced exit point (default ``true``).
            * - max_passes
              - Most bundle crossings of one path or shadow ray (default 64).
+
+        Not supported: ``hide_emitters`` (refused at load). Bundles belong on
+        ``cylinder`` and ``bsplinecurve`` shapes; the first render of a scene warns
+        once about a bundle BSDF on any other shape, or a BSDF ``radius`` that
+        disagrees with its shape's (:func:`check_bundles`).
 
         .. code-block:: python
 
@@ -149,6 +206,20 @@ def integrator_class():
                 raise ValueError("bundle_path: rr_depth must be > 0")
             self.displace = bool(props.get("displaced_exit", True))
             self.max_passes = int(props.get("max_passes", 64))
+            if self.max_passes < 1:
+                raise ValueError("bundle_path: max_passes must be >= 1")
+            if props.get("hide_emitters", False):
+                raise ValueError("bundle_path: hide_emitters is not supported (directly visible emitters are "
+                                 "always shown); leave it out")
+            self._checked = set()
+
+        def _check(self, scene):
+            """Warn once per scene about bundles on shapes they are not defined on."""
+            if id(scene) in self._checked:
+                return
+            self._checked.add(id(scene))
+            for line in check_bundles(scene):
+                mi.Log(mi.LogLevel.Warn, "bundle_path: " + line)
 
         # -- helpers ----------------------------------------------------------
         # what the BSDFs read (UV for the twist, the shading frame for the tangent); the
@@ -207,6 +278,7 @@ def integrator_class():
 
         # -- the integrator ---------------------------------------------------
         def sample(self, scene, sampler, ray, medium=None, active=True):
+            self._check(scene)  # Python, once per render call: the body below is traced
             ctx = mi.BSDFContext()
 
             # ---------------------- loop state ----------------------

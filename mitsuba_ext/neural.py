@@ -16,7 +16,7 @@ Example::
 from __future__ import annotations
 
 import json
-from pathlib import Path
+import zipfile
 
 import numpy as np
 
@@ -32,7 +32,7 @@ def load_weights(path):
             while f"W{len(layers)}" in z:
                 k = len(layers)
                 layers.append((z[f"W{k}"].astype(np.float32), z[f"b{k}"].astype(np.float32)))
-    except (OSError, KeyError, ValueError, json.JSONDecodeError) as e:
+    except (OSError, EOFError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
         raise ValueError(f"{path}: not a readable model weights file ({e}); re-run `bcsdf export`") from e
     widths = [spec.n_inputs] + list(spec.hidden) + [spec.n_outputs]
     if [W.shape for W, _ in layers] != list(zip(widths[1:], widths[:-1])):
@@ -79,6 +79,17 @@ class OnnxMLP:
         return self.session.run(None, {"angles": angles.reshape(-1, 4)})[0].reshape(angles.shape[:-1] + (-1,))
 
 
+def _default_float():
+    """The active Mitsuba variant's ``Float``, else Dr.Jit's LLVM ``Float``."""
+    import mitsuba as mi
+
+    if mi.variant() is not None:
+        return mi.Float
+    import drjit.llvm
+
+    return drjit.llvm.Float
+
+
 class DrJitMLP:
     """The MLP as Dr.Jit arithmetic with its weights as literals, fused into the caller's kernel.
 
@@ -92,10 +103,22 @@ class DrJitMLP:
         # Python floats become literals in the traced kernel
         self._layers = [(W.astype(float).tolist(), b.astype(float).tolist()) for W, b in self.layers]
 
-    def eval(self, phi_i, theta_i, phi_o, theta_o) -> list:
-        """``S`` at every table wavelength: a list of ``n_lambda`` Dr.Jit arrays."""
+    def eval(self, phi_i, theta_i, phi_o, theta_o):
+        """``S`` at every table wavelength (radians in; never negative).
+
+        Dr.Jit arrays in (any float type, e.g. ``mi.Float``): a list of ``n_lambda``
+        arrays of that type, traced into the caller's kernel. numpy arrays (or floats)
+        in: a numpy array ``[..., n_lambda]``, computed with the active Mitsuba
+        variant's ``Float`` (Dr.Jit's LLVM backend if none is set).
+        """
         import drjit as dr
 
+        args = (phi_i, theta_i, phi_o, theta_o)
+        if not any(dr.is_array_v(a) for a in args):
+            Float = _default_float()
+            shape = np.broadcast_shapes(*(np.shape(a) for a in args))
+            flat = [Float(np.broadcast_to(np.asarray(a, np.float32), shape).ravel()) for a in args]
+            return np.stack([np.asarray(s) for s in self.eval(*flat)], -1).reshape(shape + (-1,))
         x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o)
         for k, (W, b) in enumerate(self._layers):
             last = k == len(self._layers) - 1

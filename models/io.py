@@ -40,3 +40,20 @@ def atomic_path(path):
 def write_text(path, text: str) -> None:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
+
+
+def writable_folder(path) -> Path:
+    """``path`` as a folder this process can write into (made if missing), checked before
+    any long work; a ``ValueError`` that names it otherwise."""
+    path = Path(path)
+    for parent in (path, *path.parents):
+        if parent.exists() and not parent.is_dir():
+            raise ValueError(f"{parent} is a file, not a folder: give --artifacts a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as e:
+        raise ValueError(f"cannot write into {path} ({e.strerror}): choose another --artifacts folder "
+                         "or fix its permissions") from None
+    return path

@@ -62,7 +62,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     from mitsuba_ext.table import DrJitTable
     from models.bundle_table import lookup
     from models.neural import NeuralSpec, bin_average, make_export_module, make_torch_model, table_cells
-    from pipeline.train import file_hash, held_out_bins, load_bundle_table
+    from pipeline.train import file_hash, held_out_bins, load_bundle_table, load_checkpoint
 
     mi.set_variant(cfg.bake.variant)
     torch.set_num_threads(2)
@@ -72,8 +72,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     # -- queries: held-out bins (errors) and 1M random directions (cost) ---------------
     truth = table.values.reshape(-1, n_l).astype(np.float64)
     first = next(iter(cfg.train.models))
-    first_spec = NeuralSpec.from_dict(torch.load(Path(artifacts) / cfg.name / "train" / first / "model.pt",
-                                                 weights_only=True)["spec"])
+    first_spec = NeuralSpec.from_dict(load_checkpoint(Path(artifacts) / cfg.name / "train" / first / "model.pt")["spec"])
     val = held_out_bins(table, first_spec, cfg)  # every model of a config shares the split
     omega = np.broadcast_to(table.solid_angle[None, None, :, :], table.values.shape[:4]).ravel()
     scattered = table.scattered  # [phi_i, theta_i, lambda]
@@ -142,7 +141,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     # -- the models -------------------------------------------------------------------
     export_root = Path(artifacts) / cfg.name / "export"
     for name in cfg.train.models:
-        ckpt = torch.load(Path(artifacts) / cfg.name / "train" / name / "model.pt", weights_only=True)
+        ckpt = load_checkpoint(Path(artifacts) / cfg.name / "train" / name / "model.pt")
         spec = NeuralSpec.from_dict(ckpt["spec"])
         if spec.folds != first_spec.folds:
             raise ValueError(f"models of one config must share their folds ({name}: {spec.folds}, "

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 EPILOG = """\
 The config's keys are documented in configs/default.yaml and pipeline/config.py.
@@ -64,6 +65,8 @@ def main(argv=None) -> int:
 
     try:
         cfg = load_config(args.config, args.overrides)
+        from models.io import writable_folder
+        writable_folder(Path(args.artifacts) / cfg.name)  # before any long work, not after it
         stages = [s for s in STAGES if s in ("fiber", "stability", "report") or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
         for stage in stages:

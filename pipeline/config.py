@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+import os
 from pathlib import Path
 from typing import Literal, Optional, Union
 
@@ -28,7 +30,8 @@ class ConfigError(ValueError):
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN and infinities are refused everywhere (a NaN passes every `k >= 0` check)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Wavelengths(Strict):
@@ -63,6 +66,8 @@ class IOR(Strict):
     @classmethod
     def _k_nonnegative(cls, v):
         values = [v] if isinstance(v, (int, float)) else [k for _, k in v]
+        if not all(math.isfinite(k) for k in values):
+            raise ValueError("k must be finite (a number >= 0, or [[nm, k], ...])")
         if any(k < 0 for k in values):
             raise ValueError("the imaginary part k must be >= 0 (n + ik with k >= 0 absorbs)")
         if not isinstance(v, (int, float)):
@@ -173,7 +178,7 @@ class BakeCfg(Strict):
     """The ground-truth path tracer (see models/baker.py)."""
 
     estimator: Literal["fast", "thesis"] = "fast"
-    paths_per_phi_i: int = Field(1_000_000, ge=1)
+    paths_per_phi_i: int = Field(1_000_000, ge=1, le=10_000_000_000)
     batch_paths: int = Field(65536, ge=64, le=1 << 22)
     theta_i_step_deg: float = Field(10.0, gt=0.0, le=90.0)
     phi_i_step_deg: float = Field(15.0, gt=0.0, le=90.0, description="ellipse only")
@@ -268,7 +273,8 @@ class ReportCfg(Strict):
 
 
 class Config(Strict):
-    name: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.-]+$")
+    # a folder name under artifacts/: no separators, and not '.' or '..'
+    name: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.-]+$", max_length=100)
     wavelengths: Wavelengths = Wavelengths()
     fiber: Fiber
     tabulate: Tabulate = Tabulate()
@@ -277,6 +283,36 @@ class Config(Strict):
     train: TrainCfg = TrainCfg()
     render: RenderCfg = RenderCfg()
     report: ReportCfg = ReportCfg()
+
+    @field_validator("name")
+    @classmethod
+    def _not_dots(cls, v):
+        if v is not None and set(v) == {"."}:
+            raise ValueError(f"{v!r} would write outside artifacts/: use letters, digits, '_', '-' or '.'")
+        return v
+
+    @model_validator(mode="after")
+    def _fits(self):
+        """Refuse a bake whose tallies cannot fit in memory, or whose batches are too many."""
+        if self.bundle is None:
+            return self
+        b = self.bake
+        n_theta_i = int(round(180 / b.theta_i_step_deg)) + 1
+        n_phi_i = 1 if self.bundle.shape == "circle" and self.bundle.arrangement != "zhao2016" \
+            else int(round(90 / b.phi_i_step_deg)) + 1
+        cells = n_phi_i * n_theta_i * b.n_phi_o * b.n_theta_o * self.wavelengths.count
+        need = cells * 40  # float64 sum and sum of squares, float32 values and errors, and an expanded copy
+        have = _memory_bytes()
+        if need > 0.5 * have:
+            raise ValueError(f"the bake's table needs about {need / 2**30:.1f} GiB ({n_phi_i} x {n_theta_i} x "
+                             f"{b.n_phi_o} x {b.n_theta_o} bins x {self.wavelengths.count} wavelengths), more than "
+                             f"half of this machine's {have / 2**30:.0f} GiB: use fewer bins (bake.n_theta_o, "
+                             "bake.n_phi_o), a coarser bake.theta_i_step_deg or fewer wavelengths")
+        batches = -(-b.paths_per_phi_i // b.batch_paths) * n_phi_i
+        if batches > 1_000_000:
+            raise ValueError(f"bake.paths_per_phi_i / bake.batch_paths makes {batches:,} batches (at most "
+                             "1,000,000): raise bake.batch_paths or lower bake.paths_per_phi_i")
+        return self
 
     def hash(self, *sections: str) -> str:
         """Hash of the named sections (all of them by default), for artifact provenance."""
@@ -287,10 +323,22 @@ class Config(Strict):
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def _memory_bytes() -> int:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 16 * 2**30
+
+
 def _format_errors(err: ValidationError) -> str:
-    lines = []
+    lines, seen = [], set()
     for e in err.errors():
-        key = ".".join(str(p) for p in e["loc"] if not str(p).startswith(("function-", "tagged-union")))
+        # a union's branches ('float', 'list[tuple[float, float]]') are not keys: name the key once
+        key = ".".join(str(p) for p in e["loc"] if not str(p).startswith(("function-", "tagged-union"))
+                       and "[" not in str(p) and str(p) not in ("float", "int", "str", "bool"))
+        if key in seen:
+            continue
+        seen.add(key)
         msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             msg = "unknown key (check the spelling; see configs/default.yaml for the keys)"
@@ -329,6 +377,20 @@ def apply_overrides(data: dict, overrides) -> dict:
     return data
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (the last would win)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ConfigError(f"line {key_node.start_mark.line + 1}: the key {key!r} is given twice; "
+                                  "keep one of them")
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def load_config(path, overrides=()) -> Config:
     """Read and validate a YAML config; raise :class:`ConfigError` naming every bad key.
 
@@ -336,7 +398,7 @@ def load_config(path, overrides=()) -> Config:
     """
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
     except FileNotFoundError:
         raise ConfigError(f"config file {path} does not exist") from None
     except IsADirectoryError:
@@ -347,6 +409,8 @@ def load_config(path, overrides=()) -> Config:
         raise ConfigError(f"{path}: cannot be read ({e.strerror})") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML ({e})") from None
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of keys at the top level")
     data = apply_overrides(data, overrides)

@@ -23,6 +23,7 @@ from models.neural import NeuralSpec, make_export_module, make_torch_model
 
 from . import bench_neural
 from .config import TRAIN_SECTIONS
+from .train import load_checkpoint
 from .metrics import folder as metrics_folder
 from .metrics import write_curve, write_metrics
 
@@ -34,9 +35,7 @@ def run(cfg, out_root="artifacts") -> Path:
     out = Path(out_root) / cfg.name / "export"
     for name in cfg.train.models:
         ckpt_path = Path(out_root) / cfg.name / "train" / name / "model.pt"
-        if not ckpt_path.exists():
-            raise ValueError(f"{ckpt_path} does not exist; run `bcsdf train` with this config first")
-        ckpt = torch.load(ckpt_path, weights_only=True)
+        ckpt = load_checkpoint(ckpt_path)
         spec = NeuralSpec.from_dict(ckpt["spec"])
         if spec.config_hash != cfg.hash(*TRAIN_SECTIONS):
             raise ValueError(f"{ckpt_path} was trained with different settings; re-run `bcsdf train`")

@@ -75,7 +75,7 @@ def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) ->
     L, Rb = ply_length(cfg), cfg.bundle.bounding_radius_um() * UM
     scene = _base(mi, cfg, 0.5 * L, spp, seed)
     scene["ply"] = {"type": "cylinder", "p0": [-0.5 * L, 0, 0], "p1": [0.5 * L, 0, 0], "radius": Rb,
-                    "bsdf": {**bsdf, "twist_rate": 360.0 * turns, "up": [0.0, 1.0, 0.0]}}
+                    "bsdf": {**bsdf, "twist_rate": 360.0 * turns / L, "up": [0.0, 1.0, 0.0]}}
     return scene
 
 

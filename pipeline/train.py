@@ -56,6 +56,23 @@ from .metrics import write_curve, write_metrics
 from .plots import save_figure
 
 
+def load_checkpoint(path) -> dict:
+    """A ``model.pt`` written by this stage, or a ``ValueError`` that names it."""
+    import torch
+
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path} does not exist; run `bcsdf train` with this config first")
+    try:
+        ckpt = torch.load(path, weights_only=True)
+        if not isinstance(ckpt, dict) or not {"spec", "state"} <= set(ckpt):
+            raise ValueError("no 'spec' and 'state' in it")
+        return ckpt
+    except Exception as e:  # torch raises RuntimeError, pickle and zip errors for a damaged file
+        raise ValueError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e}); "
+                         "re-run `bcsdf train`") from None
+
+
 def load_bundle_table(cfg, out_root) -> tuple[BundleTable, Path]:
     path = Path(out_root) / cfg.name / "bake" / "bundle_table.npz"
     if not path.exists():

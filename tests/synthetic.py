@@ -53,7 +53,8 @@ def make_config(tmp_path, name="n", **train):
            "fiber": {"model": "isotropic"},
            "bundle": {"shape": "circle", "radius_um": 100},
            "train": {"models": {"tiny": [16, 16], "wide": [32, 32, 32]}, "epochs": 60, "batch_size": 128,
-                     "patience": 60, **train}}
+                     "patience": 60, **train},
+           "report": {"queries": 5000}}
     path = tmp_path / f"{name}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return load_config(path)

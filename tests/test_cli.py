@@ -57,7 +57,7 @@ def test_missing_config_file(tmp_path):
 def test_fiber_stage_end_to_end_and_failure_keeps_artifacts(tmp_path):
     cfg = write_config(tmp_path / "tiny.yaml", ior={"cauchy_a": 1.55, "k": 1e-3})
     out = tmp_path / "art"
-    r = bcsdf("--artifacts", str(out), "run", str(cfg), cwd=ROOT)
+    r = bcsdf("--artifacts", str(out), "fiber", str(cfg), cwd=ROOT)
     assert r.returncode == 0, r.stderr
     d = out / "tiny" / "fiber"
     table = FiberTable.load(d / "fiber_table.npz")
@@ -80,6 +80,40 @@ def test_fiber_stage_end_to_end_and_failure_keeps_artifacts(tmp_path):
     assert r.returncode == 2 and "corrupt.npz" in r.stderr
     assert (d / "fiber_table.npz").read_bytes() == before
     assert not list(d.glob(".*.tmp"))
+
+
+def test_run_skips_what_is_up_to_date_and_force_reruns_it(tmp_path, monkeypatch, capsys):
+    """``bcsdf run``'s bookkeeping, with stand-in stages that only write their outputs."""
+    from pipeline import cli
+
+    ran = []
+
+    class Stage:
+        def __init__(self, name):
+            self.name = name
+
+        def run(self, cfg, root):
+            ran.append(self.name)
+            out = Path(root) / cfg.name / self.name
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "result.txt").write_text(self.name)
+            metrics = Path(root) / cfg.name / "metrics"
+            metrics.mkdir(exist_ok=True)
+            (metrics / f"{self.name}.json").write_text("{}")  # what dvc.yaml lists as its metrics
+
+    monkeypatch.setattr(cli, "_stage", Stage)
+    cfg = write_config(tmp_path / "tiny.yaml")
+    art = str(tmp_path / "art")
+    assert cli.main(["--artifacts", art, "run", str(cfg)]) == 0
+    assert ran == ["fiber", "stability", "report"]  # a config without a bundle
+    ran.clear()
+    assert cli.main(["--artifacts", art, "run", str(cfg)]) == 0 and ran == []
+    (tmp_path / "art" / "tiny" / "stability" / "result.txt").write_text("edited by hand")
+    assert cli.main(["--artifacts", art, "run", str(cfg)]) == 0 and ran == ["stability"]
+    ran.clear()
+    assert cli.main(["--artifacts", art, "run", str(cfg), "--force"]) == 0
+    assert ran == ["fiber", "stability", "report"]
+    assert "[run] fiber: forced" in capsys.readouterr().out
 
 
 def test_atomic_writes_keep_the_old_file_on_failure_and_give_the_usual_mode(tmp_path):

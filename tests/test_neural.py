@@ -59,7 +59,8 @@ def test_backends_agree_with_pytorch(trained, mi_llvm, name):
     # float32 rounding: relative 1e-5, with a floor of 1e-5 of the table's mean value s0
     # (near S = 0 the log-space output y ~ S / s0 is rounded absolutely, not relatively)
     tol = 1e-5 * np.abs(ref) + 1e-5 * spec.s0
-    for out_ in (onnx_out, drjit_out):
+    numpy_out = mlp.eval(*A.T).astype(np.float64)  # numpy in: numpy [n, n_lambda] out
+    for out_ in (onnx_out, drjit_out, numpy_out):
         assert out_.shape == ref.shape
         assert np.all(np.isfinite(out_)) and np.all(out_ >= 0)
         assert np.all(np.abs(out_ - ref) <= tol)

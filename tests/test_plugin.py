@@ -348,26 +348,81 @@ def test_onnx_backend_refuses_symbolic_mode(mi_plug, trained):
     assert any("evaluated mode" in m for m in chain), chain
 
 
-def test_twist_turns_an_elliptical_cross_section_along_the_curve(mi_plug, tables):
-    """twist_rate winds the major axis with v: v = 1/4 of a 360 deg rate is a 90 deg twist."""
+def test_twist_rate_is_per_scene_unit_of_length(mi_plug, tables):
+    """twist_rate (deg per scene unit) winds the major axis by the distance along the
+    shape: 0.5 units from the start of a cylinder 2 long and of one 4 long is the same
+    frame, and that of a constant twist of 0.5 x the rate."""
     mi = mi_plug
     path = str(tables["ellipse"])
-    winding = mi.load_dict({"type": "fiber_bundle", "table": path, "twist_rate": 360.0})
-    turned = mi.load_dict({"type": "fiber_bundle", "table": path, "twist": 90.0})
-    n = 64
     rng = np.random.default_rng(2)
-    si = local_si(mi, np.array(wi_of(rng.uniform(-60, 60, n), rng.uniform(10, 170, n))), n)
+    n = 64
+    wi = np.array(wi_of(rng.uniform(-60, 60, n), rng.uniform(10, 170, n))).T
     wo = vec(mi, wi_of(rng.uniform(-80, 80, n), rng.uniform(-180, 180, n)))
-    ctx = mi.BSDFContext()
-    si.uv = mi.Point2f(0.5, 0.25)
-    a = np.array(winding.eval(ctx, si, wo))
-    b = np.array(turned.eval(ctx, si, wo))
-    si.uv = mi.Point2f(0.5, 0.0)
-    c = np.array(turned.eval(ctx, si, wo))
-    d = np.array(winding.eval(ctx, si, wo))
-    assert np.allclose(a, b, rtol=1e-4, atol=1e-7)
-    assert not np.allclose(a, d, rtol=0.05)  # the ellipse's table does depend on the twist
-    assert np.allclose(b, c)  # a constant twist does not change with v
+
+    def eval_at(length, bsdf, at=0.5):
+        """Hits on a cylinder along +y (bundle frame = shading frame) at ``at`` from p0."""
+        scene = mi.load_dict({"type": "scene", "c": {"type": "cylinder", "p0": [0, 0, 0], "p1": [0, length, 0],
+                                                     "radius": 0.3, "bsdf": bsdf}})
+        origin = mi.Point3f(np.zeros(n), np.full(n, at), np.full(n, 5.0))
+        si = scene.ray_intersect(mi.Ray3f(origin, mi.Vector3f(0, 0, -1)), mi.RayFlags.All, True)
+        si.wi = si.to_local(vec(mi, wi.T))
+        return np.array(si.bsdf().eval(mi.BSDFContext(), si, si.to_local(wo)))
+
+    rate = {"type": "fiber_bundle", "table": path, "twist_rate": 120.0}
+    short, long_ = eval_at(2.0, rate), eval_at(4.0, rate)
+    fixed = eval_at(4.0, {"type": "fiber_bundle", "table": path, "twist": 60.0})
+    untwisted = eval_at(4.0, {"type": "fiber_bundle", "table": path})
+    assert np.allclose(short, long_, rtol=1e-4, atol=1e-7)
+    assert np.allclose(long_, fixed, rtol=1e-3, atol=1e-6)
+    assert not np.allclose(long_, untwisted, rtol=0.05)  # the ellipse's table does depend on the twist
+
+
+@pytest.mark.parametrize("bad,message", [({"twist_rate": float("nan")}, "'twist_rate' must be finite"),
+                                         ({"twist": float("inf")}, "'twist' must be finite"),
+                                         ({"sampling_uniform": 1.5}, "'sampling_uniform' must be [0, 1]"),
+                                         ({"sampling_uniform": -0.1}, "'sampling_uniform' must be [0, 1]"),
+                                         ({"radius": -1.0}, "'radius' must be >= 0"),
+                                         ({"lookup": "cubic"}, "lookup"),
+                                         ({"table": "no/such/table.npz"}, "not found")])
+def test_parameters_outside_their_domain_are_refused_at_load(mi_plug, tables, bad, message):
+    with pytest.raises(Exception) as e:
+        mi_plug.load_dict({"type": "fiber_bundle", "table": str(tables["circle"]), **bad})
+    chain, err = [], e.value
+    while err is not None:
+        chain.append(str(err))
+        err = err.__cause__ or err.__context__
+    assert any(message in m for m in chain), chain
+
+
+def test_files_resolve_against_the_scene_file(mi_plug, tables, tmp_path, monkeypatch):
+    """As Mitsuba's own ``filename``s: a path relative to the XML scene, from any folder."""
+    import shutil
+
+    scene_dir = tmp_path / "scene"
+    (scene_dir / "data").mkdir(parents=True)
+    shutil.copy(tables["circle"], scene_dir / "data" / "ply.npz")
+    (scene_dir / "ply.xml").write_text(
+        '<scene version="3.0.0"><shape type="cylinder"><float name="radius" value="0.3"/>'
+        '<bsdf type="fiber_bundle"><string name="table" value="data/ply.npz"/></bsdf></shape></scene>')
+    monkeypatch.chdir(tmp_path)  # not the scene's folder
+    scene = mi_plug.load_file(str(scene_dir / "ply.xml"))
+    assert scene.shapes()[0].bsdf().backend.name == "table"
+
+
+def test_bundles_on_other_shapes_and_disagreeing_radii_are_named(mi_plug, tables):
+    from mitsuba_ext.integrator import check_bundles
+
+    table = str(tables["circle"])
+    scene = mi_plug.load_dict({
+        "type": "scene",
+        "ball": {"type": "sphere", "radius": 0.3, "bsdf": {"type": "fiber_bundle", "table": table}},
+        "ply": {"type": "cylinder", "radius": 0.3, "bsdf": {"type": "fiber_bundle", "table": table, "radius": 0.2}},
+        "ok": {"type": "cylinder", "p0": [2, 0, 0], "p1": [2, 1, 0], "radius": 0.3,
+               "bsdf": {"type": "fiber_bundle", "table": table, "radius": 0.3}}})
+    problems = check_bundles(scene)
+    assert len(problems) == 2
+    assert "'ball'" in problems[0] and "cylinder' and 'bsplinecurve' shapes only" in problems[0]
+    assert "'ply'" in problems[1] and "0.2 disagrees" in problems[1] and "(0.3)" in problems[1]
 
 
 def curve_file(path, points):

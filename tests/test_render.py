@@ -21,6 +21,7 @@ RAY_PLY = {
     "train": {"models": {"tiny": [16, 16]}, "epochs": 20, "batch_size": 4096},
     "render": {"width": 48, "height": 24, "spp": 16, "scenes": ["ply"], "mono_check": False,
                "explicit": False, "backends": ["table", "mlp"]},
+    "report": {"queries": 5000},
 }
 
 

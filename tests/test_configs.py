@@ -1,0 +1,37 @@
+"""Every shipped config runs end to end, shrunk with ``--set`` (the README's promise).
+
+The configs are run as they are but for their sizes: fewer wavelengths, paths, bins,
+epochs and pixels. Every stage but ``stability`` (the same cases for every config,
+``tests/test_stability.py``) runs through ``bcsdf``'s own entry point, in one process.
+"""
+
+import re
+
+import pytest
+
+from pipeline import cli
+from tests.test_cli import ROOT
+
+SHRINK = ["tabulate.theta_i_step_deg=30", "bake.paths_per_phi_i=2000",
+          "bake.batch_paths=1024", "bake.theta_i_step_deg=45", "bake.phi_i_step_deg=45", "bake.n_theta_o=8",
+          "bake.n_phi_o=8", "train.models={s: [4]}", "train.epochs=2", "train.calibration_steps=2",
+          "render.width=16", "render.height=8", "render.spp=1", "render.mono_check=false",
+          "render.explicit=false", "render.model=null", "report.queries=1000"]
+CONFIGS = sorted(p.name for p in (ROOT / "configs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("name", CONFIGS)
+def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
+    from pipeline.config import load_config
+
+    path = ROOT / "configs" / name
+    cfg = load_config(path)
+    stages = ["fiber"] + (["bake", "train", "export", "render"] if cfg.bundle is not None else []) + ["report"]
+    shrink = SHRINK + (["wavelengths.count=3"] if cfg.wavelengths.count > 3 else [])
+    sets = [a for s in shrink for a in ("--set", s)]
+    for stage in stages:
+        assert cli.main(["--artifacts", str(tmp_path), stage, str(path), *sets]) == 0, capsys.readouterr().err
+    page = (tmp_path / cfg.name / "report" / "index.html").read_text()
+    assert "missing picture" not in page
+    if cfg.bundle is not None:
+        assert len(re.findall(r"<img ", page)) >= 8
