@@ -100,7 +100,6 @@ class Bundle:
         from matplotlib.collections import EllipseCollection
         from matplotlib.patches import Circle, Ellipse
 
-
         a, b = self.semi_axes
         fig, ax = plt.subplots(figsize=(6, 6 * max(b / a, 0.35)), dpi=120)
         d = 2 * self.radii
@@ -182,6 +181,10 @@ def from_file(path, semi_axes, name="file") -> Bundle:
         raise ValueError(f"{path}: expected a CSV with columns x_um, z_um, r_um ({e})") from e
     if data.size == 0:
         raise ValueError(f"{path}: no fibers listed")
+    bad = np.flatnonzero(~np.all(np.isfinite(data), axis=1) | (data[:, 2] <= 0))
+    if bad.size:
+        raise ValueError(f"{path}: row {bad[0] + 2} (x_um, z_um, r_um = {', '.join(map(str, data[bad[0]]))}) needs "
+                         f"finite numbers and a radius > 0" + (f"; {bad.size - 1} more rows too" if bad.size > 1 else ""))
     return Bundle(data[:, :2], data[:, 2], semi_axes, name)
 
 

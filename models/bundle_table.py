@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .io import atomic_path
+from .io import atomic_path, check_axis
 
 FORMAT = "bcsdf.bundle_table/1"
 ARRAYS = ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost",
@@ -89,7 +89,6 @@ class BundleTable:
 
     # -- storage -------------------------------------------------------------
     def save(self, path) -> None:
-
         arrays = {k: getattr(self, k) for k in ARRAYS}
         arrays["values"] = arrays["values"].astype(np.float32)
         arrays["stderr"] = arrays["stderr"].astype(np.float32)
@@ -107,12 +106,17 @@ class BundleTable:
                 if header.get("format") != FORMAT:
                     raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
                 table = cls(**{k: z[k] for k in ARRAYS}, meta=header["meta"])
+            table.validate()
         except (OSError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
             raise ValueError(f"{path}: not a readable bundle table ({e}); re-run `bcsdf bake`") from e
-        table.validate()
         return table.expanded() if expand else table
 
     def validate(self) -> None:
+        check_axis(self.phi_i, "phi_i", -2 * np.pi, 2 * np.pi)
+        check_axis(self.theta_i, "theta_i", -np.pi / 2, np.pi / 2)
+        check_axis(self.phi_o_edges, "phi_o_edges", span=2 * np.pi)
+        check_axis(self.theta_o_edges, "theta_o_edges", -np.pi / 2, np.pi / 2, span=np.pi)
+        check_axis(self.wavelength, "wavelength", 1.0, 1e5)
         shape = (len(self.phi_i), len(self.theta_i), len(self.phi_o_edges) - 1,
                  len(self.theta_o_edges) - 1, len(self.wavelength))
         if self.values.shape != shape or self.stderr.shape != shape:
@@ -121,6 +125,8 @@ class BundleTable:
             a = getattr(self, name)
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"{name} holds NaN or Inf")
+            if name in ("values", "stderr") and np.any(a < 0):
+                raise ValueError(f"{name} holds negative numbers (S and its error are never negative)")
 
     # -- symmetry ------------------------------------------------------------
     def expanded(self) -> "BundleTable":

@@ -7,6 +7,8 @@ import os
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 
 def _file_mode() -> int:
     """What ``open()`` would give a new file: 0666 less the process's umask."""
@@ -57,3 +59,17 @@ def writable_folder(path) -> Path:
         raise ValueError(f"cannot write into {path} ({e.strerror}): choose another --artifacts folder "
                          "or fix its permissions") from None
     return path
+
+
+def check_axis(values, name: str, lo: float = -np.inf, hi: float = np.inf, span: float | None = None) -> None:
+    """An axis read from an artifact: non-empty, finite, strictly increasing, within
+    ``[lo, hi]`` and, if given, covering exactly ``span`` from first to last."""
+    a = np.asarray(values, float)
+    if a.ndim != 1 or a.size == 0 or not np.all(np.isfinite(a)):
+        raise ValueError(f"axis {name}: must be a non-empty list of finite numbers")
+    if np.any(np.diff(a) <= 0):
+        raise ValueError(f"axis {name}: must increase strictly")
+    if a[0] < lo - 1e-6 or a[-1] > hi + 1e-6:
+        raise ValueError(f"axis {name}: must lie in [{lo:.6g}, {hi:.6g}] (got {a[0]:.6g} .. {a[-1]:.6g})")
+    if span is not None and abs(a[-1] - a[0] - span) > 1e-6:
+        raise ValueError(f"axis {name}: must cover {span:.6g} (got {a[-1] - a[0]:.6g})")

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from pathlib import Path
 
 EPILOG = """\
@@ -69,15 +70,22 @@ def main(argv=None) -> int:
         writable_folder(Path(args.artifacts) / cfg.name)  # before any long work, not after it
         stages = [s for s in STAGES if s in ("fiber", "stability", "report") or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
+        if args.command == "run":
+            status = {s: stages_.up_to_date(s, cfg, args.artifacts) for s in stages}
+            todo = [s for s in stages if args.force or not status[s][0]]
+            if todo:
+                from .estimate import plan
+                print(plan(cfg, todo, args.artifacts), flush=True)
         for stage in stages:
-            if args.command == "run":
+            if args.command == "run":  # asked again: an earlier stage may have rewritten this one's inputs
                 fresh, why = stages_.up_to_date(stage, cfg, args.artifacts)
                 if fresh and not args.force:
                     print(f"[run] {stage}: up to date, skipped")
                     continue
-                print(f"[run] {stage}: {'forced' if fresh else why}")
+                print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
+            t0 = time.perf_counter()
             _stage(stage).run(cfg, args.artifacts)
-            stages_.stamp(stage, cfg, args.artifacts)
+            stages_.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0)
     except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
         print(f"bcsdf {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from models.io import atomic_path, write_text
 
@@ -63,8 +64,16 @@ def backend_props(cfg, out_root, backend: str) -> dict:
                          "re-run `bcsdf train` and `bcsdf export`")
     check_compatible(spec, wavelength=np.linspace(cfg.wavelengths.start_nm, cfg.wavelengths.stop_nm,
                                                   cfg.wavelengths.count))
-    model = weights if backend == "mlp" else root / "export" / size / "model.onnx"
-    return {"type": "fiber_bundle", "backend": backend, "model": str(model)}
+    if backend == "mlp":
+        return {"type": "fiber_bundle", "backend": backend, "model": str(weights)}
+    from mitsuba_ext.neural import OnnxMLP
+
+    onnx_path = root / "export" / size / "model.onnx"
+    if not onnx_path.exists():
+        raise ValueError(f"{onnx_path} does not exist; run `bcsdf export` with this config first")
+    if OnnxMLP(onnx_path).spec.config_hash != cfg.hash(*TRAIN_SECTIONS):  # every artifact read is checked
+        raise ValueError(f"{onnx_path} was exported from different settings than this config; re-run `bcsdf export`")
+    return {"type": "fiber_bundle", "backend": backend, "model": str(onnx_path)}
 
 
 # -- rendering ---------------------------------------------------------------------
@@ -156,9 +165,11 @@ def run(cfg, out_root="artifacts") -> Path:
     summary = {"config_hash": cfg.hash(*RENDER_SECTIONS), "variant": r.variant, "spp": r.spp,
                "size": [r.width, r.height],
                "model": model_size(cfg) if set(r.backends) - {"table"} else None, "scenes": {}}
+    bar = tqdm(total=len(r.scenes) * len(r.backends), desc="renders", unit="render")
     for name in r.scenes:
         images, entry = {}, {}
         for backend in r.backends:
+            bar.update()
             scene = _scene(mi, cfg, name, props[backend], r.spp, out)
             img, seconds, first = render_timed(mi, scene, backend)
             images[backend] = img
@@ -184,6 +195,7 @@ def run(cfg, out_root="artifacts") -> Path:
             entry["onnx_vs_mlp_max_abs"] = float(np.abs(images["onnx"] - images["mlp"]).max())
         side_by_side(images, flip_maps, entry, out / f"{name}_side_by_side.png", name)
         summary["scenes"][name] = entry
+    bar.close()
 
     if r.mono_check and mi.is_spectral and "table" in props:
         summary["mono_check"] = mono_check(mi, cfg, props["table"], out)
@@ -257,7 +269,7 @@ def mono_check(mi, cfg, table_props: dict, out: Path) -> dict:
     mitsuba_ext.register()
     t0 = time.perf_counter()
     monos = []
-    for lam in wl:
+    for lam in tqdm(wl, desc="mono check", unit="render"):
         bsdf = {**table_props, "wavelength": float(lam)}
         monos.append(np.array(mi.render(mi.load_dict(scenes.ply_scene(mi, small, bsdf, r.mono_check_spp))))[..., 0])
     t_mono = time.perf_counter() - t0
@@ -332,7 +344,7 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     turns = 16
     per_turn = max(1, r.explicit_spp // turns)
     imgs, t_explicit = [], 0.0
-    for k in range(turns):
+    for k in tqdm(range(turns), desc="explicit fibers", unit="turn"):
         scene = scenes.explicit_scene(mi, cfg, bundle, fiber_table, per_turn, k, turn=2 * np.pi * k / turns)
         img, seconds, _ = render_timed(mi, scene)
         imgs.append(img)

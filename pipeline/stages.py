@@ -90,13 +90,18 @@ def _stamp_path(stage: str, cfg, root) -> Path:
     return Path(root) / cfg.name / ".stamps" / f"{stage}.json"
 
 
-def stamp(stage: str, cfg, root="artifacts") -> None:
-    """Record that ``stage`` just ran for this config: its fingerprint and its outputs."""
+def stamp(stage: str, cfg, root="artifacts", seconds: float | None = None) -> None:
+    """Record that ``stage`` just ran for this config: its fingerprint, its outputs, and
+    how long it took for how much work (what ``pipeline.estimate`` scales from)."""
     from models.io import write_text
 
+    from .estimate import work
+
     outs = {str(p.relative_to(root)): digest([p], Path(root)) for p in spec(stage, cfg, root)["outs"]}
-    write_text(_stamp_path(stage, cfg, root),
-               json.dumps({"fingerprint": fingerprint(stage, cfg, root), "outs": outs}, indent=1))
+    record = {"fingerprint": fingerprint(stage, cfg, root), "outs": outs}
+    if seconds is not None:
+        record.update(seconds=seconds, work=work(stage, cfg))
+    write_text(_stamp_path(stage, cfg, root), json.dumps(record, indent=1))
 
 
 def up_to_date(stage: str, cfg, root="artifacts") -> tuple[bool, str]:

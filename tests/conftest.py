@@ -1,4 +1,20 @@
+import gc
+
 import pytest
+
+# Modules whose tests load plugins in failing or evaluated-mode-only ways
+PLUGIN_MODULES = {"test_plugin", "test_closure", "test_render", "test_bad_input", "test_neural", "test_stability"}
+
+
+@pytest.fixture(autouse=True)
+def collect_dead_plugins(request):
+    """A BSDF that outlives its test (held by an exception's traceback cycle until the
+    collector runs) stays in Dr.Jit's instance registry, and every later symbolic BSDF
+    call traces all registered instances: an onnx BSDF, which refuses symbolic mode,
+    then failed unrelated renders. Collect after each test of the modules that make them."""
+    yield
+    if request.module.__name__.rsplit(".", 1)[-1] in PLUGIN_MODULES:
+        gc.collect()
 
 
 @pytest.fixture(scope="session")

@@ -40,6 +40,11 @@ def build(fiber, wavelength) -> FiberModel:
         from .table import TableFiber, load_npz, load_xia2023
         t = fiber.table
         table = load_xia2023(t.path, t.albedo) if t.format == "xia2023" else load_npz(t.path)
+        have = np.asarray(table.wavelength, float)
+        if len(have) != len(wl) or not np.allclose(have, wl, atol=0.5):
+            raise ValueError(f"fiber.table.path {t.path} holds {len(have)} wavelengths {have[0]:.0f}..{have[-1]:.0f} nm, "
+                             f"the config asks for {len(wl)} from {wl[0]:.0f} to {wl[-1]:.0f} nm: set `wavelengths:` "
+                             "to the table's (start_nm, stop_nm, count) or use a table made for these")
         return TableFiber(table)
     from .patterns import PatternFiber
     p = fiber.pattern

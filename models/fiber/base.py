@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..io import atomic_path
+from ..io import atomic_path, check_axis
 from .longitudinal import Longitudinal
 from .reciprocal import half_angle, scale_at
 
@@ -189,7 +189,6 @@ class FiberTable:
     # -- storage -----------------------------------------------------------
     def save(self, path) -> None:
         """Write an ``.npz`` (atomically: temporary file, then rename)."""
-
         arrays = {
             "theta_i": self.theta_i, "theta_o": self.theta_o, "phi": self.phi,
             "wavelength": self.wavelength,
@@ -218,12 +217,16 @@ class FiberTable:
                               z[f"scale{k}"] if m.get("reciprocal") else None)
                          for k, m in enumerate(header["lobes"])]
                 table = cls(z["theta_i"], z["theta_o"], z["phi"], z["wavelength"], lobes, header["meta"])
+            table.validate()
         except (OSError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
             raise ValueError(f"{path}: not a readable fiber table ({e}); re-run `bcsdf fiber`") from e
-        table.validate()
         return table
 
     def validate(self) -> None:
+        check_axis(self.theta_i, "theta_i", -np.pi / 2, np.pi / 2)
+        check_axis(self.theta_o, "theta_o", -np.pi / 2, np.pi / 2)
+        check_axis(self.phi, "phi", -2 * np.pi, 2 * np.pi)
+        check_axis(self.wavelength, "wavelength", 1.0, 1e5)
         shape = (len(self.theta_i), None, len(self.phi), len(self.wavelength))
         for lobe in self.lobes:
             s = lobe.azimuthal.shape

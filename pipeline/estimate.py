@@ -1,0 +1,112 @@
+"""How long ``bcsdf run`` will take, said before it starts: a rough estimate per stage.
+
+A stage's time is a fixed **overhead** (imports, kernel compilation) plus its **work** (a size the config implies: paths times the chord of the
+bundle in fibers, epochs times bins times the model's width, pixels times samples ...)
+times **seconds per unit of work**. That rate comes from the last run of the same stage
+on this machine when there is one (its stamp records work and seconds), else from the
+default config measured on the reference 2-core machine (``REFERENCE`` below; figures
+in docs/BENCHMARKS.md). Good to a factor of about two: enough to decide between waiting
+and coming back tomorrow, not a benchmark.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+# seconds per unit of work of each stage, from `bcsdf run --force configs/default.yaml`
+# on the reference machine (docs/BENCHMARKS.md, "The whole default pipeline")
+OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "stability": 0.0, "report": 2.0}
+REFERENCE = {"fiber": 4.0e-4, "bake": 6.0e-7, "train": 1.2e-6, "export": 6.0, "render": 2.2e-6,
+             "stability": 20.0, "report": 6.0}
+
+
+def _fiber_work(cfg) -> float:
+    nodes = 90 / cfg.tabulate.theta_i_step_deg + 1
+    f = cfg.fiber
+    if f.model == "mie":  # the azimuthal resolution follows the size parameter
+        per = f.radius_um / (cfg.wavelengths.start_nm / 1000)
+    elif f.model == "ray":
+        per = 50 * f.ray.n_h * f.ray.n_phi / (256 * 360)
+    else:
+        per = 5.0
+    return nodes * cfg.wavelengths.count * per
+
+
+def _bake_counts(cfg):
+    b, c = cfg.bake, cfg.bundle
+    n_phi_i = 1 if c.shape == "circle" and c.arrangement != "zhao2016" else 90 / b.phi_i_step_deg + 1
+    n_theta_i = 90 / b.theta_i_step_deg + 1
+    return n_phi_i, n_theta_i, n_phi_i * n_theta_i * b.n_phi_o * b.n_theta_o
+
+
+def _bake_work(cfg) -> float:
+    n_phi_i, _, _ = _bake_counts(cfg)
+    chord = cfg.bundle.bounding_radius_um() / cfg.fiber.radius_um  # a path's length in fibers, roughly
+    return cfg.bake.paths_per_phi_i * n_phi_i * chord
+
+
+def _train_work(cfg) -> float:
+    _, _, bins = _bake_counts(cfg)
+    t = cfg.train
+    total = 0.0
+    for hidden in t.models.values():
+        widths = [16] + list(hidden) + [cfg.wavelengths.count]
+        params = sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:]))
+        total += (t.epochs + t.calibration_steps) * bins * (1 + params / 10_000)
+    return total
+
+
+def _export_work(cfg) -> float:
+    return len(cfg.train.models) * (1 + cfg.report.queries / 200_000)
+
+
+def _render_work(cfg) -> float:
+    r = cfg.render
+    pixels = r.width * r.height
+    work = pixels * r.spp * len(r.scenes) * len(r.backends)
+    if r.mono_check:
+        work += r.mono_check_size[0] * r.mono_check_size[1] * r.mono_check_spp * (cfg.wavelengths.count + 1)
+    if r.explicit:
+        work += pixels * r.explicit_spp * 4
+    return float(work)
+
+
+WORK = {"fiber": _fiber_work, "bake": _bake_work, "train": _train_work, "export": _export_work,
+        "render": _render_work, "stability": lambda cfg: 1.0, "report": lambda cfg: 1.0}
+
+
+def work(stage: str, cfg) -> float:
+    return float(WORK[stage](cfg))
+
+
+def estimate(stage: str, cfg, root="artifacts") -> tuple[float, str]:
+    """Seconds ``stage`` should take for this config, and where the rate came from."""
+    stamp = Path(root) / cfg.name / ".stamps" / f"{stage}.json"
+    overhead = OVERHEAD[stage]
+    try:
+        record = json.loads(stamp.read_text())
+        rate = max(record["seconds"] - overhead, 0.0) / max(record["work"], 1e-30)
+        source = "its last run here"
+    except (OSError, ValueError, KeyError, TypeError):
+        rate, source = REFERENCE[stage], "the reference machine"
+    return overhead + work(stage, cfg) * rate, source
+
+
+def describe(seconds: float) -> str:
+    if seconds < 90:
+        return f"{max(1, int(round(seconds)))} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def plan(cfg, stages, root="artifacts") -> str:
+    """One line per stage to run and the total, for ``bcsdf run`` to print first."""
+    lines, total = [], 0.0
+    for stage in stages:
+        seconds, source = estimate(stage, cfg, root)
+        total += seconds
+        lines.append(f"  {stage:<9} ~{describe(seconds):>7}   (rate from {source})")
+    return "\n".join([f"[run] estimate for {cfg.name}: ~{describe(total)} in all (rough: a factor of 2)"] + lines)
+
