@@ -17,6 +17,7 @@ The Mitsuba variant (``bake.variant``) is chosen here, at the entry point.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import time
@@ -73,8 +74,14 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     return spec, reductions
 
 
-def run(cfg, out_root="artifacts", stop_after=None) -> Path:
-    """Bake; ``stop_after`` batches simulates an interruption (the checkpoint stays)."""
+def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None) -> Path:
+    """Bake; ``stop_after`` batches simulates an interruption (the checkpoint stays).
+
+    ``workers`` (a LocalCluster of that many processes) or ``scheduler`` (an existing
+    Dask cluster's address) shard the batches (``pipeline.cluster``); the table is the
+    same, bit for bit.
+    """
+    from . import cluster
     import mitsuba as mi
     from tqdm import tqdm
 
@@ -84,7 +91,6 @@ def run(cfg, out_root="artifacts", stop_after=None) -> Path:
     out = Path(out_root) / cfg.name / "bake"
     fiber = load_fiber_table(cfg, out_root)
     bundle = build_bundle(cfg)
-    bundle.plot(out / "arrangement.png")
     spec, reductions = make_spec(cfg, bundle, fiber)
     baker = Baker(bundle, fiber, spec)
 
@@ -113,24 +119,34 @@ def run(cfg, out_root="artifacts", stop_after=None) -> Path:
                 np.savez(fh, key=np.array(key), done=np.array(done), elapsed=np.array(elapsed),
                          **tally.arrays())
 
-    # -- Trace ---------------------------------------------------------------
-    last_save = time.perf_counter()
-    with tqdm(total=sum(sizes), initial=sum(sizes[:done]), unit="path", unit_scale=True,
-              desc=f"bake {c.estimator}") as bar:
-        while done < len(work):
-            if stop_after is not None and done >= stop_after:
-                save_checkpoint()
-                return out
-            a, k = work[done]
-            t0 = time.perf_counter()
-            tally.add(baker.trace(a, sizes[done], np.random.SeedSequence([c.seed, a, k])))
-            elapsed += time.perf_counter() - t0
-            done += 1
-            bar.update(sizes[done - 1])
-            bar.set_postfix(vertices=f"{tally.vertices:.3g}")
-            if time.perf_counter() - last_save > c.checkpoint_every_s:
-                save_checkpoint()
-                last_save = time.perf_counter()
+    # -- Trace: batch tallies added in batch order, here or on a cluster ----------------
+    def serial(start):
+        for i in range(start, len(work)):
+            a, k = work[i]
+            yield i, baker.trace(a, sizes[i], np.random.SeedSequence([c.seed, a, k]))
+
+    last_save = t_prev = time.perf_counter()
+    with cluster.client(workers, scheduler) as dask_client, \
+            tqdm(total=sum(sizes), initial=sum(sizes[:done]), unit="path", unit_scale=True,
+                 desc=f"bake {c.estimator}") as bar:
+        batches = serial(done) if dask_client is None else \
+            cluster.ordered_tallies(dask_client, cfg, fiber, work, sizes, done)
+        with contextlib.closing(batches):
+            while done < len(work):
+                if stop_after is not None and done >= stop_after:
+                    save_checkpoint()
+                    return out
+                i, batch = next(batches)
+                assert i == done
+                tally.add(batch)
+                now = time.perf_counter()
+                elapsed, t_prev = elapsed + (now - t_prev), now
+                done += 1
+                bar.update(sizes[done - 1])
+                bar.set_postfix(vertices=f"{tally.vertices:.3g}", refresh=False)  # the bar prints on its own clock
+                if now - last_save > c.checkpoint_every_s:
+                    save_checkpoint()
+                    last_save = now
 
     # -- Table -----------------------------------------------------------------
     table = tally_to_table(tally, spec, fiber, reductions)
@@ -154,6 +170,9 @@ def run(cfg, out_root="artifacts", stop_after=None) -> Path:
         "passthrough": float(np.mean(table.passthrough)), "albedo": summary.get("scattered", np.nan),
         "max_abs_energy_error": summary["max_abs_energy_error"], "bake_seconds": elapsed,
         "vertices_per_second": summary["vertices_per_second"]})
+    # the pictures go with the table they show: a bake that fails before this point leaves
+    # the last table and its own pictures, not a new arrangement beside an old table
+    bundle.plot(out / "arrangement.png")
     plot_table(table, out / "slices")
     plot_balance(table, out / "energy.png")
     ckpt.unlink(missing_ok=True)

@@ -54,6 +54,11 @@ def main(argv=None) -> int:
         p.add_argument("--artifacts", default=argparse.SUPPRESS, help="output root (default: artifacts/)")
         if name == "run":
             p.add_argument("--force", action="store_true", help="rerun stages that are up to date")
+        if name in ("bake", "run"):
+            p.add_argument("--workers", type=int, default=None, metavar="N",
+                           help="bake on a local Dask cluster of N single-threaded worker processes")
+            p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                           help="bake on an existing Dask cluster (tcp://host:8786; or set BCSDF_SCHEDULER)")
     args = parser.parse_args(argv)
     if not sys.stderr.isatty():
         # a log file, not a terminal: one progress line per 30 s instead of per 0.1 s (a
@@ -84,7 +89,8 @@ def main(argv=None) -> int:
                     continue
                 print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
             t0 = time.perf_counter()
-            _stage(stage).run(cfg, args.artifacts)
+            shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage == "bake" else {}
+            _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
             stages_.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0)
     except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
         print(f"bcsdf {args.command}: error: {e}", file=sys.stderr)

@@ -277,7 +277,7 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
                                          "lower train.lr")
             sched.step()
             history.append((train_loss, val_loss))
-            bar.set_postfix(train=f"{train_loss:.4g}", val=f"{val_loss:.4g}")
+            bar.set_postfix(train=f"{train_loss:.4g}", val=f"{val_loss:.4g}", refresh=False)
             if val_loss < best * (1 - 1e-4):
                 best, since = val_loss, 0
                 best_state = {k: v.clone() for k, v in model.state_dict().items()}

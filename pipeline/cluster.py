@@ -1,0 +1,124 @@
+"""Bakes on a Dask cluster: every batch a task, tallies reduced in batch order.
+
+A bake is a list of batches with fixed seeds whose tallies add, so it shards without
+changing a bit: the workers trace batches in any order, the client adds their tallies
+in batch order (the serial bake's order), so the table is the serial bake's, bit for
+bit. ``--workers N`` starts an embedded ``distributed.LocalCluster`` of N single-threaded
+worker processes; ``--scheduler ADDRESS`` (or ``BCSDF_SCHEDULER``) joins an existing
+cluster, e.g. one that ``dask-jobqueue`` started on SLURM (README). A lost worker's
+batches are recomputed by Dask; an interrupted client keeps the bake's checkpoint, and
+the next run (serial or sharded) resumes from the batches that finished in order.
+
+Workers must run the same code as the client (a table would not be reproducible
+otherwise): each task carries the client's code digest and a worker with another one
+refuses it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+
+_BAKERS: dict = {}  # per worker process: one Baker per (config, fiber table)
+CONNECT_TIMEOUT = "10s"  # how long to look for a scheduler before saying it cannot be reached
+
+
+def code_digest() -> str:
+    """The digest of the code a bake runs (the bake stage's deps in dvc.yaml)."""
+    from . import stages
+    from .config import Config
+
+    probe = Config.model_validate({"name": "probe", "fiber": {"model": "isotropic"},
+                                   "bundle": {"shape": "circle", "radius_um": 100}})
+    return stages.digest(stages.spec("bake", probe)["code"], stages.ROOT)[:16]
+
+
+def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str):
+    """One batch on a worker: ``Baker.trace`` with the serial bake's seed. Returns the tally."""
+    import json
+
+    import mitsuba as mi
+    import numpy as np
+
+    from models.baker import Baker
+
+    from .bake import build_bundle, make_spec
+    from .config import Config
+
+    if code != _worker_code():
+        raise RuntimeError(f"this worker runs code {_worker_code()}, the client {code}: start the workers "
+                           "from the same checkout (a table must be reproducible)")
+    cfg = Config.model_validate(json.loads(cfg_json))
+    key = (cfg.hash(), id(fiber))
+    if key not in _BAKERS:
+        mi.set_variant(cfg.bake.variant)  # this worker's entry point
+        bundle = build_bundle(cfg)
+        spec, _ = make_spec(cfg, bundle, fiber)
+        _BAKERS.clear()
+        _BAKERS[key] = Baker(bundle, fiber, spec)
+    return _BAKERS[key].trace(a, size, np.random.SeedSequence([cfg.bake.seed, a, k]))
+
+
+_CODE = None
+
+
+def _worker_code() -> str:
+    global _CODE
+    if _CODE is None:
+        _CODE = code_digest()
+    return _CODE
+
+
+@contextlib.contextmanager
+def client(workers: int | None = None, scheduler: str | None = None):
+    """A ``distributed.Client`` for the bake, or ``None`` for the in-process bake."""
+    scheduler = scheduler or os.environ.get("BCSDF_SCHEDULER") or None
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers must be at least 1 (got {workers})")
+    if not workers and not scheduler:
+        yield None
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ValueError("--workers and --scheduler need Dask's `distributed` (run `make setup`)") from None
+    if scheduler:
+        try:
+            c = Client(scheduler, timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError) as e:
+            raise ValueError(f"cannot reach the Dask scheduler at {scheduler} ({e}); start one with "
+                             "`dask scheduler` or leave out --scheduler") from None
+        with c:
+            print(f"[bake] Dask cluster {scheduler}: {len(c.scheduler_info()['workers'])} workers; "
+                  f"dashboard {c.dashboard_link}")
+            yield c
+        return
+    with LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=":0",
+                      silence_logs=40) as cluster, Client(cluster) as c:
+        print(f"[bake] Dask LocalCluster: {workers} workers; dashboard {c.dashboard_link}")
+        yield c
+
+
+def ordered_tallies(c, cfg, fiber, work, sizes, start: int):
+    """Yield ``(index, tally)`` for batches ``start ..`` in order, traced on the cluster.
+
+    All remaining batches are submitted at once (Dask schedules them); results are held
+    until every earlier batch is in, so the caller adds them in the serial order.
+    """
+    from distributed import as_completed
+
+    cfg_json, code = cfg.model_dump_json(), code_digest()
+    remote_fiber = c.scatter(fiber, broadcast=True)
+    futures = {c.submit(trace_batch, cfg_json, remote_fiber, a, k, sizes[i], code, pure=False,
+                        key=f"bake-{cfg.name}-{i}"): i
+               for i, (a, k) in enumerate(work) if i >= start}
+    ready, nxt = {}, start
+    try:
+        for fut in as_completed(futures):
+            ready[futures[fut]] = fut.result()
+            fut.release()
+            while nxt in ready:
+                yield nxt, ready.pop(nxt)
+                nxt += 1
+    finally:
+        c.cancel(list(futures))
