@@ -97,3 +97,10 @@ def test_an_unreachable_scheduler_is_named_and_nothing_is_written(serial, tmp_pa
     err = capsys.readouterr().err
     assert "tcp://127.0.0.1:9" in err and "Traceback" not in err
     assert not (tmp_path / "c" / "bake" / "bundle_table.npz").exists()
+
+
+def test_a_worker_with_other_code_refuses_its_tasks():
+    from pipeline import cluster
+
+    with pytest.raises(RuntimeError, match="same checkout"):
+        cluster.trace_batch("{}", None, 0, 0, 1, code="another-checkout")
