@@ -14,11 +14,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-# seconds per unit of work of each stage, from `bcsdf run --force configs/default.yaml`
-# on the reference machine (docs/BENCHMARKS.md, "The whole default pipeline")
+# seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone,
+# session 6 (the stages' stamps; docs/BENCHMARKS.md, "The whole default pipeline")
 OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "stability": 0.0, "report": 2.0}
-REFERENCE = {"fiber": 4.0e-4, "bake": 6.0e-7, "train": 1.2e-6, "export": 6.0, "render": 2.2e-6,
-             "stability": 20.0, "report": 6.0}
+REFERENCE = {"fiber": 1.1e-3, "bake": 1.4e-6, "train": 1.7e-6, "export": 2.2, "render": 2.0e-6,
+             "stability": 9.0, "report": 10.0}
 
 
 def _fiber_work(cfg) -> float:
