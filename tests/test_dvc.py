@@ -30,7 +30,7 @@ render: {width: 24, height: 12, spp: 2, scenes: [ply], mono_check: false, explic
 report: {queries: 5000}
 """
 STAGES = ("fiber", "bake", "train", "export", "render", "stability", "report")
-RUNNER = {"pipeline", "pipeline.cli", "pipeline.stages", "models", "mitsuba_ext"}  # packages and the runner
+RUNNER = {"pipeline", "pipeline.cli", "pipeline.stages", "pipeline.estimate", "models", "mitsuba_ext"}  # the runner
 
 
 def _clone(tmp_path):
