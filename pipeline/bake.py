@@ -101,6 +101,8 @@ def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None
     sizes = [min(c.batch_paths, c.paths_per_phi_i - k * c.batch_paths) for _, k in work]
     key = cfg.hash(*BAKE_SECTIONS)
     ckpt = out / "checkpoint.npz"
+    for torn in out.glob(f".{ckpt.name}.*.tmp"):  # a kill -9 during a checkpoint write leaves these
+        torn.unlink(missing_ok=True)
     tally, done, elapsed = Tally.zeros(spec, len(fiber.wavelength)), 0, 0.0
     if ckpt.exists():
         try:

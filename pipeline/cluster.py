@@ -51,12 +51,56 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str):
     cfg = Config.model_validate(json.loads(cfg_json))
     key = (cfg.hash(), id(fiber))
     if key not in _BAKERS:
+        import drjit as dr
+
         mi.set_variant(cfg.bake.variant)  # this worker's entry point
+        # Dr.Jit's kernels would use every core of the machine in every worker process:
+        # each worker keeps to its own share (its Dask thread count)
+        dr.set_thread_count(_worker_threads())
         bundle = build_bundle(cfg)
         spec, _ = make_spec(cfg, bundle, fiber)
         _BAKERS.clear()
         _BAKERS[key] = Baker(bundle, fiber, spec)
-    return _BAKERS[key].trace(a, size, np.random.SeedSequence([cfg.bake.seed, a, k]))
+    return pack(_BAKERS[key].trace(a, size, np.random.SeedSequence([cfg.bake.seed, a, k])))
+
+
+def _worker_threads() -> int:
+    try:
+        from distributed import get_worker
+
+        w = get_worker()
+        return int(getattr(getattr(w, "state", w), "nthreads", 1))
+    except (ImportError, ValueError):
+        return 1
+
+
+def pack(tally) -> dict:
+    """A batch's tally for the wire: ``sum`` and ``sum_sq`` as their non-zero entries.
+
+    Parallel fibers keep light on the specular cone, so a batch fills a few per cent of
+    the bins; the zeros it leaves out add exactly nothing, so the unpacked tally adds to
+    the same bits.
+    """
+    import numpy as np
+
+    a = tally.arrays()
+    nz = np.flatnonzero((a["sum"] != 0) | (a["sum_sq"] != 0))
+    return {"shape": a["sum"].shape, "index": nz.astype(np.int64), "sum": a["sum"].ravel()[nz],
+            "sum_sq": a["sum_sq"].ravel()[nz], **{k: a[k] for k in ("absorbed", "lost", "paths", "passthrough",
+                                                                        "vertices")}}
+
+
+def unpack(packed: dict):
+    import numpy as np
+
+    from models.baker import Tally
+
+    dense = {}
+    for k in ("sum", "sum_sq"):
+        a = np.zeros(packed["shape"])
+        a.ravel()[packed["index"]] = packed[k]
+        dense[k] = a
+    return Tally.from_arrays({**packed, **dense})
 
 
 _CODE = None
@@ -115,7 +159,7 @@ def ordered_tallies(c, cfg, fiber, work, sizes, start: int):
     ready, nxt = {}, start
     try:
         for fut in as_completed(futures):
-            ready[futures[fut]] = fut.result()
+            ready[futures[fut]] = unpack(fut.result())
             fut.release()
             while nxt in ready:
                 yield nxt, ready.pop(nxt)

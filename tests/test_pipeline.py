@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import yaml
 
 from tests.test_cli import ROOT
@@ -23,13 +24,23 @@ TINY = {
 }
 
 
-def test_run_writes_every_stage_and_a_complete_report(tmp_path):
-    cfg = tmp_path / "tiny.yaml"
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """``bcsdf run`` of the tiny config, once for this module's tests: (artifacts, its stderr)."""
+    tmp = tmp_path_factory.mktemp("pipeline")
+    cfg = tmp / "tiny.yaml"
     cfg.write_text(yaml.safe_dump(TINY))
-    art = tmp_path / "art"
+    art = tmp / "art"
     r = subprocess.run([sys.executable, "-m", "pipeline.cli", "--artifacts", str(art), "run", str(cfg)],
                        cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
+    return art, r.stderr
+
+
+def test_run_writes_every_stage_and_a_complete_report(tiny_run):
+    art, stderr = tiny_run
+    # a log, not a terminal: progress bars print on a 30 s clock, not once per epoch or batch
+    assert stderr.count("%|") < 60, stderr.count("%|")
     root = art / "tiny"
     for f in ("fiber/fiber_table.npz", "bake/bundle_table.npz", "train/m/model.pt", "export/m/model.onnx",
               "export/s/weights.npz", "render/summary.json", "render/ply_side_by_side.png",
@@ -82,18 +93,13 @@ def test_run_skips_up_to_date_stages_and_reruns_what_changed(tmp_path):
     assert (art / "tiny" / "report" / "index.html").exists()
 
 
-def test_report_loads_in_headless_chromium(tmp_path):
+def test_report_loads_in_headless_chromium(tiny_run, tmp_path):
     """The page loads in a real browser and every picture it references is shown."""
     import shutil
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     assert chromium, "chromium is installed by scripts/setup.sh for the tests"
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(yaml.safe_dump(dict(TINY, train={"models": {"s": [8]}, "epochs": 3, "batch_size": 256})))
-    art = tmp_path / "art"
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "--artifacts", str(art), "run", str(cfg)],
-                       cwd=ROOT, capture_output=True, text=True, timeout=900)
-    assert r.returncode == 0, r.stderr[-2000:]
+    art, _ = tiny_run
     page = art / "tiny" / "report" / "index.html"
     r = subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                         "--disable-background-networking", "--disable-component-update", "--disable-sync",
