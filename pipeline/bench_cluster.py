@@ -1,7 +1,8 @@
 """Sharded bakes against the serial one (``make bench-cluster``), side by side in one run.
 
 On one config (default: the thesis's 600 um bundle, its bake set with ``--paths``), bakes
-the same table serially, on a LocalCluster of 1 worker and of 2 workers, checks that the
+the same table serially, on a LocalCluster of 1 worker and of 2 workers, each on one core
+(one Dr.Jit thread: without that the serial bake's kernels already use every core), checks that the
 three tables are identical, and prints wall times and speed-ups, both of the whole stage
 and of its tracing phase. A worker's first task pays a one-time warm-up (importing
 Mitsuba, building the baker, compiling its kernels), measured apart with a one-batch
@@ -47,6 +48,11 @@ def main(argv=None) -> int:
     from . import fiber
     from .config import load_config
 
+    import drjit as dr
+
+    # one Dr.Jit thread everywhere: a worker is one core, and the serial bake is the
+    # one-core reference (a bake is bit for bit reproducible at a given thread count)
+    dr.set_thread_count(1)
     cfg = load_config(args.config, [f"bake.paths_per_phi_i={args.paths}", "bake.checkpoint_every_s=1e9"])
     one = cfg.model_copy(update={"bake": cfg.bake.model_copy(update={"paths_per_phi_i": cfg.bake.batch_paths})})
     runs = {"serial": None, "1 worker": 1, "2 workers": 2}

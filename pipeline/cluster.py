@@ -11,7 +11,11 @@ the next run (serial or sharded) resumes from the batches that finished in order
 
 Workers must run the same code as the client (a table would not be reproducible
 otherwise): each task carries the client's code digest and a worker with another one
-refuses it.
+refuses it. Dr.Jit's kernels split their work by thread, which moves the last bits of
+some sums, so a table is reproducible bit for bit at a given Dr.Jit thread count: each
+task also carries the client's, and the worker runs the batch with it (on a cluster of
+single-core workers, run the client with ``drjit.set_thread_count(1)`` too, as
+``bench_cluster`` does).
 """
 
 from __future__ import annotations
@@ -33,8 +37,9 @@ def code_digest() -> str:
     return stages.digest(stages.spec("bake", probe)["code"], stages.ROOT)[:16]
 
 
-def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str):
-    """One batch on a worker: ``Baker.trace`` with the serial bake's seed. Returns the tally."""
+def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, threads: int = 0):
+    """One batch on a worker: ``Baker.trace`` with the serial bake's seed, on ``threads``
+    Dr.Jit threads (the client's). Returns the tally, packed."""
     import json
 
     import mitsuba as mi
@@ -50,28 +55,20 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str):
                            "from the same checkout (a table must be reproducible)")
     cfg = Config.model_validate(json.loads(cfg_json))
     key = (cfg.hash(), id(fiber))
-    if key not in _BAKERS:
+    if threads:
         import drjit as dr
 
+        # Dr.Jit's kernels split their work by thread, which moves the last bits of some
+        # sums: the client's thread count keeps the batch's tally the serial one's
+        if dr.thread_count() != threads:
+            dr.set_thread_count(threads)
+    if key not in _BAKERS:
         mi.set_variant(cfg.bake.variant)  # this worker's entry point
-        # Dr.Jit's kernels would use every core of the machine in every worker process:
-        # each worker keeps to its own share (its Dask thread count)
-        dr.set_thread_count(_worker_threads())
         bundle = build_bundle(cfg)
         spec, _ = make_spec(cfg, bundle, fiber)
         _BAKERS.clear()
         _BAKERS[key] = Baker(bundle, fiber, spec)
     return pack(_BAKERS[key].trace(a, size, np.random.SeedSequence([cfg.bake.seed, a, k])))
-
-
-def _worker_threads() -> int:
-    try:
-        from distributed import get_worker
-
-        w = get_worker()
-        return int(getattr(getattr(w, "state", w), "nthreads", 1))
-    except (ImportError, ValueError):
-        return 1
 
 
 def pack(tally) -> dict:
@@ -151,9 +148,11 @@ def ordered_tallies(c, cfg, fiber, work, sizes, start: int):
     """
     from distributed import as_completed
 
-    cfg_json, code = cfg.model_dump_json(), code_digest()
+    import drjit as dr
+
+    cfg_json, code, threads = cfg.model_dump_json(), code_digest(), dr.thread_count()
     remote_fiber = c.scatter(fiber, broadcast=True)
-    futures = {c.submit(trace_batch, cfg_json, remote_fiber, a, k, sizes[i], code, pure=False,
+    futures = {c.submit(trace_batch, cfg_json, remote_fiber, a, k, sizes[i], code, threads, pure=False,
                         key=f"bake-{cfg.name}-{i}"): i
                for i, (a, k) in enumerate(work) if i >= start}
     ready, nxt = {}, start
