@@ -421,8 +421,10 @@ def plugin_extremes() -> list[Check]:
 
 # -- the stage ---------------------------------------------------------------------
 def run_cases(names=None) -> list[Check]:
+    from tqdm import tqdm
+
     checks = []
-    for name in names or CASES:
+    for name in tqdm(list(names or CASES), desc="stability", unit="case"):
         t0 = time.perf_counter()
         result = CASES[name]()
         print(f"[stability] {name}: {sum(c.passed for c in result)}/{len(result)} passed "
