@@ -39,7 +39,7 @@ def _sensor(mi, r, half_width, spp, seed=0):
     return {"type": "perspective", "fov": fov, "fov_axis": "x",
             "to_world": mi.ScalarTransform4f().look_at([0, 0, distance], [0, 0, 0], [0, 1, 0]),
             "film": {"type": "hdrfilm", "width": r.width, "height": r.height, "rfilter": {"type": "gaussian"},
-                     "pixel_format": "rgb"},
+                     "pixel_format": "luminance" if "mono" in mi.variant() else "rgb"},
             "sampler": {"type": "independent", "sample_count": spp, "seed": seed}}
 
 
