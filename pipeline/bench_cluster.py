@@ -2,7 +2,8 @@
 
 On one config (default: the thesis's 600 um bundle, its bake set with ``--paths``), bakes
 the same table serially, on a LocalCluster of 1 worker and of 2 workers, each on one core
-(one Dr.Jit thread: without that the serial bake's kernels already use every core), checks that the
+(one Dr.Jit thread and one BLAS thread, as Dask's workers run numpy: without that the
+serial bake's kernels already use every core), checks that the
 three tables are identical, and prints wall times and speed-ups, both of the whole stage
 and of its tracing phase. A worker's first task pays a one-time warm-up (importing
 Mitsuba, building the baker, compiling its kernels), measured apart with a one-batch
@@ -18,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -41,6 +43,11 @@ def main(argv=None) -> int:
     p.add_argument("--paths", type=int, default=1_000_000, help="bake.paths_per_phi_i of the measured bakes")
     p.add_argument("--artifacts", default="artifacts")
     args = p.parse_args(argv)
+    if argv is None and os.environ.get("OMP_NUM_THREADS") != "1":
+        # Dask's workers run numpy's BLAS on one thread (OMP/OPENBLAS/MKL_NUM_THREADS=1);
+        # the serial bake must too, and BLAS reads these only when numpy loads: start again
+        env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+        os.execve(sys.executable, [sys.executable, "-m", "pipeline.bench_cluster", *sys.argv[1:]], env)
     os.environ.setdefault("TQDM_DISABLE", "1")
     from models.bundle_table import BundleTable
     from models.io import write_text

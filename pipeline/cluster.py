@@ -24,7 +24,8 @@ import contextlib
 import os
 
 _BAKERS: dict = {}  # per worker process: one Baker per (config, fiber table)
-CONNECT_TIMEOUT = "10s"  # how long to look for a scheduler before saying it cannot be reached
+CONNECT_TIMEOUT = "10s"
+MAX_BATCHES_PER_TASK = 8  # how long to look for a scheduler before saying it cannot be reached
 
 
 def code_digest() -> str:
@@ -35,6 +36,12 @@ def code_digest() -> str:
     probe = Config.model_validate({"name": "probe", "fiber": {"model": "isotropic"},
                                    "bundle": {"shape": "circle", "radius_um": 100}})
     return stages.digest(stages.spec("bake", probe)["code"], stages.ROOT)[:16]
+
+
+def trace_batches(cfg_json: str, fiber, items, code: str, threads: int = 0) -> list:
+    """Several consecutive batches in one task (``items``: ``(a, k, size)``): one round
+    trip to the scheduler for all of them. Returns their packed tallies, in order."""
+    return [trace_batch(cfg_json, fiber, a, k, size, code, threads) for a, k, size in items]
 
 
 def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, threads: int = 0):
@@ -143,8 +150,10 @@ def client(workers: int | None = None, scheduler: str | None = None):
 def ordered_tallies(c, cfg, fiber, work, sizes, start: int):
     """Yield ``(index, tally)`` for batches ``start ..`` in order, traced on the cluster.
 
-    All remaining batches are submitted at once (Dask schedules them); results are held
-    until every earlier batch is in, so the caller adds them in the serial order.
+    All remaining batches are submitted at once (Dask schedules them), a few consecutive
+    batches per task so that each round trip to the scheduler carries more work (at least
+    four tasks per worker remain, for balance); results are held until every earlier
+    batch is in, so the caller adds them in the serial order.
     """
     from distributed import as_completed
 
@@ -152,13 +161,17 @@ def ordered_tallies(c, cfg, fiber, work, sizes, start: int):
 
     cfg_json, code, threads = cfg.model_dump_json(), code_digest(), dr.thread_count()
     remote_fiber = c.scatter(fiber, broadcast=True)
-    futures = {c.submit(trace_batch, cfg_json, remote_fiber, a, k, sizes[i], code, threads, pure=False,
-                        key=f"bake-{cfg.name}-{i}"): i
-               for i, (a, k) in enumerate(work) if i >= start}
+    todo = list(range(start, len(work)))
+    n_workers = max(1, len(c.scheduler_info().get("workers", {})))
+    per_task = max(1, min(MAX_BATCHES_PER_TASK, len(todo) // (4 * n_workers)))
+    groups = [todo[i:i + per_task] for i in range(0, len(todo), per_task)]
+    futures = {c.submit(trace_batches, cfg_json, remote_fiber, [(*work[i], sizes[i]) for i in g], code, threads,
+                        pure=False, key=f"bake-{cfg.name}-{g[0]}-{g[-1]}"): g for g in groups}
     ready, nxt = {}, start
     try:
         for fut in as_completed(futures):
-            ready[futures[fut]] = unpack(fut.result())
+            for i, packed in zip(futures[fut], fut.result()):
+                ready[i] = unpack(packed)
             fut.release()
             while nxt in ready:
                 yield nxt, ready.pop(nxt)
