@@ -39,6 +39,14 @@ def atomic_path(path):
             os.remove(tmp)
 
 
+def clear_torn(path) -> None:
+    """Remove the temporaries :func:`atomic_path` left beside ``path`` when a process was
+    killed (kill -9) between writing one and renaming it."""
+    path = Path(path)
+    for torn in path.parent.glob(f".{path.name}.*.tmp"):
+        torn.unlink(missing_ok=True)
+
+
 def write_text(path, text: str) -> None:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)

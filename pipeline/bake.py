@@ -29,7 +29,7 @@ from models import bundle as bundles
 from models.baker import Baker, BakeSpec, Tally
 from models.bundle_table import BundleTable
 from models.fiber.base import FiberTable
-from models.io import atomic_path, write_text
+from models.io import atomic_path, clear_torn, write_text
 
 from .config import BAKE_SECTIONS, FIBER_SECTIONS
 from .metrics import write_metrics
@@ -101,8 +101,7 @@ def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None
     sizes = [min(c.batch_paths, c.paths_per_phi_i - k * c.batch_paths) for _, k in work]
     key = cfg.hash(*BAKE_SECTIONS)
     ckpt = out / "checkpoint.npz"
-    for torn in out.glob(f".{ckpt.name}.*.tmp"):  # a kill -9 during a checkpoint write leaves these
-        torn.unlink(missing_ok=True)
+    clear_torn(ckpt)  # a kill -9 during a checkpoint write leaves its temporary behind
     tally, done, elapsed = Tally.zeros(spec, len(fiber.wavelength)), 0, 0.0
     if ckpt.exists():
         try:

@@ -76,8 +76,7 @@ def main(argv=None) -> int:
         stages = [s for s in STAGES if s in ("fiber", "stability", "report") or cfg.bundle is not None] \
             if args.command == "run" else (args.command,)
         if args.command == "run":
-            status = {s: stages_.up_to_date(s, cfg, args.artifacts) for s in stages}
-            todo = [s for s in stages if args.force or not status[s][0]]
+            todo = [s for s in stages if args.force or not stages_.up_to_date(s, cfg, args.artifacts)[0]]
             if todo:
                 from .estimate import plan
                 print(plan(cfg, todo, args.artifacts), flush=True)

@@ -24,18 +24,15 @@ import contextlib
 import os
 
 _BAKERS: dict = {}  # per worker process: one Baker per (config, fiber table)
-CONNECT_TIMEOUT = "10s"
-MAX_BATCHES_PER_TASK = 8  # how long to look for a scheduler before saying it cannot be reached
+CONNECT_TIMEOUT = "10s"  # how long to look for a scheduler before saying it cannot be reached
+MAX_BATCHES_PER_TASK = 8
 
 
-def code_digest() -> str:
-    """The digest of the code a bake runs (the bake stage's deps in dvc.yaml)."""
+def code_digest(cfg) -> str:
+    """The digest of the code a bake runs (the bake stage's code deps in dvc.yaml)."""
     from . import stages
-    from .config import Config
 
-    probe = Config.model_validate({"name": "probe", "fiber": {"model": "isotropic"},
-                                   "bundle": {"shape": "circle", "radius_um": 100}})
-    return stages.digest(stages.spec("bake", probe)["code"], stages.ROOT)[:16]
+    return stages.digest(stages.spec("bake", cfg)["code"], stages.ROOT)[:16]
 
 
 def trace_batches(cfg_json: str, fiber, items, code: str, threads: int = 0) -> list:
@@ -57,10 +54,10 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, thre
     from .bake import build_bundle, make_spec
     from .config import Config
 
-    if code != _worker_code():
-        raise RuntimeError(f"this worker runs code {_worker_code()}, the client {code}: start the workers "
-                           "from the same checkout (a table must be reproducible)")
     cfg = Config.model_validate(json.loads(cfg_json))
+    if code != _worker_code(cfg):
+        raise RuntimeError(f"this worker runs code {_worker_code(cfg)}, the client {code}: start the workers "
+                           "from the same checkout (a table must be reproducible)")
     key = (cfg.hash(), id(fiber))
     if threads:
         import drjit as dr
@@ -110,10 +107,11 @@ def unpack(packed: dict):
 _CODE = None
 
 
-def _worker_code() -> str:
+def _worker_code(cfg) -> str:
+    """This process's :func:`code_digest`, computed once (the code does not change under it)."""
     global _CODE
     if _CODE is None:
-        _CODE = code_digest()
+        _CODE = code_digest(cfg)
     return _CODE
 
 
@@ -159,7 +157,7 @@ def ordered_tallies(c, cfg, fiber, work, sizes, start: int):
 
     import drjit as dr
 
-    cfg_json, code, threads = cfg.model_dump_json(), code_digest(), dr.thread_count()
+    cfg_json, code, threads = cfg.model_dump_json(), code_digest(cfg), dr.thread_count()
     remote_fiber = c.scatter(fiber, broadcast=True)
     todo = list(range(start, len(work)))
     n_workers = max(1, len(c.scheduler_info().get("workers", {})))

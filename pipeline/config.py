@@ -291,15 +291,21 @@ class Config(Strict):
             raise ValueError(f"{v!r} would write outside artifacts/: use letters, digits, '_', '-' or '.'")
         return v
 
+    def incidences(self, expanded: bool = False) -> tuple[int, int]:
+        """``(n_phi_i, n_theta_i)`` of the bake: a circle is one azimuth (rotation), other
+        bundles ``0..90`` deg; theta_i ``0..90`` deg, or ``-90..90`` once expanded."""
+        b = self.bake
+        circle = self.bundle.shape == "circle" and self.bundle.arrangement != "zhao2016"
+        n_phi_i = 1 if circle else int(round(90 / b.phi_i_step_deg)) + 1
+        return n_phi_i, int(round((180 if expanded else 90) / b.theta_i_step_deg)) + 1
+
     @model_validator(mode="after")
     def _fits(self):
         """Refuse a bake whose tallies cannot fit in memory, or whose batches are too many."""
         if self.bundle is None:
             return self
         b = self.bake
-        n_theta_i = int(round(180 / b.theta_i_step_deg)) + 1
-        n_phi_i = 1 if self.bundle.shape == "circle" and self.bundle.arrangement != "zhao2016" \
-            else int(round(90 / b.phi_i_step_deg)) + 1
+        n_phi_i, n_theta_i = self.incidences(expanded=True)
         cells = n_phi_i * n_theta_i * b.n_phi_o * b.n_theta_o * self.wavelengths.count
         need = cells * 40  # float64 sum and sum of squares, float32 values and errors, and an expanded copy
         have = _memory_bytes()

@@ -1,8 +1,8 @@
 """How long ``bcsdf run`` will take, said before it starts: a rough estimate per stage.
 
-A stage's time is a fixed **overhead** (imports, kernel compilation) plus its **work** (a size the config implies: paths times the chord of the
-bundle in fibers, epochs times bins times the model's width, pixels times samples ...)
-times **seconds per unit of work**. That rate comes from the last run of the same stage
+A stage's time is a fixed **overhead** (imports, kernel compilation) plus its **work** (a
+size the config implies: paths times the chord of the bundle in fibers, epochs times bins
+times the model's width, pixels times samples ...) times **seconds per unit of work**. That rate comes from the last run of the same stage
 on this machine when there is one (its stamp records work and seconds), else from the
 default config measured on the reference 2-core machine (``REFERENCE`` below; figures
 in docs/BENCHMARKS.md). Good to a factor of about two: enough to decide between waiting
@@ -12,7 +12,8 @@ and coming back tomorrow, not a benchmark.
 from __future__ import annotations
 
 import json
-from pathlib import Path
+
+from .stages import stamp_path
 
 # seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone,
 # session 6 (the stages' stamps; docs/BENCHMARKS.md, "The whole default pipeline")
@@ -33,21 +34,15 @@ def _fiber_work(cfg) -> float:
     return nodes * cfg.wavelengths.count * per
 
 
-def _bake_counts(cfg):
-    b, c = cfg.bake, cfg.bundle
-    n_phi_i = 1 if c.shape == "circle" and c.arrangement != "zhao2016" else 90 / b.phi_i_step_deg + 1
-    n_theta_i = 90 / b.theta_i_step_deg + 1
-    return n_phi_i, n_theta_i, n_phi_i * n_theta_i * b.n_phi_o * b.n_theta_o
-
-
 def _bake_work(cfg) -> float:
-    n_phi_i, _, _ = _bake_counts(cfg)
+    n_phi_i, _ = cfg.incidences()
     chord = cfg.bundle.bounding_radius_um() / cfg.fiber.radius_um  # a path's length in fibers, roughly
     return cfg.bake.paths_per_phi_i * n_phi_i * chord
 
 
 def _train_work(cfg) -> float:
-    _, _, bins = _bake_counts(cfg)
+    n_phi_i, n_theta_i = cfg.incidences()
+    bins = n_phi_i * n_theta_i * cfg.bake.n_phi_o * cfg.bake.n_theta_o
     t = cfg.train
     total = 0.0
     for hidden in t.models.values():
@@ -82,10 +77,9 @@ def work(stage: str, cfg) -> float:
 
 def estimate(stage: str, cfg, root="artifacts") -> tuple[float, str]:
     """Seconds ``stage`` should take for this config, and where the rate came from."""
-    stamp = Path(root) / cfg.name / ".stamps" / f"{stage}.json"
     overhead = OVERHEAD[stage]
     try:
-        record = json.loads(stamp.read_text())
+        record = json.loads(stamp_path(stage, cfg, root).read_text())
         rate = max(record["seconds"] - overhead, 0.0) / max(record["work"], 1e-30)
         source = "its last run here"
     except (OSError, ValueError, KeyError, TypeError):

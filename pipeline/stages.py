@@ -86,7 +86,8 @@ def fingerprint(stage: str, cfg, root="artifacts") -> str:
     return h.hexdigest()[:24]
 
 
-def _stamp_path(stage: str, cfg, root) -> Path:
+def stamp_path(stage: str, cfg, root="artifacts") -> Path:
+    """Where ``stage``'s stamp for this config lives (beside, not inside, its outputs)."""
     return Path(root) / cfg.name / ".stamps" / f"{stage}.json"
 
 
@@ -101,12 +102,12 @@ def stamp(stage: str, cfg, root="artifacts", seconds: float | None = None) -> No
     record = {"fingerprint": fingerprint(stage, cfg, root), "outs": outs}
     if seconds is not None:
         record.update(seconds=seconds, work=work(stage, cfg))
-    write_text(_stamp_path(stage, cfg, root), json.dumps(record, indent=1))
+    write_text(stamp_path(stage, cfg, root), json.dumps(record, indent=1))
 
 
 def up_to_date(stage: str, cfg, root="artifacts") -> tuple[bool, str]:
     """Whether ``stage`` can be skipped, and why not."""
-    path = _stamp_path(stage, cfg, root)
+    path = stamp_path(stage, cfg, root)
     try:
         record = json.loads(path.read_text())
     except (OSError, ValueError):

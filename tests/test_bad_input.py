@@ -16,6 +16,7 @@ import pytest
 import yaml
 
 from pipeline import cli
+from tests.test_plugin import error_chain
 
 BASE = {"name": "tiny", "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
         "fiber": {"model": "mie", "radius_um": 3.0, "ior": {"k": 1e-3}}, "tabulate": {"theta_i_step_deg": 30}}
@@ -99,21 +100,27 @@ CASES = {
 }
 
 
-@pytest.mark.parametrize("case", list(CASES))
-def test_bad_config_or_command_is_refused_cleanly(case, fiber_artifacts, tmp_path, capsys):
-    art = tmp_path / "art"
-    shutil.copytree(fiber_artifacts, art)
+def assert_refused_cleanly(argv, art, words, capsys):
+    """``bcsdf argv`` exits 2 with a message holding ``words``, no traceback, and leaves
+    the artifacts under ``art`` byte-identical."""
     before = snapshot(art)
-    make, words = CASES[case]
-    argv = make(tmp_path)
-    if argv[0] != "--artifacts":
-        argv = ["--artifacts", str(art), *argv]
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err
     for w in words:
-        assert w in err, (case, w, err)
+        assert w in err, (argv, w, err)
     assert snapshot(art) == before
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_config_or_command_is_refused_cleanly(case, fiber_artifacts, tmp_path, capsys):
+    art = tmp_path / "art"
+    shutil.copytree(fiber_artifacts, art)
+    make, words = CASES[case]
+    argv = make(tmp_path)
+    if argv[0] != "--artifacts":
+        argv = ["--artifacts", str(art), *argv]
+    assert_refused_cleanly(argv, art, words, capsys)
 
 
 # -- damaged or foreign artifacts ----------------------------------------------------
@@ -132,11 +139,7 @@ def _truncate(path: Path):
 def _plugin_error(mi, props) -> str:
     with pytest.raises(Exception) as e:
         mi.load_dict({"type": "fiber_bundle", **props})
-    chain, err = [], e.value
-    while err is not None:
-        chain.append(str(err))
-        err = err.__cause__ or err.__context__
-    return "\n".join(chain)
+    return "\n".join(error_chain(e.value))
 
 
 def test_truncated_exports_are_named_by_the_plugin(trained, mi_plugins, tmp_path):
@@ -182,13 +185,7 @@ def test_damaged_or_foreign_artifacts_are_named(trained, tmp_path, capsys, damag
         export_stage.run(other, root2)
         shutil.copy(root2 / "n" / "export" / "tiny" / "model.onnx", art / "n" / "export" / "tiny" / "model.onnx")
         words = ["model.onnx", "different settings"]
-    before = snapshot(art)
     argv = ["--artifacts", str(art), stage, str(tmp_path / "n.yaml"), "--set", "render.backends=[onnx]",
             "--set", "render.model=tiny"]
-    assert cli.main(argv) == 2
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    for w in words:
-        assert w in err, (damage, w, err)
-    assert snapshot(art) == before
+    assert_refused_cleanly(argv, art, words, capsys)
 

@@ -101,6 +101,7 @@ def test_an_unreachable_scheduler_is_named_and_nothing_is_written(serial, tmp_pa
 
 def test_a_worker_with_other_code_refuses_its_tasks():
     from pipeline import cluster
+    from pipeline.config import Config
 
     with pytest.raises(RuntimeError, match="same checkout"):
-        cluster.trace_batch("{}", None, 0, 0, 1, code="another-checkout")
+        cluster.trace_batch(Config.model_validate(TINY).model_dump_json(), None, 0, 0, 1, code="another-checkout")

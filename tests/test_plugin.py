@@ -99,6 +99,16 @@ def chi2_adapter(mi, bsdf, wi):
     return sample, pdf
 
 
+def error_chain(exc) -> list:
+    """The messages of an exception and of everything it was raised from (Mitsuba wraps a
+    plugin's error in its own)."""
+    chain = []
+    while exc is not None:
+        chain.append(str(exc))
+        exc = exc.__cause__ or exc.__context__
+    return chain
+
+
 def wi_of(theta_deg, phi_deg):
     t, p = np.radians(theta_deg), np.radians(phi_deg)
     return [np.cos(t) * np.cos(p), np.sin(t), np.cos(t) * np.sin(p)]
@@ -341,10 +351,7 @@ def test_onnx_backend_refuses_symbolic_mode(mi_plug, trained):
     with pytest.raises(Exception) as info:
         mi.render(lit_cylinder(mi, {"type": "fiber_bundle", "backend": "onnx",
                                     "model": str(tmp / "n/export/wide/model.onnx")}, spp=4, res=(8, 6)))
-    chain, e = [], info.value
-    while e is not None:
-        chain.append(str(e))
-        e = e.__cause__ or e.__context__
+    chain = error_chain(info.value)
     assert any("evaluated mode" in m for m in chain), chain
 
 
@@ -387,10 +394,7 @@ def test_twist_rate_is_per_scene_unit_of_length(mi_plug, tables):
 def test_parameters_outside_their_domain_are_refused_at_load(mi_plug, tables, bad, message):
     with pytest.raises(Exception) as e:
         mi_plug.load_dict({"type": "fiber_bundle", "table": str(tables["circle"]), **bad})
-    chain, err = [], e.value
-    while err is not None:
-        chain.append(str(err))
-        err = err.__cause__ or err.__context__
+    chain = error_chain(e.value)
     assert any(message in m for m in chain), chain
 
 
