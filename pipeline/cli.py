@@ -97,7 +97,22 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
         return 130
+    except RuntimeError as e:
+        if not _interrupted(e):
+            raise
+        print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
+        return 130
     return 0
+
+
+def _interrupted(exc) -> bool:
+    """Whether Ctrl-C is behind ``exc``: Dr.Jit re-raises a KeyboardInterrupt that lands
+    inside a traced loop (``dr.while_loop``) as a RuntimeError raised from it."""
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def _stage(name):

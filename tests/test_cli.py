@@ -135,3 +135,28 @@ def test_atomic_writes_keep_the_old_file_on_failure_and_give_the_usual_mode(tmp_
     (tmp_path / "c.txt").write_text("plain")
     mode = stat.S_IMODE(os.stat(tmp_path / "b.txt").st_mode)
     assert mode == stat.S_IMODE(os.stat(tmp_path / "c.txt").st_mode), oct(mode)
+
+
+def test_ctrl_c_inside_a_traced_loop_is_an_interruption(tmp_path, monkeypatch, capsys):
+    """Dr.Jit re-raises a Ctrl-C that lands in ``dr.while_loop`` as a RuntimeError from it:
+    still exit 130 with the interruption message, not a traceback."""
+    from pipeline import cli
+
+    class Stage:
+        def run(self, cfg, root):
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as e:
+                raise RuntimeError("dr.while_loop(): encountered an exception (see above).") from e
+
+    monkeypatch.setattr(cli, "_stage", lambda name: Stage())
+    assert cli.main(["--artifacts", str(tmp_path / "art"), "fiber", str(write_config(tmp_path / "t.yaml"))]) == 130
+    assert "interrupted" in capsys.readouterr().err
+
+    class Failing:
+        def run(self, cfg, root):
+            raise RuntimeError("a real bug")
+
+    monkeypatch.setattr(cli, "_stage", lambda name: Failing())
+    with pytest.raises(RuntimeError, match="a real bug"):  # other errors are not swallowed
+        cli.main(["--artifacts", str(tmp_path / "art"), "fiber", str(tmp_path / "t.yaml")])
