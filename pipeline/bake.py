@@ -88,99 +88,145 @@ def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None
     if cfg.bundle is None:
         raise ValueError("this config has no 'bundle:' section; add one to bake")
     mi.set_variant(cfg.bake.variant)
-    out = Path(out_root) / cfg.name / "bake"
-    fiber = load_fiber_table(cfg, out_root)
-    bundle = build_bundle(cfg)
-    spec, reductions = make_spec(cfg, bundle, fiber)
-    baker = Baker(bundle, fiber, spec)
-
-    # -- Work list: fixed batches with fixed seeds, so that resuming is exact --------
-    c = cfg.bake
-    n_batches = int(np.ceil(c.paths_per_phi_i / c.batch_paths))
-    work = [(a, k) for a in range(len(spec.phi_i)) for k in range(n_batches)]
-    sizes = [min(c.batch_paths, c.paths_per_phi_i - k * c.batch_paths) for _, k in work]
-    key = cfg.hash(*BAKE_SECTIONS)
-    ckpt = out / "checkpoint.npz"
-    clear_torn(ckpt)  # a kill -9 during a checkpoint write leaves its temporary behind
-    tally, done, elapsed = Tally.zeros(spec, len(fiber.wavelength)), 0, 0.0
-    if ckpt.exists():
-        try:
-            with np.load(ckpt, allow_pickle=False) as z:
-                if str(z["key"]) == key:
-                    tally, done, elapsed = Tally.from_arrays(z), int(z["done"]), float(z["elapsed"])
-                    print(f"[bake] resuming from checkpoint: {done}/{len(work)} batches done")
-                else:
-                    print("[bake] checkpoint is from other settings; starting over")
-        except Exception as e:  # a torn checkpoint cannot happen (atomic), but be safe
-            print(f"[bake] unreadable checkpoint ({e}); starting over")
-
-    def save_checkpoint():
-        with atomic_path(ckpt) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, key=np.array(key), done=np.array(done), elapsed=np.array(elapsed),
-                         **tally.arrays())
-
-    # -- Trace: batch tallies added in batch order, here or on a cluster ----------------
-    def serial(start):
-        for i in range(start, len(work)):
-            a, k = work[i]
-            yield i, baker.trace(a, sizes[i], np.random.SeedSequence([c.seed, a, k]))
-
-    last_save = t_prev = time.perf_counter()
+    bake = Bake(cfg, out_root)
     with cluster.client(workers, scheduler) as dask_client, \
-            tqdm(total=sum(sizes), initial=sum(sizes[:done]), unit="path", unit_scale=True,
-                 desc=f"bake {c.estimator}") as bar:
-        batches = serial(done) if dask_client is None else \
-            cluster.ordered_tallies(dask_client, cfg, fiber, work, sizes, done)
+            tqdm(total=bake.total_paths, initial=bake.total_paths - bake.paths_left, unit="path", unit_scale=True,
+                 desc=f"bake {cfg.bake.estimator}") as bar:
+        batches = bake.serial() if dask_client is None else cluster.ordered_tallies(dask_client, [bake])
         with contextlib.closing(batches):
-            while done < len(work):
-                if stop_after is not None and done >= stop_after:
-                    save_checkpoint()
-                    return out
-                i, batch = next(batches)
-                assert i == done
-                tally.add(batch)
-                now = time.perf_counter()
-                elapsed, t_prev = elapsed + (now - t_prev), now
-                done += 1
-                bar.update(sizes[done - 1])
-                bar.set_postfix(vertices=f"{tally.vertices:.3g}", refresh=False)  # the bar prints on its own clock
-                if now - last_save > c.checkpoint_every_s:
-                    save_checkpoint()
-                    last_save = now
+            while not bake.finished:
+                if stop_after is not None and bake.done >= stop_after:
+                    bake.save_checkpoint()
+                    return bake.out
+                _, i, tally = next(batches)
+                bar.update(bake.add(i, tally))
+                bar.set_postfix(vertices=f"{bake.tally.vertices:.3g}", refresh=False)  # the bar prints on its own clock
+    return bake.finish()
 
-    # -- Table -----------------------------------------------------------------
-    table = tally_to_table(tally, spec, fiber, reductions)
-    table.meta.update(config_name=cfg.name, config_hash=key, config=cfg.model_dump(mode="json"),
-                      fiber_model=cfg.fiber.model, estimator=c.estimator, seed=c.seed,
-                      samples_per_phi_i=c.paths_per_phi_i, vertices=int(tally.vertices),
-                      bake_seconds=elapsed, n_fibers=len(bundle.radii),
-                      packing_fraction=bundle.packing_fraction, bounding_radius_um=bundle.bounding_radius,
-                      variant=c.variant, code_version=_code_version())
-    table.save(out / "bundle_table.npz")
-    balance = table.energy_balance()
-    summary = {"config_hash": key, "bake_seconds": elapsed, "paths": int(tally.paths.sum()),
-               "vertices": int(tally.vertices), "vertices_per_second": tally.vertices / max(elapsed, 1e-9),
-               "n_fibers": len(bundle.radii), "packing_fraction": bundle.packing_fraction,
-               "passthrough": table.passthrough.tolist(),
-               **{k: float(np.mean(v)) for k, v in balance.items()},
-               "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1)))}
-    summary["reductions"] = {"used": reductions, **reduction_cost(cfg, baker, elapsed)}
-    write_text(out / "summary.json", json.dumps(summary, indent=1))
-    write_metrics(cfg, out_root, "bake", {
-        "passthrough": float(np.mean(table.passthrough)), "albedo": summary.get("scattered", np.nan),
-        "max_abs_energy_error": summary["max_abs_energy_error"], "bake_seconds": elapsed,
-        "vertices_per_second": summary["vertices_per_second"]})
-    # the pictures go with the table they show: a bake that fails before this point leaves
-    # the last table and its own pictures, not a new arrangement beside an old table
-    bundle.plot(out / "arrangement.png")
-    plot_table(table, out / "slices")
-    plot_balance(table, out / "energy.png")
-    ckpt.unlink(missing_ok=True)
-    print(f"[bake] {c.estimator}: {tally.paths.sum():.3g} paths, {tally.vertices:.3g} vertices in "
-          f"{elapsed:.1f} s ({summary['vertices_per_second'] / 1e6:.2f} M vertices/s); passthrough "
-          f"{table.passthrough.mean():.3f}; energy total {np.mean(balance['total']):.4f}; wrote {out}")
-    return out
+
+def batch_seed(cfg, a: int, k: int) -> np.random.SeedSequence:
+    """The seed of batch ``k`` of incident azimuth ``a``: fixed, wherever it is traced."""
+    return np.random.SeedSequence([cfg.bake.seed, a, k])
+
+
+class Bake:
+    """One bake in progress: its batches, the running tally and its checkpoint.
+
+    The work is a fixed list of batches with fixed seeds (:func:`batch_seed`), added in order, so that a bake resumed from its checkpoint, or
+    traced on a cluster in any order (``pipeline.cluster``), gives the same table. Made
+    by :func:`run` and by the sweep (``pipeline.sweep``), which keeps several at once.
+    """
+
+    def __init__(self, cfg, out_root):
+        self.cfg, self.out_root = cfg, out_root
+        self.out = Path(out_root) / cfg.name / "bake"
+        self.fiber = load_fiber_table(cfg, out_root)
+        self.bundle = build_bundle(cfg)
+        self.spec, self.reductions = make_spec(cfg, self.bundle, self.fiber)
+        c = cfg.bake
+        n_batches = int(np.ceil(c.paths_per_phi_i / c.batch_paths))
+        self.work = [(a, k) for a in range(len(self.spec.phi_i)) for k in range(n_batches)]
+        self.sizes = [min(c.batch_paths, c.paths_per_phi_i - k * c.batch_paths) for _, k in self.work]
+        self.key = cfg.hash(*BAKE_SECTIONS)
+        self.ckpt = self.out / "checkpoint.npz"
+        self.tally, self.done, self.elapsed = Tally.zeros(self.spec, len(self.fiber.wavelength)), 0, 0.0
+        self._baker = None
+        self._resume()
+        self._last_save = self._t_prev = time.perf_counter()
+
+    @property
+    def baker(self) -> Baker:
+        """The in-process tracer (built on first use: a cluster's client needs none)."""
+        if self._baker is None:
+            self._baker = Baker(self.bundle, self.fiber, self.spec)
+        return self._baker
+
+    @property
+    def finished(self) -> bool:
+        return self.done == len(self.work)
+
+    @property
+    def total_paths(self) -> int:
+        return sum(self.sizes)
+
+    @property
+    def paths_left(self) -> int:
+        return sum(self.sizes[self.done:])
+
+    def serial(self):
+        """``(0, i, tally)`` for the remaining batches, traced here, in order."""
+        for i in range(self.done, len(self.work)):
+            yield 0, i, self.baker.trace(self.work[i][0], self.sizes[i], batch_seed(self.cfg, *self.work[i]))
+
+    def add(self, i: int, tally: Tally) -> int:
+        """Add batch ``i`` (the next one); checkpoint on the clock. Returns its paths."""
+        if i != self.done:
+            raise RuntimeError(f"batch {i} arrived while {self.done} was expected (they add in order)")
+        self.tally.add(tally)
+        now = time.perf_counter()
+        self.elapsed, self._t_prev = self.elapsed + (now - self._t_prev), now
+        self.done += 1
+        if now - self._last_save > self.cfg.bake.checkpoint_every_s and not self.finished:
+            self.save_checkpoint()
+            self._last_save = now
+        return self.sizes[i]
+
+    def _resume(self) -> None:
+        clear_torn(self.ckpt)  # a kill -9 during a checkpoint write leaves its temporary behind
+        if not self.ckpt.exists():
+            return
+        try:
+            with np.load(self.ckpt, allow_pickle=False) as z:
+                if str(z["key"]) == self.key:
+                    self.tally, self.done, self.elapsed = Tally.from_arrays(z), int(z["done"]), float(z["elapsed"])
+                    print(f"[bake] {self.cfg.name}: resuming from checkpoint: {self.done}/{len(self.work)} "
+                          "batches done")
+                else:
+                    print(f"[bake] {self.cfg.name}: checkpoint is from other settings; starting over")
+        except Exception as e:  # a torn checkpoint cannot happen (atomic), but be safe
+            print(f"[bake] {self.cfg.name}: unreadable checkpoint ({e}); starting over")
+
+    def save_checkpoint(self) -> None:
+        with atomic_path(self.ckpt) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, key=np.array(self.key), done=np.array(self.done), elapsed=np.array(self.elapsed),
+                         **self.tally.arrays())
+
+    def finish(self) -> Path:
+        """Write the table, its summary, metrics and pictures; remove the checkpoint."""
+        cfg, c, tally, out, bundle = self.cfg, self.cfg.bake, self.tally, self.out, self.bundle
+        table = tally_to_table(tally, self.spec, self.fiber, self.reductions)
+        table.meta.update(config_name=cfg.name, config_hash=self.key, config=cfg.model_dump(mode="json"),
+                          fiber_model=cfg.fiber.model, estimator=c.estimator, seed=c.seed,
+                          samples_per_phi_i=c.paths_per_phi_i, vertices=int(tally.vertices),
+                          bake_seconds=self.elapsed, n_fibers=len(bundle.radii),
+                          packing_fraction=bundle.packing_fraction, bounding_radius_um=bundle.bounding_radius,
+                          variant=c.variant, code_version=_code_version())
+        table.save(out / "bundle_table.npz")
+        balance = table.energy_balance()
+        elapsed = self.elapsed
+        summary = {"config_hash": self.key, "bake_seconds": elapsed, "paths": int(tally.paths.sum()),
+                   "vertices": int(tally.vertices), "vertices_per_second": tally.vertices / max(elapsed, 1e-9),
+                   "n_fibers": len(bundle.radii), "packing_fraction": bundle.packing_fraction,
+                   "passthrough": table.passthrough.tolist(),
+                   **{k: float(np.mean(v)) for k, v in balance.items()},
+                   "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1)))}
+        summary["reductions"] = {"used": self.reductions, **reduction_cost(cfg, self.baker, elapsed)}
+        write_text(out / "summary.json", json.dumps(summary, indent=1))
+        write_metrics(cfg, self.out_root, "bake", {
+            "passthrough": float(np.mean(table.passthrough)), "albedo": summary.get("scattered", np.nan),
+            "max_abs_energy_error": summary["max_abs_energy_error"], "bake_seconds": elapsed,
+            "vertices_per_second": summary["vertices_per_second"]})
+        # the pictures go with the table they show: a bake that fails before this point leaves
+        # the last table and its own pictures, not a new arrangement beside an old table
+        bundle.plot(out / "arrangement.png")
+        plot_table(table, out / "slices")
+        plot_balance(table, out / "energy.png")
+        self.ckpt.unlink(missing_ok=True)
+        print(f"[bake] {cfg.name} ({c.estimator}): {tally.paths.sum():.3g} paths, {tally.vertices:.3g} vertices "
+              f"in {elapsed:.1f} s ({summary['vertices_per_second'] / 1e6:.2f} M vertices/s); passthrough "
+              f"{table.passthrough.mean():.3f}; energy total {np.mean(balance['total']):.4f}; wrote {out}")
+        return out
 
 
 def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50_000) -> dict:

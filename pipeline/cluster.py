@@ -23,7 +23,10 @@ from __future__ import annotations
 import contextlib
 import os
 
-_BAKERS: dict = {}  # per worker process: one Baker per (config, fiber table)
+from .config import FIBER_SECTIONS
+
+_BAKERS: dict = {}  # per worker process: the Bakers of the last few (config, fiber table)
+BAKERS_KEPT = 4  # a sweep's tasks interleave members a little: keep a few scenes built
 CONNECT_TIMEOUT = "10s"  # how long to look for a scheduler before saying it cannot be reached
 MAX_BATCHES_PER_TASK = 8
 
@@ -47,11 +50,10 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, thre
     import json
 
     import mitsuba as mi
-    import numpy as np
 
     from models.baker import Baker
 
-    from .bake import build_bundle, make_spec
+    from .bake import batch_seed, build_bundle, make_spec
     from .config import Config
 
     cfg = Config.model_validate(json.loads(cfg_json))
@@ -70,9 +72,10 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, thre
         mi.set_variant(cfg.bake.variant)  # this worker's entry point
         bundle = build_bundle(cfg)
         spec, _ = make_spec(cfg, bundle, fiber)
-        _BAKERS.clear()
+        while len(_BAKERS) >= BAKERS_KEPT:
+            _BAKERS.pop(next(iter(_BAKERS)))  # the oldest
         _BAKERS[key] = Baker(bundle, fiber, spec)
-    return pack(_BAKERS[key].trace(a, size, np.random.SeedSequence([cfg.bake.seed, a, k])))
+    return pack(_BAKERS[key].trace(a, size, batch_seed(cfg, a, k)))
 
 
 def pack(tally) -> dict:
@@ -145,34 +148,45 @@ def client(workers: int | None = None, scheduler: str | None = None):
         yield c
 
 
-def ordered_tallies(c, cfg, fiber, work, sizes, start: int):
-    """Yield ``(index, tally)`` for batches ``start ..`` in order, traced on the cluster.
+def ordered_tallies(c, bakes):
+    """Yield ``(j, index, tally)`` for the remaining batches of every bake in ``bakes``
+    (:class:`pipeline.bake.Bake`), traced on the cluster; each bake's batches in order.
 
-    All remaining batches are submitted at once (Dask schedules them), a few consecutive
-    batches per task so that each round trip to the scheduler carries more work (at least
-    four tasks per worker remain, for balance); results are held until every earlier
-    batch is in, so the caller adds them in the serial order.
+    All remaining batches are submitted at once, bake after bake (Dask runs tasks
+    roughly in the order they were submitted, so a worker seldom switches scenes), a few
+    consecutive batches per task so that each round trip to the scheduler carries more
+    work (at least four tasks per worker remain, for balance); a result is held until
+    every earlier batch of its bake is in, so the caller adds them in the serial order.
     """
     from distributed import as_completed
 
     import drjit as dr
 
-    cfg_json, code, threads = cfg.model_dump_json(), code_digest(cfg), dr.thread_count()
-    remote_fiber = c.scatter(fiber, broadcast=True)
-    todo = list(range(start, len(work)))
+    threads = dr.thread_count()
     n_workers = max(1, len(c.scheduler_info().get("workers", {})))
-    per_task = max(1, min(MAX_BATCHES_PER_TASK, len(todo) // (4 * n_workers)))
-    groups = [todo[i:i + per_task] for i in range(0, len(todo), per_task)]
-    futures = {c.submit(trace_batches, cfg_json, remote_fiber, [(*work[i], sizes[i]) for i in g], code, threads,
-                        pure=False, key=f"bake-{cfg.name}-{g[0]}-{g[-1]}"): g for g in groups}
-    ready, nxt = {}, start
+    left = sum(len(b.work) - b.done for b in bakes)
+    per_task = max(1, min(MAX_BATCHES_PER_TASK, left // (4 * n_workers)))
+    futures, fibers = {}, {}
+    for j, b in enumerate(bakes):
+        cfg = b.cfg
+        cfg_json, code = cfg.model_dump_json(), code_digest(cfg)
+        fkey = cfg.hash(*FIBER_SECTIONS)
+        if fkey not in fibers:  # members of a sweep that share a fiber share its upload
+            fibers[fkey] = c.scatter(b.fiber, broadcast=True)
+        todo = list(range(b.done, len(b.work)))
+        for g in (todo[i:i + per_task] for i in range(0, len(todo), per_task)):
+            fut = c.submit(trace_batches, cfg_json, fibers[fkey], [(*b.work[i], b.sizes[i]) for i in g], code,
+                           threads, pure=False, key=f"bake-{cfg.name}-{cfg.hash()[:6]}-{g[0]}-{g[-1]}")
+            futures[fut] = (j, g)
+    ready, nxt = [{} for _ in bakes], [b.done for b in bakes]
     try:
         for fut in as_completed(futures):
-            for i, packed in zip(futures[fut], fut.result()):
-                ready[i] = unpack(packed)
+            j, g = futures[fut]
+            for i, packed in zip(g, fut.result()):
+                ready[j][i] = unpack(packed)
             fut.release()
-            while nxt in ready:
-                yield nxt, ready.pop(nxt)
-                nxt += 1
+            while nxt[j] in ready[j]:
+                yield j, nxt[j], ready[j].pop(nxt[j])
+                nxt[j] += 1
     finally:
         c.cancel(list(futures))

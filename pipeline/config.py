@@ -12,7 +12,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Literal, Optional, Union
+from typing import Any, Literal, Optional, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -272,6 +272,9 @@ class ReportCfg(Strict):
     queries: int = Field(200_000, ge=1000, le=10_000_000, description="batch size of the timings")
 
 
+MAX_MEMBERS = 1000
+
+
 class Config(Strict):
     # a folder name under artifacts/: no separators, and not '.' or '..'
     name: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.-]+$", max_length=100)
@@ -283,6 +286,29 @@ class Config(Strict):
     train: TrainCfg = TrainCfg()
     render: RenderCfg = RenderCfg()
     report: ReportCfg = ReportCfg()
+    sweep: Optional[dict[str, list[Any]]] = Field(
+        None, description="axes of a family of bakes: dotted key -> values (bcsdf sweep; pipeline/sweep.py)")
+
+    @field_validator("sweep")
+    @classmethod
+    def _axes(cls, v):
+        if v is None:
+            return v
+        if not v:
+            raise ValueError("an empty sweep has no members: name at least one axis, e.g. "
+                             "{bundle.packing: [0.3, 0.5]}, or leave out 'sweep:'")
+        members = 1
+        for key, values in v.items():
+            if key.split(".")[0] in ("name", "sweep"):
+                raise ValueError(f"{key!r} cannot be swept (members are named after their axes)")
+            if not values:
+                raise ValueError(f"axis {key!r} has no values")
+            if len({json.dumps(x, sort_keys=True) for x in values}) < len(values):
+                raise ValueError(f"axis {key!r} repeats a value ({values})")
+            members *= len(values)
+        if members > MAX_MEMBERS:
+            raise ValueError(f"{members:,} members (the product of the axes' lengths); at most {MAX_MEMBERS}")
+        return v
 
     @field_validator("name")
     @classmethod
@@ -372,15 +398,67 @@ def apply_overrides(data: dict, overrides) -> dict:
             value = yaml.safe_load(text)
         except yaml.YAMLError as e:
             raise ConfigError(f"--set {item!r}: the value is not valid YAML ({e})") from None
-        node, parts = data, key.strip().split(".")
-        for i, part in enumerate(parts[:-1]):
-            if node.get(part) is None:
-                node[part] = {}
-            if not isinstance(node[part], dict):
-                raise ConfigError(f"--set {item!r}: {'.'.join(parts[:i + 1])} is a value, not a section")
-            node = node[part]
-        node[parts[-1]] = value
+        try:
+            set_key(data, key.strip(), value)
+        except ConfigError as e:
+            raise ConfigError(f"--set {item!r}: {e}") from None
     return data
+
+
+def set_key(data: dict, key: str, value) -> None:
+    """``data[a][b][c] = value`` for ``key = "a.b.c"``, creating missing sections."""
+    node, parts = data, key.split(".")
+    for i, part in enumerate(parts[:-1]):
+        if node.get(part) is None:
+            node[part] = {}
+        if not isinstance(node[part], dict):
+            raise ConfigError(f"{'.'.join(parts[:i + 1])} is a value, not a section")
+        node = node[part]
+    node[parts[-1]] = value
+
+
+def sweep_members(cfg: Config) -> list[tuple[dict, Config]]:
+    """The members of ``cfg``'s sweep: every combination of its axes' values (a grid, the
+    first axis slowest), each ``({key: value}, Config)``, named after its values
+    (``packing-0.3_seed-2``) and validated like any config.
+
+    Raises :class:`ConfigError` naming the member and the key of the first invalid one.
+    """
+    import itertools
+
+    if not cfg.sweep:
+        return []
+    axes = cfg.sweep
+    short = {k: k.rsplit(".", 1)[-1] for k in axes}
+    if len(set(short.values())) < len(short):  # bundle.seed and bake.seed: keep the whole key
+        short = {k: k for k in axes}
+    base = cfg.model_dump(mode="json", exclude={"sweep"})
+    members = []
+    for n, combo in enumerate(itertools.product(*axes.values())):
+        point = dict(zip(axes, combo))
+        name = "_".join(f"{short[k]}-{_label(v, axes[k])}" for k, v in point.items())
+        if len(name) > 100:
+            name = f"member-{n:03d}"
+        data = json.loads(json.dumps(base))
+        data["name"] = name
+        try:
+            for key, value in point.items():
+                set_key(data, key, value)
+            member = Config.model_validate(data)
+        except (ConfigError, ValidationError) as e:
+            what = _format_errors(e) if isinstance(e, ValidationError) else f"  {e}"
+            raise ConfigError(f"sweep member {name} ({', '.join(f'{k}={v!r}' for k, v in point.items())}) "
+                              f"is not a valid config:\n{what}") from None
+        members.append((point, member))
+    return members
+
+
+def _label(value, values) -> str:
+    """A value as it reads in a member's folder name (its index where it has no short form)."""
+    text = f"{value:g}" if isinstance(value, float) else str(value)
+    if isinstance(value, (dict, list)) or not text or any(not (c.isalnum() or c in "_.-") for c in text):
+        return f"v{values.index(value)}"
+    return text
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -421,20 +499,38 @@ def load_config(path, overrides=()) -> Config:
         raise ConfigError(f"{path}: expected a mapping of keys at the top level")
     data = apply_overrides(data, overrides)
     data.setdefault("name", path.stem)
+    _resolve_paths(data, path.parent)
+    where = f"{path} with --set {' '.join(overrides)}" if overrides else str(path)
     try:
         cfg = Config.model_validate(data)
     except ValidationError as e:
-        where = f"{path} with --set {' '.join(overrides)}" if overrides else str(path)
         raise ConfigError(f"{where}: invalid config\n{_format_errors(e)}") from None
-    if cfg.bundle is not None and cfg.bundle.file:
-        cfg = cfg.model_copy(update={"bundle": cfg.bundle.model_copy(
-            update={"file": str((path.parent / cfg.bundle.file).resolve())})})
-    if cfg.fiber.table is not None and cfg.fiber.model == "table":
-        table_path = Path(cfg.fiber.table.path)
-        if not table_path.is_absolute():  # relative to the config file
-            table_path = (path.parent / table_path).resolve()
-        if not table_path.exists():
-            raise ConfigError(f"{path}: fiber.table.path: {table_path} does not exist")
-        cfg = cfg.model_copy(update={"fiber": cfg.fiber.model_copy(
-            update={"table": cfg.fiber.table.model_copy(update={"path": str(table_path)})})})
+    try:  # a sweep's members are refused here, before anything runs
+        configs = [cfg] + [m for _, m in sweep_members(cfg)]
+    except ConfigError as e:
+        raise ConfigError(f"{where}: {e}") from None
+    for c in configs:
+        if c.fiber.table is not None and c.fiber.model == "table" and not Path(c.fiber.table.path).exists():
+            who = "" if c is cfg else f"sweep member {c.name}: "
+            raise ConfigError(f"{where}: {who}fiber.table.path: {c.fiber.table.path} does not exist")
     return cfg
+
+
+# file names in a config are relative to the config's folder
+PATH_KEYS = ("bundle.file", "fiber.table.path")
+
+
+def _resolve_paths(data: dict, base: Path) -> None:
+    """Make the config's file names (also those of sweep axes) absolute, in place."""
+    def resolve(v):
+        return str((base / v).resolve()) if isinstance(v, str) and v else v
+
+    for key in PATH_KEYS:
+        node, parts = data, key.split(".")
+        for part in parts[:-1]:
+            node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, dict) and parts[-1] in node:
+            node[parts[-1]] = resolve(node[parts[-1]])
+        sweep = data.get("sweep")
+        if isinstance(sweep, dict) and isinstance(sweep.get(key), list):
+            sweep[key] = [resolve(v) for v in sweep[key]]
