@@ -117,11 +117,11 @@ class Bake:
     by :func:`run` and by the sweep (``pipeline.sweep``), which keeps several at once.
     """
 
-    def __init__(self, cfg, out_root):
+    def __init__(self, cfg, out_root, bundle: bundles.Bundle | None = None):
         self.cfg, self.out_root = cfg, out_root
         self.out = Path(out_root) / cfg.name / "bake"
         self.fiber = load_fiber_table(cfg, out_root)
-        self.bundle = build_bundle(cfg)
+        self.bundle = bundle or build_bundle(cfg)
         self.spec, self.reductions = make_spec(cfg, self.bundle, self.fiber)
         c = cfg.bake
         n_batches = int(np.ceil(c.paths_per_phi_i / c.batch_paths))
@@ -130,6 +130,9 @@ class Bake:
         self.key = cfg.hash(*BAKE_SECTIONS)
         self.ckpt = self.out / "checkpoint.npz"
         self.tally, self.done, self.elapsed = Tally.zeros(self.spec, len(self.fiber.wavelength)), 0, 0.0
+        # each batch's own estimates: the errors of the whole from batch means (paths are stratified
+        # within a batch, so the binomial error of the passthrough would overstate it)
+        self.batch_estimates: dict[str, list[float]] = {"scattered": [], "passthrough": []}
         self._baker = None
         self._resume()
         self._last_save = self._t_prev = time.perf_counter()
@@ -155,6 +158,7 @@ class Bake:
 
     def serial(self):
         """``(0, i, tally)`` for the remaining batches, traced here, in order."""
+        self._t_prev = time.perf_counter()  # the bake's time is its own batches' (a sweep runs several in turn)
         for i in range(self.done, len(self.work)):
             yield 0, i, self.baker.trace(self.work[i][0], self.sizes[i], batch_seed(self.cfg, *self.work[i]))
 
@@ -163,6 +167,9 @@ class Bake:
         if i != self.done:
             raise RuntimeError(f"batch {i} arrived while {self.done} was expected (they add in order)")
         self.tally.add(tally)
+        a = self.work[i][0]
+        self.batch_estimates["scattered"].append(float(np.mean(tally.sum[a].sum(axis=(1, 2)))) / self.sizes[i])
+        self.batch_estimates["passthrough"].append(float(tally.passthrough[a]) / self.sizes[i])
         now = time.perf_counter()
         self.elapsed, self._t_prev = self.elapsed + (now - self._t_prev), now
         self.done += 1
@@ -179,6 +186,9 @@ class Bake:
             with np.load(self.ckpt, allow_pickle=False) as z:
                 if str(z["key"]) == self.key:
                     self.tally, self.done, self.elapsed = Tally.from_arrays(z), int(z["done"]), float(z["elapsed"])
+                    for q in self.batch_estimates:  # unknown (NaN) in a checkpoint of older code
+                        self.batch_estimates[q] = [float(x) for x in z[f"batch_{q}"]] if f"batch_{q}" in z.files \
+                            else [np.nan] * self.done
                     print(f"[bake] {self.cfg.name}: resuming from checkpoint: {self.done}/{len(self.work)} "
                           "batches done")
                 else:
@@ -190,7 +200,7 @@ class Bake:
         with atomic_path(self.ckpt) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, key=np.array(self.key), done=np.array(self.done), elapsed=np.array(self.elapsed),
-                         **self.tally.arrays())
+                         **{f"batch_{q}": np.array(v) for q, v in self.batch_estimates.items()}, **self.tally.arrays())
 
     def finish(self) -> Path:
         """Write the table, its summary, metrics and pictures; remove the checkpoint."""
@@ -210,7 +220,9 @@ class Bake:
                    "n_fibers": len(bundle.radii), "packing_fraction": bundle.packing_fraction,
                    "passthrough": table.passthrough.tolist(),
                    **{k: float(np.mean(v)) for k, v in balance.items()},
-                   "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1)))}
+                   "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1))),
+                   **{f"{q}_mc_error": batch_means_error(v, self.sizes, [a for a, _ in self.work])
+                      for q, v in self.batch_estimates.items()}}
         summary["reductions"] = {"used": self.reductions, **reduction_cost(cfg, self.baker, elapsed)}
         write_text(out / "summary.json", json.dumps(summary, indent=1))
         write_metrics(cfg, self.out_root, "bake", {
@@ -227,6 +239,24 @@ class Bake:
               f"in {elapsed:.1f} s ({summary['vertices_per_second'] / 1e6:.2f} M vertices/s); passthrough "
               f"{table.passthrough.mean():.3f}; energy total {np.mean(balance['total']):.4f}; wrote {out}")
         return out
+
+
+def batch_means_error(estimates, sizes, azimuths) -> float | None:
+    """Standard error of a bake's mean (over incident azimuths) from its batches' own
+    estimates: per azimuth, the batches are independent estimates of one mean, each
+    with variance sigma^2 / n_k, so ``sigma^2 = sum n_k (x_k - x)^2 / (K - 1)`` and the
+    mean's variance is ``sigma^2 / N``. ``None`` with a single batch per azimuth."""
+    x, n, a = np.asarray(estimates), np.asarray(sizes, float), np.asarray(azimuths)
+    if not np.all(np.isfinite(x)):
+        return None
+    variances = []
+    for az in np.unique(a):
+        xk, nk = x[a == az], n[a == az]
+        if len(xk) < 2:
+            return None
+        mean = np.sum(nk * xk) / nk.sum()
+        variances.append(np.sum(nk * (xk - mean) ** 2) / (len(xk) - 1) / nk.sum())
+    return float(np.sqrt(np.sum(variances)) / len(variances))
 
 
 def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50_000) -> dict:

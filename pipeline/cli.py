@@ -6,6 +6,7 @@
     bcsdf export CONFIG    write each trained model as ONNX and as plain weights
     bcsdf render CONFIG    render the bundle BSDF in Mitsuba: table, ONNX and jitted MLP
     bcsdf stability CONFIG check finiteness, energy and references on stiff and extreme cases
+    bcsdf sweep CONFIG     bake every member of the config's sweep, write the family page
     bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
     bcsdf run CONFIG       every stage in order, skipping those that are up to date
                            (code, config sections and input artifacts unchanged, outputs
@@ -30,7 +31,7 @@ artifacts/<name>/ and carry the changed settings' hash, so later stages see the
 change (a quick trial: --set name=trial keeps it apart from the real artifacts).
 Errors print what is wrong and exit with status 2; earlier artifacts stay intact."""
 
-STAGES = ("fiber", "bake", "train", "export", "render", "stability", "report")
+STAGES = ("fiber", "bake", "train", "export", "render", "stability", "sweep", "report")
 
 
 def main(argv=None) -> int:
@@ -43,6 +44,7 @@ def main(argv=None) -> int:
                         ("export", "write the models as ONNX and plain weights"),
                         ("render", "render the bundle BSDF in Mitsuba (table, ONNX, jitted MLP)"),
                         ("stability", "numerical stability on stiff and extreme cases"),
+                        ("sweep", "bake every member of the config's sweep: section, write the family page"),
                         ("report", "write the HTML report"),
                         ("run", "run every stage in order")):
         p = sub.add_parser(name, help=help_, description=f"bcsdf {name}: {help_}.", epilog=EPILOG,
@@ -54,7 +56,7 @@ def main(argv=None) -> int:
         p.add_argument("--artifacts", default=argparse.SUPPRESS, help="output root (default: artifacts/)")
         if name == "run":
             p.add_argument("--force", action="store_true", help="rerun stages that are up to date")
-        if name in ("bake", "run"):
+        if name in ("bake", "sweep", "run"):
             p.add_argument("--workers", type=int, default=None, metavar="N",
                            help="bake on a local Dask cluster of N single-threaded worker processes")
             p.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -73,8 +75,7 @@ def main(argv=None) -> int:
         cfg = load_config(args.config, args.overrides)
         from models.io import writable_folder
         writable_folder(Path(args.artifacts) / cfg.name)  # before any long work, not after it
-        stages = [s for s in STAGES if s in ("fiber", "stability", "report") or cfg.bundle is not None] \
-            if args.command == "run" else (args.command,)
+        stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
         if args.command == "run":
             todo = [s for s in stages if args.force or not stages_.up_to_date(s, cfg, args.artifacts)[0]]
             if todo:
@@ -88,7 +89,7 @@ def main(argv=None) -> int:
                     continue
                 print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
             t0 = time.perf_counter()
-            shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage == "bake" else {}
+            shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
             _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
             stages_.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0)
     except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
@@ -103,6 +104,13 @@ def main(argv=None) -> int:
         print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
         return 130
     return 0
+
+
+def _applies(stage: str, cfg) -> bool:
+    """Whether ``bcsdf run`` runs ``stage`` for this config (a fiber alone: no bake ...)."""
+    if stage == "sweep":
+        return bool(cfg.sweep)
+    return stage in ("fiber", "stability", "report") or cfg.bundle is not None
 
 
 def _interrupted(exc) -> bool:

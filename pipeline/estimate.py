@@ -17,9 +17,10 @@ from .stages import stamp_path
 
 # seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone,
 # session 6 (the stages' stamps; docs/BENCHMARKS.md, "The whole default pipeline")
-OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "stability": 0.0, "report": 2.0}
+OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "stability": 0.0,
+            "sweep": 3.0, "report": 2.0}
 REFERENCE = {"fiber": 1.1e-3, "bake": 1.4e-6, "train": 1.7e-6, "export": 2.2, "render": 2.0e-6,
-             "stability": 9.0, "report": 10.0}
+             "stability": 9.0, "sweep": 1.4e-6, "report": 10.0}  # a sweep's work: its members' bakes
 
 
 def _fiber_work(cfg) -> float:
@@ -67,8 +68,14 @@ def _render_work(cfg) -> float:
     return float(work)
 
 
+def _sweep_work(cfg) -> float:
+    from .config import sweep_members
+
+    return sum(_bake_work(m) for _, m in sweep_members(cfg))
+
+
 WORK = {"fiber": _fiber_work, "bake": _bake_work, "train": _train_work, "export": _export_work,
-        "render": _render_work, "stability": lambda cfg: 1.0, "report": lambda cfg: 1.0}
+        "render": _render_work, "sweep": _sweep_work, "stability": lambda cfg: 1.0, "report": lambda cfg: 1.0}
 
 
 def work(stage: str, cfg) -> float:

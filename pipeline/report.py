@@ -42,10 +42,10 @@ def run(cfg, out_root="artifacts") -> Path:
         body = (f"<p>Model <b>{html.escape(s['model'])}</b>, {len(s['theta_i_deg'])} incident longitudes x "
                 f"{len(s['wavelength_nm'])} wavelengths, tabulated in {s['tabulate_seconds']:.2f} s; albedo "
                 f"{E.min():.4f} .. {E.max():.4f}.</p>")
-        body += "".join(_img(out, p, f"fiber, {p.stem}") for p in chosen + [fiber / "energy.png"])
+        body += "".join(img_tag(out, p, f"fiber, {p.stem}") for p in chosen + [fiber / "energy.png"])
         sections.append(("Single-fiber model", body))
     else:
-        sections.append(("Single-fiber model", _missing("bcsdf fiber")))
+        sections.append(("Single-fiber model", not_run("bcsdf fiber")))
 
     # -- bake --------------------------------------------------------------------
     bake = root / "bake"
@@ -67,10 +67,10 @@ def run(cfg, out_root="artifacts") -> Path:
                      f"through both, scaled to this bake).</p>")
         slices = sorted((bake / "slices").glob("*.png"))
         chosen = [p for p in slices if "theta_i_+30.0" in p.name or "theta_i_+60.0" in p.name][:4] or slices[:2]
-        body += "".join(_img(out, p, p.stem) for p in [bake / "arrangement.png", *chosen, bake / "energy.png"])
+        body += "".join(img_tag(out, p, p.stem) for p in [bake / "arrangement.png", *chosen, bake / "energy.png"])
         sections.append(("Bundle and baked table", body))
     else:
-        sections.append(("Bundle and baked table", _missing("bcsdf bake")))
+        sections.append(("Bundle and baked table", not_run("bcsdf bake")))
 
     # -- neural ------------------------------------------------------------------
     train = root / "train"
@@ -90,7 +90,7 @@ def run(cfg, out_root="artifacts") -> Path:
                 "<th>held-out rel. L1</th><th>table noise L1</th><th>error / table noise</th>"
                 "<th>worst albedo error, calibration</th></tr>"
                 + "".join(rows) + "</table>")
-        body += "".join(_img(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
+        body += "".join(img_tag(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
                         if (train / n / "loss.png").exists())
         body += compare_slices(cfg, out_root, out)
         bench = root / "export" / "error_vs_time.json"
@@ -98,16 +98,18 @@ def run(cfg, out_root="artifacts") -> Path:
             result = json.loads(bench.read_text())
             body += (f"<p>Error against run time ({result['queries']:,} queries per timing; the table's own "
                      f"Monte Carlo noise: relative L1 {result['table_noise_l1']:.2%}).</p>")
-            body += _img(out, root / "export" / "error_vs_time.png", "error against run time")
+            body += img_tag(out, root / "export" / "error_vs_time.png", "error against run time")
             body += _rows_table(result["rows"])
         else:
-            body += _missing("bcsdf export")
+            body += not_run("bcsdf export")
         sections.append(("Neural compression", body))
     else:
-        sections.append(("Neural compression", _missing("bcsdf train && bcsdf export")))
+        sections.append(("Neural compression", not_run("bcsdf train && bcsdf export")))
 
     sections.append(("Renders and FLIP maps", render_section(cfg, root, out)))
     sections.append(("Numerical stability", stability_section(root)))
+    if cfg.sweep:
+        sections.append(("Family (sweep)", sweep_section(cfg, root)))
 
     # -- versions and config ---------------------------------------------------------
     versions = "".join(f"<tr><td>{p}</td><td>{_version(p)}</td></tr>" for p in PACKAGES)
@@ -116,7 +118,7 @@ def run(cfg, out_root="artifacts") -> Path:
                      f"<p>code {_code_version()}, config hash {cfg.hash()}</p><table>{versions}</table>"
                      f"<pre>{html.escape(yaml.safe_dump(cfg.model_dump(mode='json'), sort_keys=False))}</pre>"))
 
-    page = _page(cfg.name, sections)
+    page = html_page(cfg.name, sections)
     write_text(out / "index.html", page)
     print(f"[report] wrote {out / 'index.html'}")
     return out
@@ -173,7 +175,7 @@ def compare_slices(cfg, out_root, out) -> str:
 def stability_section(root: Path) -> str:
     path = root / "stability" / "stability.json"
     if not path.exists():
-        return _missing("bcsdf stability")
+        return not_run("bcsdf stability")
     rows = json.loads(path.read_text())
     failed = sum(not r["passed"] for r in rows)
     body = (f"<p>{len(rows) - failed} of {len(rows)} checks pass (<code>bcsdf stability</code>; the cases are "
@@ -192,7 +194,7 @@ def render_section(cfg, root: Path, out: Path) -> str:
     if cfg.bundle is None:
         return "<p>This config has no bundle, so nothing to render.</p>"
     if not path.exists():
-        return _missing("bcsdf render")
+        return not_run("bcsdf render")
     s = json.loads(path.read_text())
     body = (f"<p>Mitsuba {html.escape(s['variant'])}, {s['size'][0]} x {s['size'][1]} pixels, {s['spp']} samples "
             f"per pixel, integrator <code>bundle_path</code>; neural model: {s['model'] or '-'}. Times are of a "
@@ -209,7 +211,7 @@ def render_section(cfg, root: Path, out: Path) -> str:
                         f"<td>{flip}</td><td>{psnr}</td></tr>")
     body += ("<table><tr><th>scene</th><th>backend</th><th>render s</th><th>time / table</th><th>FLIP</th>"
              "<th>PSNR dB</th></tr>" + "".join(rows) + "</table>")
-    body += "".join(_img(out, root / "render" / f"{scene}_side_by_side.png", f"{scene}: table, neural, FLIP")
+    body += "".join(img_tag(out, root / "render" / f"{scene}_side_by_side.png", f"{scene}: table, neural, FLIP")
                     for scene in s["scenes"])
     if "mono_check" in s:
         m = s["mono_check"]
@@ -217,7 +219,7 @@ def render_section(cfg, root: Path, out: Path) -> str:
                  f"(left and right): mean colour of the ply {np.round(m['spectral_mean'], 4).tolist()} against "
                  f"{np.round(m['mono_combined_mean'], 4).tolist()}, largest relative difference "
                  f"{m['max_rel_diff']:.2%}.</p>")
-        body += _img(out, root / "render" / "mono_check.png", "spectral against mono renders + CIE")
+        body += img_tag(out, root / "render" / "mono_check.png", "spectral against mono renders + CIE")
     if "explicit" in s:
         e = s["explicit"]
         ff = {k: np.array([row[3] for row in rows]) for k, rows in e["far_field"].items()}
@@ -231,7 +233,7 @@ def render_section(cfg, root: Path, out: Path) -> str:
                  f"each rendered as a cylinder with the fiber model and averaged over the bin and 16 turns of the "
                  f"arrangement, against the bake: {within:.0%} of {len(bins)} bins within 3 standard errors + 2% "
                  f"(right, error bars 1 sigma of bake and render).</p>")
-        body += _img(out, root / "render" / "closure.png", "closure: far field and explicit fibers against the bake")
+        body += img_tag(out, root / "render" / "closure.png", "closure: far field and explicit fibers against the bake")
         p_ = e["ply"]
         body += ("<p>The ply scene (sun and sky): every fiber its own cylinder, averaged over 16 turns of the "
                  f"arrangement ({p_['explicit']['spp']} samples in all, {p_['explicit']['seconds']:.1f} s; top), "
@@ -239,21 +241,35 @@ def render_section(cfg, root: Path, out: Path) -> str:
                  + "; ".join(f"{k}: mean radiance x{v['mean_vs_explicit']:.3f}, FLIP {v['flip_vs_explicit']:.3f}, "
                              f"{v['seconds']:.2f} s" for k, v in p_.items() if k != "explicit")
                  + " (the explicit fibers are resolved, the bundle is its far field).</p>")
-        body += _img(out, root / "render" / "explicit_vs_bundle.png",
+        body += img_tag(out, root / "render" / "explicit_vs_bundle.png",
                      "explicit fibers (16 turns) against the bundle with the table and the MLP")
     return body
 
 
-def _img(out: Path, src: Path, alt: str) -> str:
+def sweep_section(cfg, root: Path) -> str:
+    """A link to the family page ``bcsdf sweep`` writes (its own page: it is rewritten
+    whenever the sweep grows, without this report)."""
+    axes = ", ".join(f"{html.escape(k)} ({len(v)} values)" for k, v in cfg.sweep.items())
+    if not (root / "sweep" / "index.html").exists():
+        return f"<p>Axes: {axes}.</p>" + not_run(f"bcsdf sweep {cfg.name}")
+    return (f"<p>Axes: {axes}. The family's passthrough, albedo, profiles, slices and the spread of the "
+            'arrangement against the Monte Carlo error: <a href="../sweep/index.html">the family page</a>.</p>')
+
+
+def img_tag(out: Path, src: Path, alt: str, copy: bool = True) -> str:
+    """An ``<img>`` for the page in ``out``: ``src`` copied beside it, or (``copy=False``,
+    ``src`` under ``out``) linked where it lies."""
     if not src.exists():
         return f"<p class=missing>missing picture: {html.escape(str(src))}</p>"
+    if not copy:
+        return f'<img src="{html.escape(src.relative_to(out).as_posix())}" alt="{html.escape(alt)}">'
     dst = out / (src.parent.name + "_" + src.name if src.parent != out else src.name)
     if src.resolve() != dst.resolve():
         shutil.copyfile(src, dst)
     return f'<img src="{html.escape(dst.name)}" alt="{html.escape(alt)}">'
 
 
-def _missing(command: str) -> str:
+def not_run(command: str) -> str:
     return f"<p class=missing>Not run yet: <code>{html.escape(command)}</code>.</p>"
 
 
@@ -273,7 +289,7 @@ def _version(package: str) -> str:
         return "not installed"
 
 
-def _page(name: str, sections) -> str:
+def html_page(name: str, sections) -> str:
     toc = "".join(f'<li><a href="#s{k}">{html.escape(t)}</a></li>' for k, (t, _) in enumerate(sections))
     body = "".join(f'<section id="s{k}"><h2>{html.escape(t)}</h2>{b}</section>' for k, (t, b) in enumerate(sections))
     return f"""<!doctype html>

@@ -1,6 +1,7 @@
 """Sharded bakes on Dask: the serial bake's table, bit for bit, however the batches run."""
 
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -57,6 +58,31 @@ def test_local_cluster_bake_is_the_serial_bake_and_resumes(serial, tmp_path):
     bake_stage.run(cfg, tmp_path, stop_after=4, workers=2)
     assert (tmp_path / "c" / "bake" / "checkpoint.npz").exists()
     assert cli.main(["--artifacts", str(tmp_path), "bake", str(path), "--workers", "2"]) == 0
+    assert _same(_table(tmp_path), _table(tmp / "serial"))
+
+
+def test_a_killed_worker_costs_time_not_the_table(serial, tmp_path, monkeypatch):
+    """kill -9 a worker process as the first results arrive, with most batches still to
+    trace: Dask traces its batches again (its nanny restarts it) and the table is still
+    the serial bake's, bit for bit."""
+    from distributed import default_client
+
+    from pipeline import cluster
+
+    cfg, path, tmp = serial
+    _fiber(serial, tmp_path)
+    killed, unpack = [], cluster.unpack
+
+    def unpack_then_kill(packed):
+        if not killed:
+            pid = sorted(default_client().run(os.getpid).values())[0]
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+        return unpack(packed)
+
+    monkeypatch.setattr(cluster, "unpack", unpack_then_kill)
+    bake_stage.run(cfg, tmp_path, workers=2)
+    assert killed
     assert _same(_table(tmp_path), _table(tmp / "serial"))
 
 

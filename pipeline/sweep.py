@@ -1,0 +1,354 @@
+"""Stage ``sweep``: a family of bakes over the axes of a config's ``sweep:`` section.
+
+A researcher's unit of work is seldom one ply: it is a packing fraction against
+another, a fiber colour against another, or several Poisson draws of one ply type. A
+``sweep:`` section names config keys and their values; its **members** are every
+combination (a grid, the first axis slowest), each a whole config named after its
+values and validated like one (a bad axis or value is refused before anything runs,
+naming the member and the key)::
+
+    sweep:
+      bundle.packing: [0.3, 0.5]
+      bundle.seed: [1, 2, 3]        # seeds: the arrangement-to-arrangement spread
+
+===============================  ====================================================
+``bcsdf sweep CONFIG``           fiber and bake of every member, then the family page
+``--workers N``                  on a local Dask cluster of N single-threaded workers
+``--scheduler ADDRESS``          on an existing Dask cluster (or ``BCSDF_SCHEDULER``)
+===============================  ====================================================
+
+Each member has its own artifacts, ``artifacts/<name>/sweep/<member>/{fiber,bake}/``, and
+stamps: a member that is up to date (``pipeline.stages``) is skipped, so a sweep grows
+by editing its axes. Members that share their fiber settings share one tabulation. On
+a cluster every remaining batch of every member is submitted at once (members x batches
+as tasks; ``pipeline.cluster``), and each member's table is its own ``bcsdf bake``'s, bit
+for bit. Interrupted, finished members are kept and partial ones resume from their
+checkpoints.
+
+The family summary, ``artifacts/<name>/sweep/``:
+
+* ``family.json``, ``family.csv``: per member its values, fibers, packing, passthrough,
+  albedo and absorption, each with its Monte Carlo error;
+* ``family_<axis>.png``: passthrough and albedo against each axis;
+* ``profile.png``: the azimuthal distribution of scattered light per member;
+* ``spread.json`` (a ``bundle.seed`` axis): per ply type, the spread of passthrough and
+  albedo across arrangements beside the Monte Carlo error of one bake;
+* ``index.html``: all of it on one page, with each member's table slice.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import html
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from models.io import atomic_path, write_text
+
+from . import stages
+from .config import FIBER_SECTIONS, sweep_members
+from .metrics import write_curve, write_metrics
+
+SEED = "bundle.seed"
+THETA_I_SHOWN = 30.0  # deg: the incidence of the slices and profiles on the family page
+
+
+def run(cfg, out_root="artifacts", workers=None, scheduler=None, stop_after=None) -> Path:
+    """Bake every member that is not up to date, then write the family summary.
+
+    ``stop_after`` batches (over all members) simulates an interruption: finished
+    members are kept, the others keep their checkpoints.
+    """
+    if not cfg.sweep:
+        raise ValueError(f"config {cfg.name} has no 'sweep:' section; add one, e.g. "
+                         "sweep: {bundle.packing: [0.3, 0.5], bundle.seed: [1, 2]}")
+    if cfg.bundle is None:
+        raise ValueError(f"config {cfg.name} has no 'bundle:' section: a sweep bakes bundles")
+    from .bake import build_bundle
+
+    members = [m for _, m in sweep_members(cfg)]
+    root = Path(out_root) / cfg.name / "sweep"
+    # every member's fibers are placed before any work: an arrangement that cannot be
+    # drawn (a packing too dense for its radius) is refused before anything is baked
+    bundles = {}
+    for m in members:
+        try:
+            bundles[m.name] = build_bundle(m)
+        except ValueError as e:
+            raise ValueError(f"sweep member {m.name}: {e}") from None
+
+    tabulate_fibers(members, root)
+    todo = [m for m in members if not stages.up_to_date("bake", m, root)[0]]
+    print(f"[sweep] {cfg.name}: {len(members)} members, {len(members) - len(todo)} up to date, "
+          f"{len(todo)} to bake", flush=True)
+    if todo and not bake_members(todo, bundles, root, workers, scheduler, stop_after):
+        return root
+    return write_family(cfg, members, root, out_root)
+
+
+# -- Fibers: one tabulation per distinct fiber setting -------------------------------
+def tabulate_fibers(members, root: Path) -> None:
+    from . import fiber as fiber_stage
+
+    made: dict[str, object] = {}  # fiber settings -> the member that holds their table
+    for m in members:
+        key = m.hash(*FIBER_SECTIONS)
+        if stages.up_to_date("fiber", m, root)[0]:
+            made.setdefault(key, m)
+            continue
+        if key in made:  # the same fiber: copy its artifacts rather than tabulate again
+            for src in stages.spec("fiber", made[key], root)["outs"]:
+                dst = Path(str(src).replace(f"/{made[key].name}/", f"/{m.name}/", 1))
+                for f in ([src] if src.is_file() else sorted(p for p in src.rglob("*") if p.is_file())):
+                    target = dst / f.relative_to(src) if src.is_dir() else dst
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    with atomic_path(target) as tmp:
+                        shutil.copyfile(f, tmp)
+        else:
+            fiber_stage.run(m, root)
+            made[key] = m
+        stages.stamp("fiber", m, root)
+
+
+# -- Bakes: members x batches, here or on a cluster ----------------------------------
+def bake_members(todo, bundles: dict, root: Path, workers, scheduler, stop_after) -> bool:
+    """Bake ``todo``; returns whether every one finished (``stop_after`` may stop it)."""
+    import mitsuba as mi
+    from tqdm import tqdm
+
+    from . import cluster
+    from .bake import Bake
+
+    bakes = [Bake(m, root, bundles[m.name]) for m in todo]
+
+    def serial():
+        for j, b in enumerate(bakes):
+            mi.set_variant(b.cfg.bake.variant)  # a swept bake.variant changes it per member
+            for _, i, tally in b.serial():
+                yield j, i, tally
+
+    added, left = 0, sum(b.paths_left for b in bakes)
+    with cluster.client(workers, scheduler) as dask_client, \
+            tqdm(total=left, unit="path", unit_scale=True, desc=f"sweep ({len(bakes)} bakes)") as bar:
+        batches = serial() if dask_client is None else cluster.ordered_tallies(dask_client, bakes)
+        with contextlib.closing(batches):
+            for j, i, tally in batches:
+                b = bakes[j]
+                bar.update(b.add(i, tally))
+                added += 1
+                if b.finished:
+                    mi.set_variant(b.cfg.bake.variant)  # the summary's probe traces here
+                    b.finish()
+                    stages.stamp("bake", b.cfg, root, seconds=b.elapsed)
+                    bar.set_postfix(members=f"{sum(x.finished for x in bakes)}/{len(bakes)}", refresh=False)
+                if stop_after is not None and added >= stop_after:
+                    for x in bakes:
+                        if not x.finished and x.done:
+                            x.save_checkpoint()
+                    return False
+    return True
+
+
+# -- The family ----------------------------------------------------------------------
+def member_record(point: dict, table, summary: dict) -> dict:
+    """One member's row: its values and its figures with their Monte Carlo errors.
+
+    The errors are the bake's own, from its batches' estimates (``bake.batch_means_error``):
+    paths are stratified within a batch, so the binomial error of the passthrough would
+    overstate its error, and the bins' errors in quadrature would overstate the albedo's
+    (bins of one path are correlated).
+    """
+    def error(q):
+        e = summary.get(f"{q}_mc_error")
+        return float("nan") if e is None else e
+    return {**{k: v for k, v in point.items()},
+            "n_fibers": summary["n_fibers"], "packing_fraction": summary["packing_fraction"],
+            "passthrough": float(np.mean(table.passthrough)),
+            "passthrough_mc_error": error("passthrough"),
+            "albedo": float(np.mean(table.scattered)),
+            "albedo_mc_error": error("scattered"),
+            "absorbed": float(np.mean(table.absorbed)), "bake_seconds": summary["bake_seconds"]}
+
+
+def seed_spread(rows: list[dict], axes: dict) -> list[dict]:
+    """Per ply type (the other axes' values): mean and spread over the seeds of
+    passthrough and albedo, beside one bake's Monte Carlo error (rms over the seeds)."""
+    others = [k for k in axes if k != SEED]
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(json.dumps({k: r[k] for k in others}, sort_keys=True), []).append(r)
+    out = []
+    for key, g in groups.items():
+        rec = {**json.loads(key), "seeds": len(g)}
+        for q in ("passthrough", "albedo"):
+            v = np.array([r[q] for r in g])
+            rec[f"{q}_mean"] = float(v.mean())
+            rec[f"{q}_spread"] = float(v.std(ddof=1)) if len(v) > 1 else 0.0  # one draw to the next
+            rec[f"{q}_mc_error"] = float(np.sqrt(np.mean([r[f"{q}_mc_error"] ** 2 for r in g])))
+        out.append(rec)
+    return out
+
+
+def write_family(cfg, members, root: Path, out_root) -> Path:
+    from models.bundle_table import BundleTable
+
+    axes = cfg.sweep
+    rows, tables = [], []
+    for (point, _), m in zip(sweep_members(cfg), members):
+        bake = root / m.name / "bake"
+        table = BundleTable.load(bake / "bundle_table.npz")
+        rows.append({"member": m.name, **member_record(point, table, json.loads((bake / "summary.json").read_text()))})
+        tables.append(table)
+    spread = seed_spread(rows, axes) if SEED in axes and len(axes[SEED]) > 1 else []
+
+    write_text(root / "family.json", _json({"axes": axes, "members": rows, "seed_spread": spread}))
+    write_curve(root / "family.csv", [{k: (json.dumps(v) if isinstance(v, (list, dict)) else v)
+                                       for k, v in r.items()} for r in rows])
+    if spread:
+        write_text(root / "spread.json", _json(spread))
+    for key in axes:
+        plot_axis(rows, axes, key, root / f"family_{_file_part(key)}.png")
+    j = int(np.argmin(np.abs(np.rad2deg(tables[0].theta_i) - THETA_I_SHOWN)))
+    plot_profiles(rows, tables, j, root / "profile.png")
+    write_metrics(cfg, out_root, "sweep", {
+        "members": len(rows),
+        "passthrough": {r["member"]: r["passthrough"] for r in rows},
+        "albedo": {r["member"]: r["albedo"] for r in rows},
+        **({"seed_spread_over_mc_error": max(s["albedo_spread"] / max(s["albedo_mc_error"], 1e-12)
+                                             for s in spread)} if spread else {})})
+    write_text(root / "index.html", family_page(cfg, members, rows, spread, tables, j, root))
+    print(f"[sweep] {cfg.name}: wrote {root / 'index.html'}")
+    return root
+
+
+def _json(data) -> str:
+    """JSON with an unknown error (NaN: a bake of one batch per azimuth) as null."""
+    def clean(v):
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [clean(x) for x in v]
+        return None if isinstance(v, float) and not np.isfinite(v) else v
+    return json.dumps(clean(data), indent=1)
+
+
+# -- Pictures ------------------------------------------------------------------------
+def _file_part(key: str) -> str:
+    return key.replace(".", "_")
+
+
+def _numeric(values) -> bool:
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+
+
+def plot_axis(rows, axes, key, path: Path) -> None:
+    """Passthrough and albedo against one axis: a line per combination of the other
+    axes (seeds averaged, their spread as bars; thin bars: Monte Carlo error)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .plots import save_figure
+
+    values = axes[key]
+    xs = values if _numeric(values) else list(range(len(values)))
+    pos = {json.dumps(v, sort_keys=True): x for v, x in zip(values, xs)}
+    others = [k for k in axes if k not in (key, SEED)]
+    lines: dict[str, list[dict]] = {}
+    for r in rows:
+        lines.setdefault(", ".join(f"{k.rsplit('.', 1)[-1]}={r[k]}" for k in others), []).append(r)
+    fig, axs = plt.subplots(1, 2, figsize=(10, 3.8), dpi=110)
+    for ax, q in zip(axs, ("passthrough", "albedo")):
+        for label, group in lines.items():
+            at: dict[float, list[dict]] = {}
+            for r in group:
+                at.setdefault(pos[json.dumps(r[key], sort_keys=True)], []).append(r)
+            x = np.array(sorted(at))
+            y = np.array([np.mean([r[q] for r in at[v]]) for v in x])
+            mc = np.array([np.sqrt(np.mean([r[f"{q}_mc_error"] ** 2 for r in at[v]])) for v in x])
+            if key == SEED:  # every draw is its own point
+                ax.errorbar(x, y, yerr=mc, fmt="o", capsize=3, label=label or None)
+                continue
+            spread = np.array([np.std([r[q] for r in at[v]], ddof=1) if len(at[v]) > 1 else 0.0 for v in x])
+            line = ax.errorbar(x, y, yerr=spread, fmt="o-", capsize=4, label=label or None)
+            ax.errorbar(x, y, yerr=mc, fmt="none", elinewidth=3, alpha=0.4, color=line[0].get_color())
+        ax.set(xlabel=key, ylabel=q, title=f"{q} (mean over incidence and wavelength)")
+        if not _numeric(values):
+            ax.set_xticks(xs, [str(v)[:16] for v in values], rotation=20)
+        if any(lines):
+            ax.legend(fontsize=7)
+    note = "bars: spread over seeds; thick pale bars: Monte Carlo error" if SEED in axes and key != SEED \
+        else "bars: Monte Carlo error of one bake"
+    fig.suptitle(f"sweep over {key} ({note})", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def plot_profiles(rows, tables, j: int, path: Path) -> None:
+    """Scattered light per radian of outgoing azimuth at one incidence (over theta_o
+    and wavelength), one curve per member: where the family differs, not only by how much."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .plots import save_figure
+
+    fig, ax = plt.subplots(figsize=(8, 4), dpi=110)
+    cmap = plt.get_cmap("viridis", max(len(rows), 2))
+    for n, (r, t) in enumerate(zip(rows, tables)):
+        per_bin = np.einsum("pql,pq->p", t.values[0, j].astype(np.float64), t.solid_angle) / t.values.shape[-1]
+        ax.plot(np.rad2deg(t.phi_o), per_bin / np.diff(t.phi_o_edges), color=cmap(n), lw=1.2, label=r["member"])
+    relative = tables[0].meta["reductions"]["phi_o"] == "relative"
+    ax.set(xlabel="phi_o - phi_i [deg] (180: forward)" if relative else "phi_o [deg] (bundle frame)",
+           ylabel="scattered per radian of phi_o", yscale="log",
+           title=f"azimuthal profile at theta_i = {np.rad2deg(tables[0].theta_i[j]):.0f} deg, phi_i = "
+                 f"{np.rad2deg(tables[0].phi_i[0]):.0f} deg")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def family_page(cfg, members, rows, spread, tables, j, root: Path) -> str:
+    from .report import html_page, img_tag
+
+    axes = list(cfg.sweep)
+    quantities = ("n_fibers", "packing_fraction", "passthrough", "albedo", "absorbed", "bake_seconds")
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in ["member", *axes, *quantities])
+
+    def cell(r, q):
+        if q in ("passthrough", "albedo"):
+            return f"{r[q]:.4f} &plusmn; {r[q + '_mc_error']:.4f}"
+        return f"{r[q]:.4g}" if isinstance(r[q], float) else html.escape(str(r[q]))
+    body = "".join("<tr>" + "".join(f"<td>{cell(r, q)}</td>" for q in ["member", *axes, *quantities]) + "</tr>"
+                   for r in rows)
+    paths = sorted({m.bake.paths_per_phi_i for m in members})
+    sections = [("Members", f"<p>{len(rows)} members of {html.escape(cfg.name)}, baked with "
+                            f"{' or '.join(f'{n:,}' for n in paths)} paths per incident azimuth (figures: mean "
+                            "over incidence and wavelength &plusmn; Monte Carlo error, from the bake's batches)."
+                            f"</p><table><tr>{head}</tr>{body}</table>")]
+    sections.append(("Against each axis", "".join(img_tag(root, root / f"family_{_file_part(k)}.png", k)
+                                                 for k in axes) + img_tag(root, root / "profile.png", "profiles")))
+    if spread:
+        others = [k for k in axes if k != SEED]
+        head = "".join(f"<th>{html.escape(h)}</th>" for h in [*others, "seeds", "passthrough", "spread over seeds",
+                                                                 "MC error", "albedo", "spread over seeds",
+                                                                 "MC error"])
+        body = "".join("<tr>" + "".join(f"<td>{html.escape(str(s[k]))}</td>" for k in others)
+                       + f"<td>{s['seeds']}</td>"
+                       + "".join(f"<td>{s[f'{q}_mean']:.4f}</td><td>{s[f'{q}_spread']:.4f}</td>"
+                                 f"<td>{s[f'{q}_mc_error']:.4f}</td>" for q in ("passthrough", "albedo")) + "</tr>"
+                       for s in spread)
+        sections.append(("Arrangement against Monte Carlo", (
+            "<p>One Poisson draw of the fibers differs from the next: the spread over seeds (standard deviation) is "
+            "what a ply type's table is uncertain by, however many paths one bake traces; the Monte Carlo error "
+            f"is one bake's.</p><table><tr>{head}</tr>{body}</table>")))
+    # each member's slice as its bake drew it, linked where it lies (the page's folder holds the members)
+    theta = np.rad2deg(tables[0].theta_i[j])
+    pics = "".join(f"<h3>{html.escape(r['member'])}</h3>" + img_tag(
+        root, root / r["member"] / "bake" / "slices" / f"phi_i_000.0_theta_i_{theta:+05.1f}.png", r["member"],
+        copy=False) for r in rows)
+    sections.append((f"Table slices at theta_i = {theta:.0f} deg", pics))
+    return html_page(f"{cfg.name}, sweep", sections)
