@@ -26,7 +26,8 @@ def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
 
     path = ROOT / "configs" / name
     cfg = load_config(path)
-    stages = ["fiber"] + (["bake", "train", "export", "render"] if cfg.bundle is not None else []) + ["report"]
+    stages = ["fiber"] + (["bake", "train", "export", "render"] if cfg.bundle is not None else []) \
+        + (["sweep"] if cfg.sweep else []) + ["report"]
     shrink = SHRINK + (["wavelengths.count=3"] if cfg.wavelengths.count > 3 else [])
     sets = [a for s in shrink for a in ("--set", s)]
     for stage in stages:
@@ -35,3 +36,6 @@ def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
     assert "missing picture" not in page
     if cfg.bundle is not None:
         assert len(re.findall(r"<img ", page)) >= 8
+    if cfg.sweep:
+        family = (tmp_path / cfg.name / "sweep" / "index.html").read_text()
+        assert "missing picture" not in family and 'href="../sweep/index.html"' in page
