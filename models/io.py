@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -27,16 +28,25 @@ def atomic_path(path):
     If the body raises, the temporary file is removed and ``path`` is untouched.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
         yield tmp
         os.chmod(tmp, _FILE_MODE)  # mkstemp's 0600 would make the artifact private
         os.replace(tmp, path)
+    except OSError as e:
+        if e.errno in WRITE_ERRORS:  # name the artifact, not its temporary (a full disk, a read-only one)
+            raise OSError(e.errno, e.strerror, str(path)) from e
+        raise
     finally:
-        if os.path.exists(tmp):
+        if tmp is not None and os.path.exists(tmp):
             os.remove(tmp)
+
+
+# what a full or read-only disk raises: said plainly by `bcsdf` (exit 2), not as a traceback
+WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
 
 
 def clear_torn(path) -> None:
@@ -67,6 +77,34 @@ def writable_folder(path) -> Path:
         raise ValueError(f"cannot write into {path} ({e.strerror}): choose another --artifacts folder "
                          "or fix its permissions") from None
     return path
+
+
+@contextlib.contextmanager
+def exclusive(folder, what: str):
+    """Hold ``folder``'s lock while ``what`` writes into it; refuse (``ValueError``) if
+    another process holds it. Two runs of one config would write the same artifacts and
+    interleave checkpoints. The lock is the kernel's (``flock``): it goes with the process,
+    so a killed run leaves none behind."""
+    import fcntl
+    import time
+
+    path = Path(folder) / ".lock"
+    fh = open(path, "a+")
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip() or "another process"
+            raise ValueError(f"{folder} is in use by {holder}: wait for it to finish (or stop it), or run with "
+                             "--set name=... or another --artifacts folder") from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"`{what}` (pid {os.getpid()}, since {time.strftime('%H:%M:%S')})")
+        fh.flush()
+        yield
+    finally:
+        fh.close()  # releases the lock
 
 
 def check_axis(values, name: str, lo: float = -np.inf, hi: float = np.inf, span: float | None = None) -> None:

@@ -19,6 +19,7 @@ artifacts from earlier runs are left as they were.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -68,30 +69,15 @@ def main(argv=None) -> int:
         os.environ.setdefault("TQDM_MININTERVAL", "30")
         os.environ.setdefault("TQDM_MAXINTERVAL", "60")
 
-    from . import stages as stages_
     from .config import ConfigError, load_config
 
     try:
-        cfg = load_config(args.config, args.overrides)
-        from models.io import writable_folder
-        writable_folder(Path(args.artifacts) / cfg.name)  # before any long work, not after it
-        stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
-        if args.command == "run":
-            todo = [s for s in stages if args.force or not stages_.up_to_date(s, cfg, args.artifacts)[0]]
-            if todo:
-                from .estimate import plan
-                print(plan(cfg, todo, args.artifacts), flush=True)
-        for stage in stages:
-            if args.command == "run":  # asked again: an earlier stage may have rewritten this one's inputs
-                fresh, why = stages_.up_to_date(stage, cfg, args.artifacts)
-                if fresh and not args.force:
-                    print(f"[run] {stage}: up to date, skipped")
-                    continue
-                print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
-            t0 = time.perf_counter()
-            shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
-            _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
-            stages_.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0)
+        with contextlib.ExitStack() as hold:
+            cfg = load_config(args.config, args.overrides)
+            from models.io import exclusive, writable_folder
+            folder = writable_folder(Path(args.artifacts) / cfg.name)  # before any long work, not after it
+            hold.enter_context(exclusive(folder, f"bcsdf {args.command} {args.config}"))  # one writer per config
+            _run(args, cfg)
     except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
         print(f"bcsdf {args.command}: error: {e}", file=sys.stderr)
         return 2
@@ -103,7 +89,38 @@ def main(argv=None) -> int:
             raise
         print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
         return 130
+    except OSError as e:
+        from models.io import WRITE_ERRORS
+        if e.errno not in WRITE_ERRORS:
+            raise
+        print(f"bcsdf {args.command}: error: cannot write {e.filename} ({e.strerror}): free some space, fix the "
+              "folder's permissions or point --artifacts at another disk, then run again; earlier artifacts are "
+              "intact, and a bake resumes from its last checkpoint", file=sys.stderr)
+        return 2
     return 0
+
+
+def _run(args, cfg) -> None:
+    """The stages ``args.command`` asks for (``run``: each that is not up to date)."""
+    from . import stages as stages_
+
+    stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
+    if args.command == "run":
+        todo = [s for s in stages if args.force or not stages_.up_to_date(s, cfg, args.artifacts)[0]]
+        if todo:
+            from .estimate import plan
+            print(plan(cfg, todo, args.artifacts), flush=True)
+    for stage in stages:
+        if args.command == "run":  # asked again: an earlier stage may have rewritten this one's inputs
+            fresh, why = stages_.up_to_date(stage, cfg, args.artifacts)
+            if fresh and not args.force:
+                print(f"[run] {stage}: up to date, skipped")
+                continue
+            print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
+        t0 = time.perf_counter()
+        shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
+        _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
+        stages_.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0)
 
 
 def _applies(stage: str, cfg) -> bool:

@@ -153,10 +153,12 @@ def ordered_tallies(c, bakes):
     (:class:`pipeline.bake.Bake`), traced on the cluster; each bake's batches in order.
 
     All remaining batches are submitted at once, bake after bake (Dask runs tasks
-    roughly in the order they were submitted, so a worker seldom switches scenes), a few
-    consecutive batches per task so that each round trip to the scheduler carries more
-    work (at least four tasks per worker remain, for balance); a result is held until
-    every earlier batch of its bake is in, so the caller adds them in the serial order.
+    roughly in the order they were submitted, so a worker seldom switches scenes), several
+    consecutive batches per task so that a round trip to the scheduler carries more work,
+    fewer towards the end (guided self-scheduling: a task takes 1/(4 N) of the batches not
+    yet submitted, for N workers, so the last tasks are single batches and the workers
+    finish together); a result is held until every earlier batch of its bake is in, so the caller
+    adds them in the serial order.
     """
     from distributed import as_completed
 
@@ -165,7 +167,6 @@ def ordered_tallies(c, bakes):
     threads = dr.thread_count()
     n_workers = max(1, len(c.scheduler_info().get("workers", {})))
     left = sum(len(b.work) - b.done for b in bakes)
-    per_task = max(1, min(MAX_BATCHES_PER_TASK, left // (4 * n_workers)))
     futures, fibers = {}, {}
     for j, b in enumerate(bakes):
         cfg = b.cfg
@@ -173,11 +174,14 @@ def ordered_tallies(c, bakes):
         fkey = cfg.hash(*FIBER_SECTIONS)
         if fkey not in fibers:  # members of a sweep that share a fiber share its upload
             fibers[fkey] = c.scatter(b.fiber, broadcast=True)
-        todo = list(range(b.done, len(b.work)))
-        for g in (todo[i:i + per_task] for i in range(0, len(todo), per_task)):
-            fut = c.submit(trace_batches, cfg_json, fibers[fkey], [(*b.work[i], b.sizes[i]) for i in g], code,
+        i = b.done
+        while i < len(b.work):
+            n = min(MAX_BATCHES_PER_TASK, max(1, left // (4 * n_workers)), len(b.work) - i)
+            g = list(range(i, i + n))
+            fut = c.submit(trace_batches, cfg_json, fibers[fkey], [(*b.work[k], b.sizes[k]) for k in g], code,
                            threads, pure=False, key=f"bake-{cfg.name}-{cfg.hash()[:6]}-{g[0]}-{g[-1]}")
             futures[fut] = (j, g)
+            i, left = i + n, left - n
     ready, nxt = [{} for _ in bakes], [b.done for b in bakes]
     try:
         for fut in as_completed(futures):

@@ -56,12 +56,8 @@ SEED = "bundle.seed"
 THETA_I_SHOWN = 30.0  # deg: the incidence of the slices and profiles on the family page
 
 
-def run(cfg, out_root="artifacts", workers=None, scheduler=None, stop_after=None) -> Path:
-    """Bake every member that is not up to date, then write the family summary.
-
-    ``stop_after`` batches (over all members) simulates an interruption: finished
-    members are kept, the others keep their checkpoints.
-    """
+def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
+    """Bake every member that is not up to date, then write the family summary."""
     if not cfg.sweep:
         raise ValueError(f"config {cfg.name} has no 'sweep:' section; add one, e.g. "
                          "sweep: {bundle.packing: [0.3, 0.5], bundle.seed: [1, 2]}")
@@ -84,8 +80,8 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None, stop_after=None
     todo = [m for m in members if not stages.up_to_date("bake", m, root)[0]]
     print(f"[sweep] {cfg.name}: {len(members)} members, {len(members) - len(todo)} up to date, "
           f"{len(todo)} to bake", flush=True)
-    if todo and not bake_members(todo, bundles, root, workers, scheduler, stop_after):
-        return root
+    if todo:
+        bake_members(todo, bundles, root, workers, scheduler)
     return write_family(cfg, members, root, out_root)
 
 
@@ -100,12 +96,10 @@ def tabulate_fibers(members, root: Path) -> None:
             made.setdefault(key, m)
             continue
         if key in made:  # the same fiber: copy its artifacts rather than tabulate again
-            for src in stages.spec("fiber", made[key], root)["outs"]:
-                dst = Path(str(src).replace(f"/{made[key].name}/", f"/{m.name}/", 1))
-                for f in ([src] if src.is_file() else sorted(p for p in src.rglob("*") if p.is_file())):
-                    target = dst / f.relative_to(src) if src.is_dir() else dst
-                    target.parent.mkdir(parents=True, exist_ok=True)
-                    with atomic_path(target) as tmp:
+            for out in stages.spec("fiber", made[key], root)["outs"]:  # its folder and its metrics
+                files = [out] if out.is_file() else sorted(p for p in out.rglob("*") if p.is_file())
+                for f in files:
+                    with atomic_path(root / m.name / f.relative_to(root / made[key].name)) as tmp:
                         shutil.copyfile(f, tmp)
         else:
             fiber_stage.run(m, root)
@@ -114,8 +108,9 @@ def tabulate_fibers(members, root: Path) -> None:
 
 
 # -- Bakes: members x batches, here or on a cluster ----------------------------------
-def bake_members(todo, bundles: dict, root: Path, workers, scheduler, stop_after) -> bool:
-    """Bake ``todo``; returns whether every one finished (``stop_after`` may stop it)."""
+def bake_members(todo, bundles: dict, root: Path, workers, scheduler) -> None:
+    """Bake ``todo``: each member is written and stamped as soon as its last batch is in;
+    interrupted, the others keep their checkpoints (saved on ``bake.checkpoint_every_s``)."""
     import mitsuba as mi
     from tqdm import tqdm
 
@@ -130,7 +125,7 @@ def bake_members(todo, bundles: dict, root: Path, workers, scheduler, stop_after
             for _, i, tally in b.serial():
                 yield j, i, tally
 
-    added, left = 0, sum(b.paths_left for b in bakes)
+    left = sum(b.paths_left for b in bakes)
     with cluster.client(workers, scheduler) as dask_client, \
             tqdm(total=left, unit="path", unit_scale=True, desc=f"sweep ({len(bakes)} bakes)") as bar:
         batches = serial() if dask_client is None else cluster.ordered_tallies(dask_client, bakes)
@@ -138,18 +133,11 @@ def bake_members(todo, bundles: dict, root: Path, workers, scheduler, stop_after
             for j, i, tally in batches:
                 b = bakes[j]
                 bar.update(b.add(i, tally))
-                added += 1
                 if b.finished:
                     mi.set_variant(b.cfg.bake.variant)  # the summary's probe traces here
                     b.finish()
                     stages.stamp("bake", b.cfg, root, seconds=b.elapsed)
                     bar.set_postfix(members=f"{sum(x.finished for x in bakes)}/{len(bakes)}", refresh=False)
-                if stop_after is not None and added >= stop_after:
-                    for x in bakes:
-                        if not x.finished and x.done:
-                            x.save_checkpoint()
-                    return False
-    return True
 
 
 # -- The family ----------------------------------------------------------------------
@@ -298,11 +286,13 @@ def plot_profiles(rows, tables, j: int, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(8, 4), dpi=110)
     cmap = plt.get_cmap("viridis", max(len(rows), 2))
+    relative = tables[0].meta["reductions"]["phi_o"] == "relative"
     for n, (r, t) in enumerate(zip(rows, tables)):
         per_bin = np.einsum("pql,pq->p", t.values[0, j].astype(np.float64), t.solid_angle) / t.values.shape[-1]
-        ax.plot(np.rad2deg(t.phi_o), per_bin / np.diff(t.phi_o_edges), color=cmap(n), lw=1.2, label=r["member"])
-    relative = tables[0].meta["reductions"]["phi_o"] == "relative"
-    ax.set(xlabel="phi_o - phi_i [deg] (180: forward)" if relative else "phi_o [deg] (bundle frame)",
+        phi = np.rad2deg(t.phi_o) % 360 if relative else np.rad2deg(t.phi_o)  # as the slices: forward mid-plot
+        order = np.argsort(phi)
+        ax.plot(phi[order], (per_bin / np.diff(t.phi_o_edges))[order], color=cmap(n), lw=1.2, label=r["member"])
+    ax.set(xlabel="phi_o - phi_i [deg] (0: back to the light, 180: forward)" if relative else "phi_o [deg] (bundle frame)",
            ylabel="scattered per radian of phi_o", yscale="log",
            title=f"azimuthal profile at theta_i = {np.rad2deg(tables[0].theta_i[j]):.0f} deg, phi_i = "
                  f"{np.rad2deg(tables[0].phi_i[0]):.0f} deg")

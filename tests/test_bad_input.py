@@ -33,9 +33,10 @@ def fiber_artifacts(tmp_path_factory):
     return tmp / "art"
 
 
-def snapshot(root: Path) -> dict:
+def snapshot(root: Path, skip=()) -> dict:
+    """Every artifact's digest (the lock's note of who last ran is not an artifact)."""
     return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+            for p in sorted(root.rglob("*")) if p.is_file() and p.name != ".lock" and p.name not in skip}
 
 
 def config(tmp, text=None, **sections):
@@ -189,3 +190,115 @@ def test_damaged_or_foreign_artifacts_are_named(trained, tmp_path, capsys, damag
             "--set", "render.model=tiny"]
     assert_refused_cleanly(argv, art, words, capsys)
 
+
+
+# -- the machine: a second run of one config, a full disk, a read-only one ------------
+def test_a_second_run_of_one_config_waits_its_turn(fiber_artifacts, tmp_path, capsys):
+    """Two runs of one config would write the same artifacts: the second is refused,
+    naming the first (a killed run leaves no lock: tests/test_bake_stage.py runs again
+    after kill -9)."""
+    from models.io import exclusive
+
+    art = tmp_path / "art"
+    shutil.copytree(fiber_artifacts, art)
+    path = config(tmp_path)
+    with exclusive(art / "tiny", "bcsdf bake elsewhere"):
+        assert_refused_cleanly(["--artifacts", str(art), "fiber", str(path)], art,
+                               ["in use by `bcsdf bake elsewhere`", "wait for it"], capsys)
+    assert cli.main(["--artifacts", str(art), "fiber", str(path)]) == 0  # its turn
+
+
+class SmallDisk:
+    """A real 8 MB file system (tmpfs) to fill up and to make read-only. Mounting needs
+    root and a machine that lets it; where it cannot, the same faults are raised where
+    the artifacts' writes begin (``models.io``'s temporary files), and the test says so."""
+
+    def __init__(self, root: Path, monkeypatch):
+        import subprocess
+
+        self.path, self._mp = root / "disk", monkeypatch
+        self.path.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(self.path)], capture_output=True,
+                           text=True)
+        self.real = r.returncode == 0
+        if not self.real:
+            import warnings
+            warnings.warn(f"no tmpfs ({r.stderr.strip()}): full and read-only disks simulated in models.io")
+
+    def _raise(self, code):
+        import os
+
+        from models import io
+
+        def fail(*args, **kwargs):
+            raise OSError(code, os.strerror(code), kwargs.get("dir"))
+        for name in ("mkstemp", "TemporaryFile"):
+            self._mp.setattr(io.tempfile, name, fail)
+
+    def fill(self):
+        import errno
+        import os
+
+        if not self.real:
+            return self._raise(errno.ENOSPC)
+        fd = os.open(self.path / "filler", os.O_WRONLY | os.O_CREAT)
+        try:
+            while True:
+                os.write(fd, bytes(65536))
+        except OSError as e:
+            assert e.errno == errno.ENOSPC
+        finally:
+            os.close(fd)
+
+    def free(self):
+        if self.real:
+            (self.path / "filler").unlink()
+        else:
+            self._mp.undo()
+
+    def read_only(self):
+        import errno
+        import subprocess
+
+        if not self.real:
+            return self._raise(errno.EROFS)
+        subprocess.run(["mount", "-o", "remount,ro", str(self.path)], check=True)
+
+    def close(self):
+        if self.real:
+            import subprocess
+            subprocess.run(["umount", "-l", str(self.path)], check=True)
+
+
+@pytest.fixture
+def small_disk(tmp_path, monkeypatch):
+    disk = SmallDisk(tmp_path, monkeypatch)
+    yield disk
+    disk.close()
+
+
+def test_a_full_disk_or_a_read_only_one_is_said_plainly_and_loses_nothing(fiber_artifacts, small_disk, tmp_path,
+                                                                          capsys):
+    art = small_disk.path / "art"
+    shutil.copytree(fiber_artifacts, art)
+    path = config(tmp_path, **BUNDLE, bake={"paths_per_phi_i": 4000, "batch_paths": 1024, "theta_i_step_deg": 45,
+                                            "n_theta_o": 8, "n_phi_o": 8})
+    assert cli.main(["--artifacts", str(art), "bake", str(path)]) == 0
+    capsys.readouterr()
+
+    # -- the disk fills up: the next bake cannot write its table ----------------------
+    small_disk.fill()
+    argv = ["--artifacts", str(art), "bake", str(path), "--set", "bake.seed=2"]
+    before = snapshot(art, skip=("filler",))
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "No space left on device" in err and str(art / "tiny") in err, err
+    assert snapshot(art, skip=("filler",)) == before
+    assert not list(art.rglob("*.tmp"))
+    small_disk.free()
+    assert cli.main(argv) == 0  # space again: the same command finishes
+
+    # -- read-only: refused before any work ---------------------------------------------
+    small_disk.read_only()
+    assert_refused_cleanly(["--artifacts", str(art), "bake", str(path), "--set", "bake.seed=3"], art,
+                           ["Read-only file system", str(art / "tiny")], capsys)

@@ -51,6 +51,7 @@ def _clone(tmp_path):
     text = re.sub(r"  - configs: \[[^\]]*\]", "  - configs: [tiny]", text)
     text = re.sub(r"  - bundles: \[[^\]]*\]", "  - bundles: [tiny]", text)
     text = re.sub(r"  - fibers_only: \[[^\]]*\]", "  - fibers_only: []", text)
+    text = re.sub(r"  - sweeps: \[[^\]]*\]", "  - sweeps: []", text)
     (repo / "dvc.yaml").write_text(text)
     trace = tmp_path / "trace"
     trace.mkdir()
@@ -154,6 +155,7 @@ def test_shipped_configs_match_dvc_yaml():
     with_bundle = {n for n, p in shipped.items() if load_config(p).bundle is not None}
     assert set(lists["bundles"]) == with_bundle
     assert set(lists["fibers_only"]) == set(shipped) - with_bundle
+    assert set(lists["sweeps"]) == {n for n, p in shipped.items() if load_config(p).sweep}
     for name, path in shipped.items():
         assert load_config(path).name == name, f"{path}: its name must be its file's stem (artifacts/<name>)"
         keys = set(yaml.safe_load(path.read_text()))
