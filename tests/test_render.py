@@ -123,10 +123,17 @@ def test_fiber_table_in_a_white_sky_is_white(baked, mi_plugins):
         assert img.mean() == pytest.approx(albedo.mean(), abs=0.02), (integrator, img.mean(), albedo)
 
 
-def test_render_stage_writes_images_flip_and_summary(baked, tmp_path):
+@pytest.fixture(scope="module")
+def exported(baked):
+    """The baked ply, trained and exported (once for the module)."""
     path, art = baked
     assert cli(["--artifacts", str(art), "train", str(path)]) == 0
     assert cli(["--artifacts", str(art), "export", str(path)]) == 0
+    return path, art
+
+
+def test_render_stage_writes_images_flip_and_summary(exported):
+    path, art = exported
     assert cli(["--artifacts", str(art), "render", str(path)]) == 0
     out = art / "ply" / "render"
     summary = json.loads((out / "summary.json").read_text())
@@ -136,10 +143,8 @@ def test_render_stage_writes_images_flip_and_summary(baked, tmp_path):
         assert (out / name).stat().st_size > 0, name
 
 
-def test_render_refuses_models_from_other_settings(baked, tmp_path, capsys):
-    path, art = baked
-    assert cli(["--artifacts", str(art), "train", str(path)]) == 0
-    assert cli(["--artifacts", str(art), "export", str(path)]) == 0
+def test_render_refuses_models_from_other_settings(exported, tmp_path, capsys):
+    path, art = exported
     capsys.readouterr()
     other = write_config(tmp_path, name="ply", train={"epochs": 21})  # same name, other training
     assert cli(["--artifacts", str(art), "render", str(other)]) == 2

@@ -66,18 +66,21 @@ def test_a_sweep_on_a_cluster_bakes_each_member_as_its_own_bake_and_resumes(tmp_
     tables = {m.name for m in members if (root / m.name / "bake" / "bundle_table.npz").exists()}
     assert tables == set(written)
     kept = (root / written[0] / "bake" / "bundle_table.npz").read_bytes()
-    assert any((root / m.name / "bake" / "checkpoint.npz").exists() for m in members)
+    resumed = [m.name for m in members if (root / m.name / "bake" / "checkpoint.npz").exists()]
+    assert resumed
     capsys.readouterr()
-    assert cli.main(["--artifacts", str(tmp_path / "a"), "sweep", str(path), "--workers", "2"]) == 0
+    assert cli.main(["--artifacts", str(tmp_path / "a"), "sweep", str(path)]) == 0  # here, not on the cluster
     out = capsys.readouterr().out
-    assert "1 up to date, 3 to bake" in out and "resuming from checkpoint" in out
+    assert "1 up to date, 3 to bake" in out and f"{resumed[0]}: resuming from checkpoint" in out
     assert (root / written[0] / "bake" / "bundle_table.npz").read_bytes() == kept  # not baked again
 
-    # -- each member's table is a plain serial bake of the member's config, bit for bit ---
+    # -- a member's table is a plain serial bake of the member's config, bit for bit: the
+    # one the cluster finished, and one resumed from the cluster's checkpoint here ------
     for m in members:
-        fiber_stage.run(m, tmp_path / "serial")
-        bake_stage.run(m, tmp_path / "serial")
-        assert _same(_table(root, m.name), _table(tmp_path / "serial", m.name)), m.name
+        if m.name in (written[0], resumed[0]):
+            fiber_stage.run(m, tmp_path / "serial")
+            bake_stage.run(m, tmp_path / "serial")
+            assert _same(_table(root, m.name), _table(tmp_path / "serial", m.name)), m.name
 
     # -- the family: every picture there, the seeds' spread beside the MC error -----------
     page = (root / "index.html").read_text()
