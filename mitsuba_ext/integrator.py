@@ -5,12 +5,15 @@ Call :func:`mitsuba_ext.register` after ``mi.set_variant`` to make it available.
 
 from __future__ import annotations
 
+# At module level (no variant is chosen here): the @dr.syntax methods below are
+# recompiled from their source, and see this module's globals, not a closure's.
+import drjit as dr
+import mitsuba as mi
+
 
 # -- small pure functions ----------------------------------------------------------
 def mis_weight(pdf_a, pdf_b):
     """Power heuristic, as Mitsuba's ``path`` (zero where undefined)."""
-    import drjit as dr
-
     a, b = dr.square(pdf_a), dr.square(pdf_b)
     w = a / (a + b)
     return dr.detach(dr.select(dr.isfinite(w), w, 0.0))
@@ -18,9 +21,6 @@ def mis_weight(pdf_a, pdf_b):
 
 def bundle_axis(si):
     """Unit tangent and in-plane outward normal of a bundle hit (``None``-safe: finite)."""
-    import drjit as dr
-    import mitsuba as mi
-
     t = si.sh_frame.t
     ok = dr.isfinite(dr.sum(t)) & (dr.squared_norm(t) > 0.25) & dr.isfinite(dr.sum(si.n))
     t = dr.select(ok, dr.normalize(t), mi.Vector3f(0, 1, 0))
@@ -39,8 +39,6 @@ def displaced_exit(si, r, h, w):
     table knows no axial displacement, so the exit stays in the hit's cross-section.
     Returns the exit point and its outward radial direction (for the ray offset).
     """
-    import drjit as dr
-
     t, n_perp, ok = bundle_axis(si)
     c = si.p - r * n_perp
     w_perp = w - dr.dot(w, t) * t
@@ -62,8 +60,6 @@ def far_side(si, r, d):
     spawned a float epsilon inside a long thin cylinder was seen to hit the same
     entry wall again (from outside: a second scattering event for the same light).
     """
-    import drjit as dr
-
     t, n_perp, ok = bundle_axis(si)
     d_perp = d - dr.dot(d, t) * t
     dd = dr.squared_norm(d_perp)
@@ -82,9 +78,6 @@ def offset_ray(p, n, d, wavelengths, maxt=None):
     It carries the path's ``wavelengths``: a spectral ray without them sees every
     emitter at 0 nm, i.e. black.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     eps = (1.0 + dr.max(dr.abs(p))) * mi.math.RayEpsilon
     o = p + dr.mulsign(n, dr.dot(n, d)) * eps
     ray = mi.Ray3f(o, d, 0.0, wavelengths)
@@ -99,7 +92,6 @@ def shape_radius(shape):
     A cylinder's ``to_world`` scales its unit cylinder by the radius across the axis;
     a curve's control points carry it as their fourth coordinate (a range if it varies).
     """
-    import mitsuba as mi
     import numpy as np
 
     kind = shape.shape_type()
@@ -121,8 +113,6 @@ def check_bundles(scene) -> list[str]:
     (the frame follows their tangent, the radius comes from their parametrization); a
     BSDF ``radius`` that disagrees with the shape's is named (the shape's is used).
     """
-    import mitsuba as mi
-
     problems = []
     for shape in scene.shapes():
         bsdf = shape.bsdf()
@@ -146,9 +136,6 @@ def check_bundles(scene) -> list[str]:
 
 def integrator_class():
     """The ``bundle_path`` plugin class for the active Mitsuba variant."""
-    import drjit as dr
-    import mitsuba as mi
-
     class BundlePathIntegrator(mi.SamplingIntegrator):
         r"""Bundle path tracer (``bundle_path``)
         -------------------------------------
@@ -246,15 +233,15 @@ def integrator_class():
             measured = dr.select(need & si_far.is_valid() & (si_far.shape == si.shape), 0.5 * si_far.t, 0.0)
             return dr.select(need, measured, r)
 
+        @dr.syntax
         def _transmittance(self, scene, ray, active):
             """Fraction of light crossing ``ray``: product of ``P_pass`` of the bundles on it."""
+            ray = mi.Ray3f(ray)
+            active = mi.Bool(active)
             T = dr.select(active, mi.Float(1.0), 0.0)
             steps = mi.UInt32(0)
 
-            def cond(ray, T, steps, active):
-                return active
-
-            def body(ray, T, steps, active):
+            while dr.hint(active, label="bundle_shadow"):
                 si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=False, active=active)
                 hit = active & si.is_valid()
                 bsdf = si.bsdf()
@@ -271,12 +258,10 @@ def integrator_class():
                 crossed = offset_ray(p_far, radial, ray.d, si.wavelengths, ray.maxt - si.t - dr.norm(p_far - si.p))
                 nxt = dr.select(front & ok, crossed, nxt)
                 ray = dr.select(active, nxt, ray)
-                return ray, T, steps, active
-
-            _, T, _, _ = dr.while_loop((ray, T, steps, active), cond, body, label="bundle_shadow")
             return T
 
         # -- the integrator ---------------------------------------------------
+        @dr.syntax
         def sample(self, scene, sampler, ray, medium=None, active=True):
             self._check(scene)  # Python, once per render call: the body below is traced
             ctx = mi.BSDFContext()
@@ -294,12 +279,7 @@ def integrator_class():
             prev_bsdf_delta = mi.Bool(True)
             active = mi.Bool(active)
 
-            def cond(sampler, ray, throughput, result, eta, depth, passes, valid_ray,
-                     prev_si, prev_bsdf_pdf, prev_bsdf_delta, active):
-                return active
-
-            def body(sampler, ray, throughput, result, eta, depth, passes, valid_ray,
-                     prev_si, prev_bsdf_pdf, prev_bsdf_delta, active):
+            while dr.hint(active, label="bundle_path"):
                 si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=(depth == 0), active=active)
 
                 # ------------------ direct emission ------------------
@@ -316,14 +296,16 @@ def integrator_class():
                 # ------------- bundle hit: exit offset and radius -------------
                 bundle = active_next & bsdf.has_attribute("passthrough", active_next)
                 radius = self._radius(scene, si, bsdf, bundle)
-                h = 2.0 * sampler.next_1d(bundle) - 1.0 if self.displace else mi.Float(0.0)
+                h = mi.Float(0.0)
+                if dr.hint(self.displace, mode="scalar"):
+                    h = 2.0 * sampler.next_1d(bundle) - 1.0
 
                 # ------------------ emitter sampling ------------------
                 active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
                 ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(active_em), False, active_em)
                 active_em &= ds.pdf != 0.0
                 shadow = si.spawn_ray_to(ds.p)
-                if self.displace:
+                if dr.hint(self.displace, mode="scalar"):
                     p_exit, radial = displaced_exit(si, radius, h, ds.d)
                     dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
                     d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
@@ -347,7 +329,7 @@ def integrator_class():
                 p_far, radial, ok = far_side(si, radius, wo_world)
                 crossed = offset_ray(p_far, radial, wo_world, si.wavelengths)
                 next_ray = dr.select(passed & ok & (mi.Frame3f.cos_theta(si.wi) > 0), crossed, next_ray)
-                if self.displace:
+                if dr.hint(self.displace, mode="scalar"):
                     p_exit, radial = displaced_exit(si, radius, h, wo_world)
                     moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
                     next_ray = dr.select(bundle & ~passed & (radius > 0), moved, next_ray)
@@ -378,14 +360,7 @@ def integrator_class():
                 throughput = dr.select(active_next & rr_active, throughput * dr.rcp(rr_prob), throughput)
                 active = (active_next & (~rr_active | rr_continue) & (throughput_max != 0.0)
                           & (passes <= self.max_passes))
-                return (sampler, ray, throughput, result, eta, depth, passes, valid_ray,
-                        prev_si, prev_bsdf_pdf, prev_bsdf_delta, active)
 
-            state = dr.while_loop(
-                (sampler, ray, throughput, result, eta, depth, passes, valid_ray,
-                 prev_si, prev_bsdf_pdf, prev_bsdf_delta, active),
-                cond, body, label="bundle_path")
-            result, valid_ray = state[3], state[7]
             result = dr.select(dr.isfinite(dr.sum(mi.unpolarized_spectrum(result))), result, 0.0)
             return dr.select(valid_ray, result, 0.0), valid_ray, []
 
