@@ -305,12 +305,15 @@ def family_page(cfg, members, rows, spread, tables, j, root: Path) -> str:
     from .report import html_page, img_tag
 
     axes = list(cfg.sweep)
-    quantities = ("n_fibers", "packing_fraction", "passthrough", "albedo", "absorbed", "bake_seconds")
+    # (bake_seconds stays in family.json: on a cluster it is when a member finished, not its cost)
+    quantities = ("n_fibers", "packing_fraction", "passthrough", "albedo", "absorbed")
     head = "".join(f"<th>{html.escape(h)}</th>" for h in ["member", *axes, *quantities])
 
     def cell(r, q):
         if q in ("passthrough", "albedo"):
             return f"{r[q]:.4f} &plusmn; {r[q + '_mc_error']:.4f}"
+        if q == "absorbed":  # a lossless fiber's is rounding noise around 0 (1e-10)
+            return f"{0.0 if abs(r[q]) < 1e-9 else r[q]:.4f}"
         return f"{r[q]:.4g}" if isinstance(r[q], float) else html.escape(str(r[q]))
     body = "".join("<tr>" + "".join(f"<td>{cell(r, q)}</td>" for q in ["member", *axes, *quantities]) + "</tr>"
                    for r in rows)
