@@ -100,7 +100,8 @@ def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None
                     return bake.out
                 _, i, tally = next(batches)
                 bar.update(bake.add(i, tally))
-                bar.set_postfix(vertices=f"{bake.tally.vertices:.3g}", refresh=False)  # the bar prints on its own clock
+                bar.set_postfix(batches=f"{bake.done}/{len(bake.work)}", vertices=f"{bake.tally.vertices:.3g}",
+                                refresh=False)  # the bar prints on its own clock
     return bake.finish()
 
 
@@ -112,9 +113,10 @@ def batch_seed(cfg, a: int, k: int) -> np.random.SeedSequence:
 class Bake:
     """One bake in progress: its batches, the running tally and its checkpoint.
 
-    The work is a fixed list of batches with fixed seeds (:func:`batch_seed`), added in order, so that a bake resumed from its checkpoint, or
-    traced on a cluster in any order (``pipeline.cluster``), gives the same table. Made
-    by :func:`run` and by the sweep (``pipeline.sweep``), which keeps several at once.
+    The work is a fixed list of batches with fixed seeds (:func:`batch_seed`), added in
+    order, so that a bake resumed from its checkpoint, or traced on a cluster in any order
+    (``pipeline.cluster``), gives the same table. Made by :func:`run` and by the sweep
+    (``pipeline.sweep``), which keeps several at once.
     """
 
     def __init__(self, cfg, out_root, bundle: bundles.Bundle | None = None):
@@ -130,12 +132,14 @@ class Bake:
         self.key = cfg.hash(*BAKE_SECTIONS)
         self.ckpt = self.out / "checkpoint.npz"
         self.tally, self.done, self.elapsed = Tally.zeros(self.spec, len(self.fiber.wavelength)), 0, 0.0
+        self.cpu = 0.0  # this process's CPU time while tracing (on a cluster: the client's and the scheduler's)
         # each batch's own estimates: the errors of the whole from batch means (paths are stratified
         # within a batch, so the binomial error of the passthrough would overstate it)
         self.batch_estimates: dict[str, list[float]] = {"scattered": [], "passthrough": []}
         self._baker = None
         self._resume()
         self._last_save = self._t_prev = time.perf_counter()
+        self._cpu_prev = time.process_time()
 
     @property
     def baker(self) -> Baker:
@@ -158,7 +162,8 @@ class Bake:
 
     def serial(self):
         """``(0, i, tally)`` for the remaining batches, traced here, in order."""
-        self._t_prev = time.perf_counter()  # the bake's time is its own batches' (a sweep runs several in turn)
+        # a bake's time is its own batches' (a sweep runs several in turn)
+        self._t_prev, self._cpu_prev = time.perf_counter(), time.process_time()
         for i in range(self.done, len(self.work)):
             yield 0, i, self.baker.trace(self.work[i][0], self.sizes[i], batch_seed(self.cfg, *self.work[i]))
 
@@ -170,8 +175,9 @@ class Bake:
         a = self.work[i][0]
         self.batch_estimates["scattered"].append(float(np.mean(tally.sum[a].sum(axis=(1, 2)))) / self.sizes[i])
         self.batch_estimates["passthrough"].append(float(tally.passthrough[a]) / self.sizes[i])
-        now = time.perf_counter()
+        now, cpu = time.perf_counter(), time.process_time()
         self.elapsed, self._t_prev = self.elapsed + (now - self._t_prev), now
+        self.cpu, self._cpu_prev = self.cpu + (cpu - self._cpu_prev), cpu
         self.done += 1
         if now - self._last_save > self.cfg.bake.checkpoint_every_s and not self.finished:
             self.save_checkpoint()
@@ -186,6 +192,7 @@ class Bake:
             with np.load(self.ckpt, allow_pickle=False) as z:
                 if str(z["key"]) == self.key:
                     self.tally, self.done, self.elapsed = Tally.from_arrays(z), int(z["done"]), float(z["elapsed"])
+                    self.cpu = float(z["cpu"]) if "cpu" in z.files else 0.0
                     for q in self.batch_estimates:  # unknown (NaN) in a checkpoint of older code
                         self.batch_estimates[q] = [float(x) for x in z[f"batch_{q}"]] if f"batch_{q}" in z.files \
                             else [np.nan] * self.done
@@ -200,6 +207,7 @@ class Bake:
         with atomic_path(self.ckpt) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, key=np.array(self.key), done=np.array(self.done), elapsed=np.array(self.elapsed),
+                         cpu=np.array(self.cpu),
                          **{f"batch_{q}": np.array(v) for q, v in self.batch_estimates.items()}, **self.tally.arrays())
 
     def finish(self) -> Path:
@@ -215,7 +223,8 @@ class Bake:
         table.save(out / "bundle_table.npz")
         balance = table.energy_balance()
         elapsed = self.elapsed
-        summary = {"config_hash": self.key, "bake_seconds": elapsed, "paths": int(tally.paths.sum()),
+        summary = {"config_hash": self.key, "bake_seconds": elapsed, "tracing_cpu_seconds": self.cpu,
+                   "paths": int(tally.paths.sum()),
                    "vertices": int(tally.vertices), "vertices_per_second": tally.vertices / max(elapsed, 1e-9),
                    "n_fibers": len(bundle.radii), "packing_fraction": bundle.packing_fraction,
                    "passthrough": table.passthrough.tolist(),

@@ -27,14 +27,16 @@ from pathlib import Path
 import numpy as np
 
 
-def _bake(cfg, root, workers=None) -> tuple[float, float]:
-    """(stage seconds, tracing seconds) of one bake."""
+def _bake(cfg, root, workers=None) -> tuple[float, float, float]:
+    """(stage seconds, tracing seconds, CPU seconds of this process while tracing) of one
+    bake: with workers, this process is the client and the scheduler (LocalCluster runs it here)."""
     from . import bake
 
     t0 = time.perf_counter()
     bake.run(cfg, root, workers=workers)
     stage = time.perf_counter() - t0
-    return stage, json.loads((Path(root) / cfg.name / "bake" / "summary.json").read_text())["bake_seconds"]
+    summary = json.loads((Path(root) / cfg.name / "bake" / "summary.json").read_text())
+    return stage, summary["bake_seconds"], summary["tracing_cpu_seconds"]
 
 
 def main(argv=None) -> int:
@@ -75,6 +77,7 @@ def main(argv=None) -> int:
         identical = all(np.array_equal(t.values, tables[0].values) for t in tables[1:])
     seconds = {k: v[0] for k, v in timed.items()}
     tracing = {k: v[1] for k, v in timed.items()}
+    client_cpu = {k: v[2] for k, v in timed.items() if runs[k]}
     batches = len(tables[0].phi_i) * -(-cfg.bake.paths_per_phi_i // cfg.bake.batch_paths)
     per_batch = tracing["serial"] / batches
     warmup = max(warm["one batch 1 worker"] - warm["one batch serial"], 0.0)
@@ -87,12 +90,15 @@ def main(argv=None) -> int:
               "speedup_2_workers_tracing": tracing["serial"] / tracing["2 workers"],
               "per_batch_seconds": per_batch, "worker_warmup_seconds": warmup,
               "overhead_per_batch_seconds": overhead, "overhead_fraction_of_batch": overhead / per_batch,
+              "client_cpu_seconds": client_cpu,
               "identical_tables": identical, "weak_scaling_projection_seconds": projection}
     for k in runs:
         print(f"[cluster] {k:>9}: stage {seconds[k]:6.1f} s (x{seconds['serial'] / seconds[k]:.2f}), "
               f"tracing {tracing[k]:6.1f} s (x{tracing['serial'] / tracing[k]:.2f})")
     print(f"[cluster] {batches} batches of {per_batch:.2f} s; worker warm-up {warmup:.1f} s; scheduler overhead "
           f"{overhead * 1000:.0f} ms per batch ({overhead / per_batch:.1%} of one); tables identical: {identical}")
+    print("[cluster] CPU of the client and scheduler (this process) while tracing: "
+          + ", ".join(f"{k} {v:.1f} s" for k, v in client_cpu.items()))
     print("[cluster] projection (stage): " + ", ".join(f"{n} workers {s:.0f} s" for n, s in projection.items()))
     write_text(Path(args.artifacts) / cfg.name / "bench_cluster.json", json.dumps(result, indent=1))
     return 0 if identical else 1

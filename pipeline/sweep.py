@@ -152,7 +152,8 @@ def member_record(point: dict, table, summary: dict) -> dict:
     def error(q):
         e = summary.get(f"{q}_mc_error")
         return float("nan") if e is None else e
-    return {**{k: v for k, v in point.items()},
+
+    return {**point,
             "n_fibers": summary["n_fibers"], "packing_fraction": summary["packing_fraction"],
             "passthrough": float(np.mean(table.passthrough)),
             "passthrough_mc_error": error("passthrough"),
@@ -199,15 +200,14 @@ def write_family(cfg, members, root: Path, out_root) -> Path:
         write_text(root / "spread.json", _json(spread))
     for key in axes:
         plot_axis(rows, axes, key, root / f"family_{_file_part(key)}.png")
-    j = int(np.argmin(np.abs(np.rad2deg(tables[0].theta_i) - THETA_I_SHOWN)))
-    plot_profiles(rows, tables, j, root / "profile.png")
+    plot_profiles(rows, tables, root / "profile.png")
     write_metrics(cfg, out_root, "sweep", {
         "members": len(rows),
         "passthrough": {r["member"]: r["passthrough"] for r in rows},
         "albedo": {r["member"]: r["albedo"] for r in rows},
         **({"seed_spread_over_mc_error": max(s["albedo_spread"] / max(s["albedo_mc_error"], 1e-12)
                                              for s in spread)} if spread else {})})
-    write_text(root / "index.html", family_page(cfg, members, rows, spread, tables, j, root))
+    write_text(root / "index.html", family_page(cfg, members, rows, spread, tables, root))
     print(f"[sweep] {cfg.name}: wrote {root / 'index.html'}")
     return root
 
@@ -275,7 +275,12 @@ def plot_axis(rows, axes, key, path: Path) -> None:
     save_figure(fig, path)
 
 
-def plot_profiles(rows, tables, j: int, path: Path) -> None:
+def _shown(table) -> int:
+    """The incidence the family page shows (a swept theta_i step may move it per member)."""
+    return int(np.argmin(np.abs(np.rad2deg(table.theta_i) - THETA_I_SHOWN)))
+
+
+def plot_profiles(rows, tables, path: Path) -> None:
     """Scattered light per radian of outgoing azimuth at one incidence (over theta_o
     and wavelength), one curve per member: where the family differs, not only by how much."""
     import matplotlib
@@ -288,20 +293,21 @@ def plot_profiles(rows, tables, j: int, path: Path) -> None:
     cmap = plt.get_cmap("viridis", max(len(rows), 2))
     relative = tables[0].meta["reductions"]["phi_o"] == "relative"
     for n, (r, t) in enumerate(zip(rows, tables)):
-        per_bin = np.einsum("pql,pq->p", t.values[0, j].astype(np.float64), t.solid_angle) / t.values.shape[-1]
+        per_bin = np.einsum("pql,pq->p", t.values[0, _shown(t)].astype(np.float64), t.solid_angle) / t.values.shape[-1]
         phi = np.rad2deg(t.phi_o) % 360 if relative else np.rad2deg(t.phi_o)  # as the slices: forward mid-plot
         order = np.argsort(phi)
         ax.plot(phi[order], (per_bin / np.diff(t.phi_o_edges))[order], color=cmap(n), lw=1.2, label=r["member"])
-    ax.set(xlabel="phi_o - phi_i [deg] (0: back to the light, 180: forward)" if relative else "phi_o [deg] (bundle frame)",
+    xlabel = "phi_o - phi_i [deg] (0: back to the light, 180: forward)" if relative else "phi_o [deg] (bundle frame)"
+    ax.set(xlabel=xlabel,
            ylabel="scattered per radian of phi_o", yscale="log",
-           title=f"azimuthal profile at theta_i = {np.rad2deg(tables[0].theta_i[j]):.0f} deg, phi_i = "
+           title=f"azimuthal profile at theta_i = {np.rad2deg(tables[0].theta_i[_shown(tables[0])]):.0f} deg, phi_i = "
                  f"{np.rad2deg(tables[0].phi_i[0]):.0f} deg")
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
     save_figure(fig, path)
 
 
-def family_page(cfg, members, rows, spread, tables, j, root: Path) -> str:
+def family_page(cfg, members, rows, spread, tables, root: Path) -> str:
     from .report import html_page, img_tag
 
     axes = list(cfg.sweep)
@@ -339,9 +345,9 @@ def family_page(cfg, members, rows, spread, tables, j, root: Path) -> str:
             "what a ply type's table is uncertain by, however many paths one bake traces; the Monte Carlo error "
             f"is one bake's.</p><table><tr>{head}</tr>{body}</table>")))
     # each member's slice as its bake drew it, linked where it lies (the page's folder holds the members)
-    theta = np.rad2deg(tables[0].theta_i[j])
+    theta = [np.rad2deg(t.theta_i[_shown(t)]) for t in tables]
     pics = "".join(f"<h3>{html.escape(r['member'])}</h3>" + img_tag(
-        root, root / r["member"] / "bake" / "slices" / f"phi_i_000.0_theta_i_{theta:+05.1f}.png", r["member"],
-        copy=False) for r in rows)
-    sections.append((f"Table slices at theta_i = {theta:.0f} deg", pics))
+        root, root / r["member"] / "bake" / "slices" / f"phi_i_000.0_theta_i_{th:+05.1f}.png", r["member"],
+        copy=False) for r, th in zip(rows, theta))
+    sections.append((f"Table slices at theta_i = {theta[0]:.0f} deg", pics))
     return html_page(f"{cfg.name}, sweep", sections)

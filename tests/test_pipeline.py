@@ -59,27 +59,28 @@ def test_run_writes_every_stage_and_a_complete_report(tiny_run):
     assert np.isfinite(float(re.search(r"total ([0-9.]+)", page).group(1)))
 
 
-def test_run_skips_up_to_date_stages_and_reruns_what_changed(tmp_path):
-    """(``--force`` is left to test_cli: a forced run here would repeat every stage.)"""
-    cfg = tmp_path / "tiny.yaml"
-    # the closure check is the first test's: this one is about which stages rerun
-    data = dict(TINY, train={"models": {"s": [8]}, "epochs": 5, "batch_size": 256},
-                render={**TINY["render"], "explicit": False})
-    cfg.write_text(yaml.safe_dump(data))
+def test_run_skips_up_to_date_stages_and_reruns_what_changed(tiny_run, tmp_path):
+    """On a copy of the first test's artifacts (stamps hold paths relative to the artifacts
+    folder, so a copy is as up to date as its original). ``--force`` is left to test_cli."""
+    import shutil
+
     art = tmp_path / "art"
+    shutil.copytree(tiny_run[0], art)
+    cfg = tmp_path / "tiny.yaml"
+    data = json_copy(TINY)
+    cfg.write_text(yaml.safe_dump(data))
 
     def run(*extra):
         r = subprocess.run([sys.executable, "-m", "pipeline.cli", "--artifacts", str(art), "run", str(cfg), *extra],
                            cwd=ROOT, capture_output=True, text=True, timeout=900)
         assert r.returncode == 0, r.stderr[-2000:]
         return r.stdout
-    run()
     table_mtime = (art / "tiny" / "bake" / "bundle_table.npz").stat().st_mtime_ns
     out = run()
-    for stage in ("fiber", "bake", "train", "export"):
+    for stage in ("fiber", "bake", "train", "export", "render", "stability", "report"):
         assert f"[run] {stage}: up to date, skipped" in out
-    # a training parameter changes: train, export and report rerun, the bake does not
-    data["train"]["epochs"] = 6
+    # a training parameter changes: train, export, render and report rerun, the bake does not
+    data["train"]["epochs"] += 1
     cfg.write_text(yaml.safe_dump(data))
     out = run()
     assert "[run] bake: up to date" in out and "[train]" in out and "[export]" in out and "[report]" in out
@@ -91,6 +92,11 @@ def test_run_skips_up_to_date_stages_and_reruns_what_changed(tmp_path):
     assert "[run] render: up to date" in out
     assert re.search(r"\[run\] report: \S*report (changed since the stage wrote it|is gone)", out), out
     assert (art / "tiny" / "report" / "index.html").exists()
+
+
+def json_copy(data):
+    import json
+    return json.loads(json.dumps(data))
 
 
 def test_report_loads_in_headless_chromium(tiny_run, tmp_path):

@@ -113,8 +113,9 @@ def test_mc_errors_match_the_scatter_of_independent_bakes_and_deps_are_declared(
     for q in ("albedo", "passthrough"):
         spread = np.std([x[q] for x in rows], ddof=1)
         predicted = np.sqrt(np.mean([x[f"{q}_mc_error"] ** 2 for x in rows]))
-        # 5 degrees of freedom: the ratio lies in [0.48, 1.49] 95% of the time
-        assert 0.4 < spread / predicted < 1.8, (q, spread, predicted)
+        # 5 degrees of freedom: the ratio lies in [0.48, 1.49] 95% of the time (the binomial
+        # error of the passthrough gives 0.44 here, the albedo's bins in quadrature 0.08)
+        assert 0.48 < spread / predicted < 1.49, (q, spread, predicted)
 
     (tmp_path / "trace.err").write_text(r.stderr)
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]["sweep"]["do"]["deps"]
