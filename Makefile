@@ -11,7 +11,7 @@ run: setup
 	.venv/bin/bcsdf run $(CONFIG)
 
 test: setup
-	.venv/bin/python -m pytest -q
+	.venv/bin/python -m pytest -q --durations=15  # the slowest, for keeping the suite near 10 min
 
 bench: setup
 	.venv/bin/python -m pipeline.bench_fiber
