@@ -164,13 +164,13 @@ def ordered_tallies(c, bakes):
 
     import drjit as dr
 
-    threads = dr.thread_count()
+    threads, code = dr.thread_count(), code_digest(bakes[0].cfg)  # one code for every bake
     n_workers = max(1, len(c.scheduler_info().get("workers", {})))
     left = sum(len(b.work) - b.done for b in bakes)
     futures, fibers = {}, {}
     for j, b in enumerate(bakes):
         cfg = b.cfg
-        cfg_json, code = cfg.model_dump_json(), code_digest(cfg)
+        cfg_json = cfg.model_dump_json()
         fkey = cfg.hash(*FIBER_SECTIONS)
         if fkey not in fibers:  # members of a sweep that share a fiber share its upload
             fibers[fkey] = c.scatter(b.fiber, broadcast=True)

@@ -525,12 +525,12 @@ def _resolve_paths(data: dict, base: Path) -> None:
     def resolve(v):
         return str((base / v).resolve()) if isinstance(v, str) and v else v
 
+    sweep = data.get("sweep")
     for key in PATH_KEYS:
         node, parts = data, key.split(".")
         for part in parts[:-1]:
             node = node.get(part) if isinstance(node, dict) else None
         if isinstance(node, dict) and parts[-1] in node:
             node[parts[-1]] = resolve(node[parts[-1]])
-        sweep = data.get("sweep")
         if isinstance(sweep, dict) and isinstance(sweep.get(key), list):
             sweep[key] = [resolve(v) for v in sweep[key]]

@@ -2,11 +2,12 @@
 
 A stage's time is a fixed **overhead** (imports, kernel compilation) plus its **work** (a
 size the config implies: paths times the chord of the bundle in fibers, epochs times bins
-times the model's width, pixels times samples ...) times **seconds per unit of work**. That rate comes from the last run of the same stage
-on this machine when there is one (its stamp records work and seconds), else from the
-default config measured on the reference 2-core machine (``REFERENCE`` below; figures
-in docs/BENCHMARKS.md). Good to a factor of about two: enough to decide between waiting
-and coming back tomorrow, not a benchmark.
+times the model's width, pixels times samples ...) times **seconds per unit of work**.
+That rate comes from the last run of the same stage on this machine when there is one
+(its stamp records work and seconds), else from the default config measured on the
+reference 2-core machine (``REFERENCE`` below; figures in docs/BENCHMARKS.md). Good to a
+factor of about two: enough to decide between waiting and coming back tomorrow, not a
+benchmark.
 """
 
 from __future__ import annotations

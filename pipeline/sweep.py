@@ -65,7 +65,8 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
         raise ValueError(f"config {cfg.name} has no 'bundle:' section: a sweep bakes bundles")
     from .bake import build_bundle
 
-    members = [m for _, m in sweep_members(cfg)]
+    expanded = sweep_members(cfg)
+    members = [m for _, m in expanded]
     root = Path(out_root) / cfg.name / "sweep"
     # every member's fibers are placed before any work: an arrangement that cannot be
     # drawn (a packing too dense for its radius) is refused before anything is baked
@@ -82,7 +83,7 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
           f"{len(todo)} to bake", flush=True)
     if todo:
         bake_members(todo, bundles, root, workers, scheduler)
-    return write_family(cfg, members, root, out_root)
+    return write_family(cfg, expanded, root, out_root)
 
 
 # -- Fibers: one tabulation per distinct fiber setting -------------------------------
@@ -181,12 +182,13 @@ def seed_spread(rows: list[dict], axes: dict) -> list[dict]:
     return out
 
 
-def write_family(cfg, members, root: Path, out_root) -> Path:
+def write_family(cfg, expanded, root: Path, out_root) -> Path:
+    """The family summary of the members ``expanded`` (``sweep_members(cfg)``)."""
     from models.bundle_table import BundleTable
 
-    axes = cfg.sweep
+    axes, members = cfg.sweep, [m for _, m in expanded]
     rows, tables = [], []
-    for (point, _), m in zip(sweep_members(cfg), members):
+    for point, m in expanded:
         bake = root / m.name / "bake"
         table = BundleTable.load(bake / "bundle_table.npz")
         rows.append({"member": m.name, **member_record(point, table, json.loads((bake / "summary.json").read_text()))})

@@ -1,5 +1,6 @@
 """The whole pipeline on a tiny config, end to end, and its report."""
 
+import copy
 import re
 import subprocess
 import sys
@@ -67,7 +68,7 @@ def test_run_skips_up_to_date_stages_and_reruns_what_changed(tiny_run, tmp_path)
     art = tmp_path / "art"
     shutil.copytree(tiny_run[0], art)
     cfg = tmp_path / "tiny.yaml"
-    data = json_copy(TINY)
+    data = copy.deepcopy(TINY)
     cfg.write_text(yaml.safe_dump(data))
 
     def run(*extra):
@@ -92,11 +93,6 @@ def test_run_skips_up_to_date_stages_and_reruns_what_changed(tiny_run, tmp_path)
     assert "[run] render: up to date" in out
     assert re.search(r"\[run\] report: \S*report (changed since the stage wrote it|is gone)", out), out
     assert (art / "tiny" / "report" / "index.html").exists()
-
-
-def json_copy(data):
-    import json
-    return json.loads(json.dumps(data))
 
 
 def test_report_loads_in_headless_chromium(tiny_run, tmp_path):
