@@ -48,12 +48,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .bundle import Bundle
+from .fiber import lobes
 from .fiber.base import FiberTable
 from .fiber.sampling import FiberSampler
 
 
 # how a path of the fast estimator ended
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
+# exit models: where scattered light leaves a fiber
+EXITS = ("uniform", "entry", "lobe")
 
 
 @dataclass
@@ -68,12 +71,17 @@ class BakeSpec:
     estimator: str = "fast"
     max_bounces: int = 1000
     rr_start: int = 8                  # fast: Russian roulette from this bounce on
+    exit: str = "uniform"              # where scattered light leaves a fiber (module docstring)
 
     def __post_init__(self):
         self.theta_i = np.atleast_1d(np.asarray(self.theta_i, dtype=np.float64))
         self.phi_i = np.atleast_1d(np.asarray(self.phi_i, dtype=np.float64))
         if self.estimator not in ("fast", "thesis"):
             raise ValueError(f"estimator {self.estimator!r}: use 'fast' or 'thesis'")
+        if self.exit not in EXITS:
+            raise ValueError(f"exit {self.exit!r}: use one of {', '.join(EXITS)}")
+        if self.exit != "uniform" and self.estimator != "fast":
+            raise ValueError(f"exit {self.exit!r} needs the fast estimator (the thesis baseline leaves uniformly)")
         if self.max_bounces < 1:
             raise ValueError(f"the bounce cap must be at least 1 (got {self.max_bounces})")
         if np.any(np.abs(self.theta_i) > np.pi / 2):
@@ -238,7 +246,7 @@ class Baker:
         tally.passthrough[phi_index] = np.sum(~hit)
         tally.vertices += n_paths
         if self.spec.estimator == "fast":
-            self._trace_fast(tally, phi_index, phi_t[hit], fiber[hit], phi_i[hit], rng)
+            self._trace_fast(tally, phi_index, origin[hit], phi_t[hit], fiber[hit], phi_i[hit], rng)
         else:
             # one (theta_i, lambda) per launched path, round robin from a random start;
             # weights scaled so that each combination is normalized by its own paths
@@ -250,7 +258,7 @@ class Baker:
         return tally
 
     # -- fast ----------------------------------------------------------------
-    def _trace_fast(self, tally, phi_index, phi_t, fiber, phi_i, rng):
+    def _trace_fast(self, tally, phi_index, origin, phi_t, fiber, phi_i, rng):
         spec, theta_nodes = self.spec, self.spec.theta_i
         n_ti = len(theta_nodes)
         n = len(phi_t)
@@ -263,16 +271,36 @@ class Baker:
         twin = self._drjit_fiber()
         j = rng.integers(n_ti, size=n)
         u = rng.uniform(size=(5, n))
-        theta1_d, dphi1_d = twin.sample(mi.Float(theta_nodes[j].astype(np.float32)), [mi.Float(a) for a in u])
-        pdf_mix_d = twin.pdf(dr.full(mi.Float, float(theta_nodes[0]), n), theta1_d, dphi1_d)
-        for t in theta_nodes[1:]:
-            pdf_mix_d = pdf_mix_d + twin.pdf(dr.full(mi.Float, float(t), n), theta1_d, dphi1_d)
-        dr.eval(theta1_d, dphi1_d, pdf_mix_d)  # pdf_mix_d: n_ti times the mixture pdf
+        lobe_state = ()
+        if spec.exit == "lobe":
+            # the path (lobe) and direction at the ray's own offset h; the mixture over the
+            # theta_i nodes as below, each node's pdf its own lobe probabilities and azimuths
+            lob = self._lobes()
+            h1 = self._offsets(origin, phi_t, fiber)
+            h_d = mi.Float(h1.astype(np.float32))
+            p1_d, theta1_d, dphi1_d, _ = lob.sample(mi.Float(theta_nodes[j].astype(np.float32)), h_d,
+                                                    [mi.Float(a) for a in u[:4]])
+            pdf_mix_d = lob.pdf(dr.full(mi.Float, float(theta_nodes[0]), n), h_d, p1_d, theta1_d, dphi1_d)
+            for t in theta_nodes[1:]:
+                pdf_mix_d = pdf_mix_d + lob.pdf(dr.full(mi.Float, float(t), n), h_d, p1_d, theta1_d, dphi1_d)
+            dr.eval(p1_d, theta1_d, dphi1_d, pdf_mix_d)
+            lobe_state = (h_d, p1_d)
+            tally.absorbed[phi_index] += self._first_loss(h1)
+        else:
+            theta1_d, dphi1_d = twin.sample(mi.Float(theta_nodes[j].astype(np.float32)), [mi.Float(a) for a in u])
+            pdf_mix_d = twin.pdf(dr.full(mi.Float, float(theta_nodes[0]), n), theta1_d, dphi1_d)
+            for t in theta_nodes[1:]:
+                pdf_mix_d = pdf_mix_d + twin.pdf(dr.full(mi.Float, float(t), n), theta1_d, dphi1_d)
+            dr.eval(theta1_d, dphi1_d, pdf_mix_d)  # pdf_mix_d: n_ti times the mixture pdf
+            # every hit path loses 1 - albedo(theta_i) at its first fiber (expected value)
+            tally.absorbed[phi_index] += n * (1 - self.fiber.albedo(theta_nodes))
         theta1, dphi1 = theta1_d.numpy().astype(np.float64), dphi1_d.numpy().astype(np.float64)
-        # every hit path loses 1 - albedo(theta_i) at its first fiber (expected value)
-        tally.absorbed[phi_index] += n * (1 - self.fiber.albedo(theta_nodes))
+        phi_t_in = phi_t
         phi_t = phi_t + np.pi + dphi1
-        origin = self.geometry.exit_point(fiber, phi_t, rng.uniform(-1, 1, n))
+        if spec.exit == "uniform":
+            origin = self.geometry.exit_point(fiber, phi_t, rng.uniform(-1, 1, n))
+        else:
+            origin = self._leave(origin, phi_t_in, fiber, phi_t, theta1, lobe_state, u[4])
 
         # Phase 2: bounce in Dr.Jit until every path has escaped, been stopped, or hit the cap
         final = self._bounce_loop(origin, phi_t, theta1, phi_i, int(rng.integers(2**62)))
@@ -292,14 +320,16 @@ class Baker:
         esc_bins = bin_of[esc]
         perm = mi.UInt32(order.astype(np.uint32))
         per_path = [dr.gather(mi.Float, x, perm) for x in [theta1_d, dphi1_d, factor] + B + final["R"]]
-        dr.eval(per_path)  # once per path, so that the (path, theta_i) lanes below read in order
+        lobe_path = tuple(dr.gather(type(x), x, perm) for x in lobe_state)
+        dr.eval(per_path, lobe_path)  # once per path, so that the (path, theta_i) lanes below read in order
         L = self.n_lambda
         sums = np.zeros((spec.n_phi_o * spec.n_theta_o, n_ti * self.n_lambda))
         sums_sq = np.zeros_like(sums)
         chunk = 16384
         for lo in range(0, n, chunk):
             hi = min(n, lo + chunk)
-            W, A_R = self._path_weights(twin, *per_path[:3], per_path[3:3 + L], per_path[3 + L:], lo, hi - lo)
+            W, A_R = self._path_weights(twin, *per_path[:3], per_path[3:3 + L], per_path[3 + L:], lo, hi - lo,
+                                        lobe_path)
             tally.absorbed[phi_index] += A_R.sum(axis=0, dtype=np.float64)
             W = W.reshape(hi - lo, -1)
             k = max(0, min(hi, n_esc) - lo)  # escaped rows of this chunk
@@ -315,12 +345,14 @@ class Baker:
         tally.sum[phi_index] += sums.reshape(shape).transpose(2, 0, 1, 3)
         tally.sum_sq[phi_index] += sums_sq.reshape(shape).transpose(2, 0, 1, 3)
 
-    def _path_weights(self, twin, theta1, dphi1, factor, B, R, lo, m):
+    def _path_weights(self, twin, theta1, dphi1, factor, B, R, lo, m, lobe_path=()):
         """``W = A B`` and ``A R`` of paths ``lo .. lo + m`` for every theta_i: two float32
         arrays [m, n_ti, n_lambda].
 
         ``A[theta_i, lambda] = f(theta_i, theta_1, dphi_1) cos(theta_1) / pdf_mix`` (``factor``
-        holds the last two); one lane per (path, theta_i), spectra written as packets.
+        holds the last two); one lane per (path, theta_i), spectra written as packets. With
+        the h-resolved exit, ``lobe_path = (h, p)`` of each path's first event and ``f`` is
+        that path's lobe at that offset.
         """
         import drjit as dr
         import mitsuba as mi
@@ -329,7 +361,12 @@ class Baker:
         lane = dr.arange(mi.UInt32, m * n_ti)
         path = lo + lane // n_ti
         theta_i = dr.gather(mi.Float, mi.Float(self.spec.theta_i.astype(np.float32)), lane % n_ti)
-        f = twin.eval_spectrum(theta_i, dr.gather(mi.Float, theta1, path), dr.gather(mi.Float, dphi1, path))
+        if lobe_path:
+            h, p = lobe_path
+            f, _ = self._lobes().eval_spectrum(theta_i, dr.gather(mi.Float, h, path), dr.gather(type(p), p, path),
+                                               dr.gather(mi.Float, theta1, path), dr.gather(mi.Float, dphi1, path))
+        else:
+            f = twin.eval_spectrum(theta_i, dr.gather(mi.Float, theta1, path), dr.gather(mi.Float, dphi1, path))
         A = [v * dr.gather(mi.Float, factor, path) for v in f]
         pad = [dr.zeros(mi.Float, m * n_ti)] * (P - L)
         out = []
@@ -359,6 +396,8 @@ class Baker:
         import mitsuba as mi
 
         spec, fib, L = self.spec, self._drjit_fiber(), self.n_lambda
+        exit_model = spec.exit
+        lob = self._lobes() if exit_model == "lobe" else None
         Float, UInt = mi.Float, mi.UInt32
         n = len(theta)
         geo = self.geometry
@@ -404,10 +443,19 @@ class Baker:
             u = [rng.next_float32() for _ in range(5)]
             x6, x7 = rng.next_float32(), rng.next_float32()
             theta_in = -th
-            theta_out, dphi = fib.sample(theta_in, u)
-            pdf = fib.pdf(theta_in, theta_out, dphi)
-            f = fib.eval_spectrum(theta_in, theta_out, dphi)
-            alb = fib.albedo(theta_in)
+            if exit_model != "uniform":  # the event's geometry: the fiber hit and the ray's offset
+                k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, go)
+                cx, cz = dr.gather(Float, centers_x, k, go), dr.gather(Float, centers_z, k, go)
+                r = dr.gather(Float, radii, k, go)
+                h_in = lobes.entry_offset(cx, cz, r, ox, oz, cp, sp, dr)
+            if exit_model == "lobe":
+                p, theta_out, dphi, pdf = lob.sample(theta_in, h_in, u[:4])
+                f, alb = lob.eval_spectrum(theta_in, h_in, p, theta_out, dphi)
+            else:
+                theta_out, dphi = fib.sample(theta_in, u)
+                pdf = fib.pdf(theta_in, theta_out, dphi)
+                f = fib.eval_spectrum(theta_in, theta_out, dphi)
+                alb = fib.albedo(theta_in)
             scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
             valid = go & (pdf > 0)
             R = [dr.select(go, R[l] + B[l] * (1 - alb[l]), R[l]) for l in range(L)]
@@ -423,15 +471,30 @@ class Baker:
             alive = go & valid & survive
             h_u = dr.select(roulette, x7, x6)
 
-            k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, alive)
             phi_n = phi + np.pi + dphi
             phi_n = phi_n - two_pi * dr.floor(phi_n * (1 / two_pi))
             s_o, c_o = dr.sincos(phi_n)
-            h = 2 * h_u - 1
-            r = dr.gather(Float, radii, k, alive)
-            along = dr.safe_sqrt(1 - h * h) + 1e-4
-            ox = dr.select(alive, dr.gather(Float, centers_x, k, alive) + r * (h * s_o + along * c_o), ox)
-            oz = dr.select(alive, dr.gather(Float, centers_z, k, alive) + r * (-h * c_o + along * s_o), oz)
+            if exit_model == "uniform":  # anywhere on the outgoing side, h uniform
+                k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, alive)
+                h = 2 * h_u - 1
+                r = dr.gather(Float, radii, k, alive)
+                along = dr.safe_sqrt(1 - h * h) + 1e-4
+                ox = dr.select(alive, dr.gather(Float, centers_x, k, alive) + r * (h * s_o + along * c_o), ox)
+                oz = dr.select(alive, dr.gather(Float, centers_z, k, alive) + r * (-h * c_o + along * s_o), oz)
+            else:  # where the light entered, or where its path leaves
+                nx, nz = lobes.entry_normal(h_in, cp, sp, dr)
+                if exit_model == "lobe":
+                    _, gamma_t = lobes.gammas(h_in, lobes.bravais(lob.eta[lob.ref], lob.cos_in(theta_in), dr), dr)
+                    nx, nz = lob.exit_normal(nx, nz, p, lob.p_max, gamma_t, dr)
+                new_x, new_z = lobes.leave(cx, cz, r, nx, nz, c_o, s_o, dr)
+                if exit_model == "lobe":  # the residual has no single exit: the uniform one
+                    h = 2 * h_u - 1
+                    along = dr.safe_sqrt(1 - h * h) + 1e-4
+                    residual = p == lob.p_max
+                    new_x = dr.select(residual, cx + r * (h * s_o + along * c_o), new_x)
+                    new_z = dr.select(residual, cz + r * (-h * c_o + along * s_o), new_z)
+                ox = dr.select(alive, new_x, ox)
+                oz = dr.select(alive, new_z, oz)
             phi = dr.select(alive, phi_n, phi)
             th = dr.select(alive, theta_out, th)
             return ox, oz, phi, th, B, R, depth, status, bins, alive, pid, phi_i_path, steps
@@ -461,6 +524,61 @@ class Baker:
             state[-1] = dr.zeros(UInt, dr.width(keep))  # steps
         return {"status": out_status.numpy(), "bin": out_bin.numpy().astype(np.int64), "B": out_B, "R": out_R,
                 "vertices": int(out_depth.numpy().astype(np.int64).sum())}
+
+    def _lobes(self):
+        """The h-resolved ray fiber (exit ``lobe``), built from the fiber table's parameters."""
+        if getattr(self, "_lobe_sampler", None) is None:
+            import mitsuba as mi
+
+            self._lobe_sampler = lobes.LobeSampler(self.fiber.meta, self.fiber.wavelength, mi.Float)
+        return self._lobe_sampler
+
+    def _offsets(self, origin, phi_t, fiber):
+        """``h`` of the rays ``origin`` along ``phi_t`` at the fibers they hit (numpy)."""
+        c, r = self.bundle.centers[fiber], self.bundle.radii[fiber]
+        return lobes.entry_offset(c[:, 0], c[:, 1], r, origin[:, 0], origin[:, 1], np.cos(phi_t), np.sin(phi_t), np)
+
+    def _first_loss(self, h):
+        """Expected absorption ``sum over paths of 1 - sum_p A_p(h)`` at the first event, [n_ti, lambda]."""
+        lob = self._lobes()
+        eta, sigma_a = np.asarray(lob.eta), np.asarray(lob.sigma_a)
+        loss = np.zeros((len(self.spec.theta_i), len(eta)))
+        for i, t in enumerate(self.spec.theta_i):
+            cos_t = np.cos(min(abs(t), np.deg2rad(89.99)))
+            A = lobes.attenuation(cos_t, eta[None, :], h[:, None], sigma_a[None, :], lob.p_max, np)
+            loss[i] = np.sum(1 - sum(A[1:], A[0]), axis=0)
+        return loss
+
+    def _leave(self, origin, phi_in, fiber, phi_out, theta_out, lobe_state, h_u):
+        """Start points of the rays leaving the first fibers (exits ``entry`` and ``lobe``).
+
+        ``entry``: where the light entered; ``lobe``: where the sampled path leaves, with
+        Bravais' index at the outgoing longitude (the same exit for every theta_i node the
+        path carries; exactly the incident one for smooth fibers), the residual uniformly
+        over the outgoing side as the ``uniform`` exit.
+        """
+        import drjit as dr
+        import mitsuba as mi
+
+        c, r = self.bundle.centers[fiber], self.bundle.radii[fiber]
+        ux, uz = np.cos(phi_in), np.sin(phi_in)
+        h = lobes.entry_offset(c[:, 0], c[:, 1], r, origin[:, 0], origin[:, 1], ux, uz, np)
+        nx, nz = lobes.entry_normal(h, ux, uz, np)
+        dx, dz = np.cos(phi_out), np.sin(phi_out)
+        if self.spec.exit == "entry":
+            return np.stack(lobes.leave(c[:, 0], c[:, 1], r, nx, nz, dx, dz, np), -1)
+        lob = self._lobes()
+        h_d, p_d = lobe_state
+        F = mi.Float
+        eta_p = lobes.bravais(lob.eta[lob.ref], lob.cos_in(F(theta_out.astype(np.float32))), dr)
+        _, gamma_t = lobes.gammas(h_d, eta_p, dr)
+        ex, ez = lob.exit_normal(F(nx.astype(np.float32)), F(nz.astype(np.float32)), p_d, lob.p_max, gamma_t, dr)
+        ex, ez = ex.numpy().astype(np.float64), ez.numpy().astype(np.float64)
+        out = np.stack(lobes.leave(c[:, 0], c[:, 1], r, ex, ez, dx, dz, np), -1)
+        residual = p_d.numpy() == lob.p_max
+        if residual.any():
+            out[residual] = self.geometry.exit_point(fiber[residual], phi_out[residual], 2 * h_u[residual] - 1)
+        return out
 
     def _drjit_fiber(self):
         if getattr(self, "_dj_fiber", None) is None:

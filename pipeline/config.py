@@ -88,6 +88,7 @@ class RayParams(Strict):
     scale_tilt_deg: float = Field(2.0, ge=-15.0, le=15.0)
     n_h: int = Field(256, ge=8, le=8192)
     n_phi: int = Field(360, ge=36, le=65536)
+    lobes: int = Field(3, ge=3, le=32, description="paths kept explicit before the residual (3: Chiang's R, TT, TRT)")
 
 
 class TableParams(Strict):

@@ -7,7 +7,9 @@ segments: R (p = 0), TT (1), TRT (2) and the residual (p >= 3). Each carries
     A_p(theta_i, h, lambda)          Fresnel and absorption along the path
     D_p(dphi - Phi_p(h))             trimmed logistic around the ideal exit azimuth
 
-and ``f = sum_{p<3} M_p A_p D_p + M_3 A_3 / (2 pi)``. Averaging over ``h`` uniform in
+and ``f = sum_{p<P} M_p A_p D_p + M_P A_P / (2 pi)`` with ``P = lobes`` (3 as Chiang and
+Mitsuba; more explicit paths for smooth fibers, where the residual's uniform azimuth
+is the model's largest error against exact geometry, docs/BENCHMARKS.md). Averaging over ``h`` uniform in
 [-1, 1] (per geometric hit) gives the far-field fiber function that the baker needs:
 ``N_p(theta_i, dphi, lambda) = 1/2 integral A_p D_p dh``.
 
@@ -23,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import special
 
+from . import lobes
 from .base import FiberModel, FiberTable, Lobe, check_theta
 from .longitudinal import Longitudinal
 
@@ -33,10 +36,10 @@ P_MAX = 3
 # Roughness parameterization (Chiang et al. 2016, eq. 7-8)
 # --------------------------------------------------------------------------
 
-def longitudinal_variance(beta_m: float) -> np.ndarray:
-    """``v_p`` for p = 0..3 from the longitudinal roughness in [0, 1]."""
+def longitudinal_variance(beta_m: float, p_max: int = P_MAX) -> np.ndarray:
+    """``v_p`` for p = 0..p_max (the last the residual) from the longitudinal roughness."""
     v0 = (0.726 * beta_m + 0.812 * beta_m**2 + 3.7 * beta_m**20) ** 2
-    return np.array([v0, 0.25 * v0, 4 * v0, 4 * v0])
+    return np.array([v0, 0.25 * v0] + [4 * v0] * (p_max - 1))
 
 
 def logistic_scale(beta_n: float) -> float:
@@ -44,57 +47,34 @@ def logistic_scale(beta_n: float) -> float:
     return float(np.sqrt(np.pi / 8) * (0.265 * beta_n + 1.194 * beta_n**2 + 5.372 * beta_n**22))
 
 
-def tilt_shifts(alpha_deg: float) -> np.ndarray:
-    """Longitudinal shifts of the R, TT, TRT, residual lobes by the cuticle tilt."""
+def tilt_shifts(alpha_deg: float, p_max: int = P_MAX) -> np.ndarray:
+    """Longitudinal shifts of the R, TT, TRT lobes by the cuticle tilt (none beyond, as
+    Chiang's residual)."""
     a = np.deg2rad(alpha_deg)
-    return np.array([-2 * a, a, 4 * a, 0.0])
+    return np.array([-2 * a, a, 4 * a] + [0.0] * (p_max - 2))
 
 
 # --------------------------------------------------------------------------
-# Small pure pieces of the physics
+# Small pure pieces of the physics (the per-h formulas live in models.fiber.lobes)
 # --------------------------------------------------------------------------
 
 def fresnel_dielectric(cos_i, eta):
     """Unpolarized Fresnel reflectance from outside (index 1) into index ``eta``."""
-    cos_i = np.clip(cos_i, 0.0, 1.0)
-    sin_t2 = (1 - cos_i**2) / eta**2
-    cos_t = np.sqrt(np.maximum(0.0, 1 - sin_t2))
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    return np.where(sin_t2 >= 1, 1.0, 0.5 * (rs**2 + rp**2))
+    return lobes.fresnel(np.asarray(cos_i, np.float64), eta, np)
 
 
-def Ap(cos_theta_i, eta, h, sigma_a):
-    """Attenuations ``A_0..A_3`` (array with a leading axis of 4)."""
-    sin_theta_i2 = 1 - cos_theta_i**2
-    cos_theta_t = np.sqrt(np.maximum(0.0, 1 - sin_theta_i2 / eta**2))
-    eta_p = np.sqrt(np.maximum(0.0, eta**2 - sin_theta_i2)) / cos_theta_i  # Bravais index
-    cos_gamma_t = np.sqrt(np.maximum(0.0, 1 - (h / eta_p) ** 2))
-    T = np.exp(-sigma_a * 2 * cos_gamma_t / cos_theta_t)
-    F = fresnel_dielectric(cos_theta_i * np.sqrt(np.maximum(0.0, 1 - h**2)), eta)
-    A0 = F
-    A1 = (1 - F) ** 2 * T
-    A2 = A1 * T * F
-    # the geometric series of the remaining paths; at T F = 1 (h = +-1 on a lossless
-    # fiber) A2 already vanishes like (1 - F)^2, so the limit is 0, not 0 / 0
-    denom = 1 - T * F
-    A3 = np.divide(A2 * F * T, denom, out=np.zeros(np.broadcast(A2, denom).shape), where=denom > 1e-12)
-    return np.stack(np.broadcast_arrays(A0, A1, A2, A3))
+def Ap(cos_theta_i, eta, h, sigma_a, p_max: int = P_MAX):
+    """Attenuations ``A_0 .. A_{p_max}`` (array with a leading axis of ``p_max + 1``)."""
+    A = lobes.attenuation(np.asarray(cos_theta_i, np.float64), eta, h, sigma_a, p_max, np)
+    return np.stack(np.broadcast_arrays(*A))
 
 
-def Phi(p, gamma_i, gamma_t):
-    """Ideal exit azimuth change of the path with ``p`` internal segments."""
-    return 2 * p * gamma_t - 2 * gamma_i + p * np.pi
+Phi = lobes.Phi
 
 
 def Np(dphi, p, s, gamma_i, gamma_t):
     """Trimmed logistic (scale ``s``) on [-pi, pi] around ``Phi_p``."""
-    x = np.mod(dphi - Phi(p, gamma_i, gamma_t) + np.pi, 2 * np.pi) - np.pi
-    x = np.abs(x)
-    e = np.exp(-x / s)
-    logistic = e / (s * (1 + e) ** 2)
-    trim = special.expit(np.pi / s) - special.expit(-np.pi / s)
-    return logistic / trim
+    return lobes.logistic(lobes.wrap(dphi - Phi(p, gamma_i, gamma_t), np), s, np)
 
 
 def Np_cell(phi, width, p, s, gamma_i, gamma_t):
@@ -130,32 +110,36 @@ class RayFiber(FiberModel):
 
     Parameters: ``eta[lambda]`` (relative index), ``sigma_a[lambda]`` (absorption per
     fiber radius), ``longitudinal_roughness``, ``azimuthal_roughness`` (in (0, 1]),
-    ``scale_tilt_deg`` and ``n_h`` (quadrature nodes over the offset).
+    ``scale_tilt_deg``, ``n_h`` (quadrature nodes over the offset) and ``lobes`` (the
+    paths R, TT, TRT, ... kept explicit before the residual; 3 = Chiang's model).
     """
 
     name = "ray"
 
     def __init__(self, wavelength, eta, sigma_a, longitudinal_roughness=0.3,
-                 azimuthal_roughness=0.3, scale_tilt_deg=2.0, n_h=256, n_phi=360):
+                 azimuthal_roughness=0.3, scale_tilt_deg=2.0, n_h=256, n_phi=360, lobes=P_MAX):
         super().__init__(wavelength)
         self.eta = np.broadcast_to(np.asarray(eta, dtype=np.float64), self.wavelength.shape)
         self.sigma_a = np.broadcast_to(np.asarray(sigma_a, dtype=np.float64), self.wavelength.shape)
-        self.v = longitudinal_variance(longitudinal_roughness)
+        if not 3 <= int(lobes) <= 32:
+            raise ValueError(f"lobes must be in 3 .. 32 (got {lobes})")
+        self.p_max = int(lobes)
+        self.v = longitudinal_variance(longitudinal_roughness, self.p_max)
         self.s = logistic_scale(azimuthal_roughness)
-        self.shifts = tilt_shifts(scale_tilt_deg)
+        self.shifts = tilt_shifts(scale_tilt_deg, self.p_max)
         self.n_h, self.n_phi = int(n_h), int(n_phi)
         self.params = dict(longitudinal_roughness=longitudinal_roughness,
                            azimuthal_roughness=azimuthal_roughness, scale_tilt_deg=scale_tilt_deg,
-                           n_h=n_h, n_phi=n_phi)
+                           n_h=n_h, n_phi=n_phi, lobes=self.p_max)
 
     def lobes(self):
-        return [Longitudinal("deon", v=float(self.v[p]), shift=float(self.shifts[p])) for p in range(P_MAX + 1)]
+        return [Longitudinal("deon", v=float(self.v[p]), shift=float(self.shifts[p])) for p in range(self.p_max + 1)]
 
     def azimuthal(self, theta_i, dphi, eta, sigma_a, cell=None):
-        """``N_p`` for p = 0..3 at broadcastable ``theta_i, dphi, eta, sigma_a``.
+        """``N_p`` for p = 0..p_max at broadcastable ``theta_i, dphi, eta, sigma_a``.
 
         With ``cell`` (a width in radians) each value is the mean over its azimuth cell
-        (:func:`Np_cell`), as tables want. Returns an array with a leading axis of 4;
+        (:func:`Np_cell`), as tables want. Returns an array with a leading axis of p_max + 1;
         the h average is the last step.
         """
         h, wh = h_quadrature(self.n_h)
@@ -164,13 +148,13 @@ class RayFiber(FiberModel):
         eta_p = np.sqrt(np.maximum(0.0, eta_**2 - (1 - cos_ti**2))) / cos_ti
         gamma_i = np.arcsin(h)
         gamma_t = np.arcsin(np.clip(h / eta_p, -1, 1))
-        A = Ap(cos_ti, eta_, h, np.asarray(sigma_a)[..., None])
+        A = Ap(cos_ti, eta_, h, np.asarray(sigma_a)[..., None], self.p_max)
         dphi_ = np.asarray(dphi)[..., None]
         if cell is None:
-            N = [A[p] * Np(dphi_, p, self.s, gamma_i, gamma_t) for p in range(P_MAX)]
+            N = [A[p] * Np(dphi_, p, self.s, gamma_i, gamma_t) for p in range(self.p_max)]
         else:
-            N = [A[p] * Np_cell(dphi_, cell, p, self.s, gamma_i, gamma_t) for p in range(P_MAX)]
-        N.append(np.broadcast_to(A[P_MAX] / (2 * np.pi), N[0].shape))
+            N = [A[p] * Np_cell(dphi_, cell, p, self.s, gamma_i, gamma_t) for p in range(self.p_max)]
+        N.append(np.broadcast_to(A[self.p_max] / (2 * np.pi), N[0].shape))
         return np.stack([n @ wh for n in N])
 
     def tabulate(self, theta_i):
@@ -178,13 +162,13 @@ class RayFiber(FiberModel):
 
         theta_i = np.asarray(theta_i, dtype=np.float64)
         phi = -np.pi + 2 * np.pi * np.arange(self.n_phi) / self.n_phi
-        N = np.empty((P_MAX + 1, len(theta_i), 1, self.n_phi, len(self.wavelength)), dtype=np.float32)
+        N = np.empty((self.p_max + 1, len(theta_i), 1, self.n_phi, len(self.wavelength)), dtype=np.float32)
         for i, ti in enumerate(tqdm(theta_i, desc="ray", unit="theta_i", leave=False)):
             # Exactly at grazing cos(theta_i) = 0 the Bravais index diverges; take the limit.
             ti = min(ti, np.deg2rad(89.99))
             N[:, i, 0] = self.azimuthal(ti, phi[:, None], self.eta[None, :], self.sigma_a[None, :],
                                         cell=2 * np.pi / self.n_phi)
-        names = ["R", "TT", "TRT", "residual"]
+        names = ["R", "TT", "TRT"] + [f"p{p}" for p in range(3, self.p_max)] + ["residual"]
         lobes = [Lobe(names[p], m, N[p]) for p, m in enumerate(self.lobes())]
         meta = {"model": self.name, **self.params, "eta": self.eta.tolist(), "sigma_a": self.sigma_a.tolist(),
                 # cuticle tilt breaks the mirror symmetry along the axis
