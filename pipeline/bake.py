@@ -56,6 +56,21 @@ def load_fiber_table(cfg, out_root) -> FiberTable:
     return table
 
 
+def exit_model(name: str, fiber: FiberTable, estimator: str = "fast") -> str:
+    """The exit model a bake uses: ``auto`` is the one that agrees with exact geometry where
+    the fiber knows its paths (``lobe`` for ray fibers with the fast estimator), else
+    ``uniform`` (measured on the ray model's smooth limit: docs/BENCHMARKS.md, "Exit models")."""
+    is_ray = fiber.meta.get("model") == "ray"
+    if name == "auto":
+        return "lobe" if is_ray and estimator == "fast" else "uniform"
+    if name == "lobe" and not is_ray:
+        raise ValueError(f"bake.exit: lobe needs a ray fiber (fiber.model is {fiber.meta.get('model')!r}); "
+                         "use auto, uniform or entry")
+    if name != "uniform" and estimator != "fast":
+        raise ValueError(f"bake.exit: {name} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
+    return name
+
+
 def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     """Incident directions and bins, after the symmetry reductions the scene allows."""
     c = cfg.bake
@@ -68,7 +83,8 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     else:
         phi_i, phi_reduction = np.deg2rad(np.arange(0, 90 + 1e-9, c.phi_i_step_deg)), "mirror_xz"
     spec = BakeSpec(theta_i, phi_i, c.n_theta_o, c.n_phi_o, relative_phi=bundle.is_circle,
-                    estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start)
+                    estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
+                    exit=exit_model(c.exit, fiber, c.estimator))
     reductions = {"theta_i": "mirror" if mirror_theta else None, "phi_i": phi_reduction,
                   "phi_o": "relative" if bundle.is_circle else "absolute"}
     return spec, reductions
@@ -215,7 +231,7 @@ class Bake:
         cfg, c, tally, out, bundle = self.cfg, self.cfg.bake, self.tally, self.out, self.bundle
         table = tally_to_table(tally, self.spec, self.fiber, self.reductions)
         table.meta.update(config_name=cfg.name, config_hash=self.key, config=cfg.model_dump(mode="json"),
-                          fiber_model=cfg.fiber.model, estimator=c.estimator, seed=c.seed,
+                          fiber_model=cfg.fiber.model, estimator=c.estimator, exit=self.spec.exit, seed=c.seed,
                           samples_per_phi_i=c.paths_per_phi_i, vertices=int(tally.vertices),
                           bake_seconds=self.elapsed, n_fibers=len(bundle.radii),
                           packing_fraction=bundle.packing_fraction, bounding_radius_um=bundle.bounding_radius,
@@ -223,7 +239,8 @@ class Bake:
         table.save(out / "bundle_table.npz")
         balance = table.energy_balance()
         elapsed = self.elapsed
-        summary = {"config_hash": self.key, "bake_seconds": elapsed, "tracing_cpu_seconds": self.cpu,
+        summary = {"config_hash": self.key, "exit": self.spec.exit, "bake_seconds": elapsed,
+                   "tracing_cpu_seconds": self.cpu,
                    "paths": int(tally.paths.sum()),
                    "vertices": int(tally.vertices), "vertices_per_second": tally.vertices / max(elapsed, 1e-9),
                    "n_fibers": len(bundle.radii), "packing_fraction": bundle.packing_fraction,

@@ -187,6 +187,9 @@ class BakeCfg(Strict):
     n_phi_o: int = Field(72, ge=4, le=7200)
     max_bounces: int = Field(1000, ge=1, le=1_000_000)
     rr_start: int = Field(8, ge=1)
+    exit: Literal["auto", "uniform", "entry", "lobe"] = Field(
+        "auto", description="where scattered light leaves a fiber (models/baker.py); auto: lobe for ray fibers, "
+                            "else uniform")
     seed: int = Field(1, ge=0)
     variant: str = "llvm_ad_mono"
     checkpoint_every_s: float = Field(20.0, gt=0.0)
@@ -325,6 +328,18 @@ class Config(Strict):
         circle = self.bundle.shape == "circle" and self.bundle.arrangement != "zhao2016"
         n_phi_i = 1 if circle else int(round(90 / b.phi_i_step_deg)) + 1
         return n_phi_i, int(round((180 if expanded else 90) / b.theta_i_step_deg)) + 1
+
+    @model_validator(mode="after")
+    def _exit_fits_fiber(self):
+        """The h-resolved exit knows the paths of a ray fiber only; every exit but the uniform
+        one needs the fast estimator."""
+        b = self.bake
+        if b.exit == "lobe" and self.fiber.model != "ray":
+            raise ValueError(f"bake.exit: lobe needs fiber.model: ray (got {self.fiber.model!r}); use auto, "
+                             "uniform or entry")
+        if b.exit in ("entry", "lobe") and b.estimator != "fast":
+            raise ValueError(f"bake.exit: {b.exit} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
+        return self
 
     @model_validator(mode="after")
     def _fits(self):
