@@ -3,7 +3,7 @@
 #   make test   set up, then run the default test suite
 CONFIG ?= configs/default.yaml
 
-.PHONY: setup run test bench bench-bake bench-neural bench-render bench-closure bench-cluster stability clean
+.PHONY: setup run test bench bench-bake bench-neural bench-render bench-closure bench-cluster bench-exit stability clean
 setup:
 	./scripts/setup.sh
 
@@ -27,6 +27,9 @@ bench-render: run
 
 bench-closure: run
 	.venv/bin/python -m pipeline.bench_closure $(CONFIG)
+
+bench-exit: setup
+	.venv/bin/python -m pipeline.bench_exit
 
 bench-cluster: setup
 	.venv/bin/python -m pipeline.bench_cluster

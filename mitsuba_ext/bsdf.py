@@ -517,4 +517,169 @@ def bsdf_classes() -> dict:
         def to_string(self):
             return f"FiberTableBSDF[wavelengths={len(self.wavelength)}]"
 
-    return {"fiber_bundle": FiberBundleBSDF, "fiber_table": FiberTableBSDF}
+    class FiberRayBSDF(CurveBSDF):
+        r"""Ray-optics fiber, resolved in the entry offset (``fiber_ray``)
+        -----------------------------------------------------------------
+
+        One smooth-walled ray-optics fiber (d'Eon / Chiang, ``fiber.model: ray``) on a
+        ``cylinder`` or ``bsplinecurve`` of the fiber's radius, evaluated at the hit's own
+        offset ``h`` across the fiber instead of averaged over it (``fiber_table``). Each
+        path ``p`` (R, TT, TRT, ..., the residual) is a BSDF component: ``bundle_path``
+        starts the light of path ``p`` from where that path leaves the fiber (the
+        attribute ``exit_<p>``, the outward normal there), for the sampled direction and
+        for every path of the emitter sample, as the baker's ``lobe`` exit does. This is
+        the explicit-fiber reference for bakes with ``bake.exit: lobe``. Under other
+        integrators it is Mitsuba's ``hair`` on tubes: every path leaves at the hit.
+
+        The paths are those of the ray that reached the hit (``si.wi``'s offset ``h``): a
+        smooth fiber's ray paths are reversible, so the camera ray's path ``p`` is the
+        light's path ``p`` run backwards. Its value is the light-side model, as
+        ``fiber_table`` reads it (longitudes, Bravais' index and attenuation of the light
+        side, times ``cos(theta_light) / cos(theta_camera)`` in radiance mode), so that
+        averaged over the fiber's width it is exactly ``fiber_table``'s.
+
+        .. list-table::
+           :header-rows: 1
+
+           * - Parameter
+             - Description
+           * - filename
+             - ``fiber_table.npz`` of a ray fiber (``bcsdf fiber`` with ``fiber.model: ray``):
+               its parameters (index and absorption per wavelength, roughness, tilt, paths).
+           * - radius, up, twist, twist_rate, wavelength
+             - As ``fiber_table``.
+
+        .. code-block:: python
+
+            fiber = {"type": "fiber_ray", "filename": "artifacts/ray/fiber/fiber_table.npz"}
+            scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
+                                "bsdf": fiber}
+        """
+
+        plugin = "fiber_ray"
+
+        def __init__(self, props):
+            super().__init__(props)
+            from models.fiber.base import FiberTable
+            from models.fiber.lobes import LobeSampler
+
+            if "filename" not in props:
+                raise ValueError("fiber_ray: needs 'filename' (a fiber_table.npz of a ray fiber, from `bcsdf fiber`)")
+            table = FiberTable.load(resolve_path(self.plugin, "filename", props["filename"]))
+            if table.meta.get("model") != "ray":
+                raise ValueError(f"fiber_ray: {props['filename']} holds a {table.meta.get('model')!r} fiber; "
+                                 "fiber_ray needs a ray fiber (use fiber_table for other models)")
+            self.lobes = LobeSampler(table.meta, table.wavelength, mi.Float)
+            self.n_paths = self.lobes.p_max + 1
+            self._init_curve(props, table.wavelength)
+            scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
+                       mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
+            passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
+            self.m_components = [scatter] * self.n_paths + [passing]  # one per path, then hits from inside
+            self.m_flags = scatter | passing
+
+        def _local(self, si, wo_world):
+            """Frame, ``theta`` of ``si.wi`` and ``wo``, ``dphi`` (wrapped), the offset ``h``
+            of ``si``'s ray and whether it arrived from inside."""
+            from models.fiber import lobes
+
+            frame, phi_i, theta_i, inside = self._setup(si)
+            phi_o, theta_o = angles(wo_world, frame)
+            dphi = lobes.wrap(phi_o - phi_i, dr)
+            return frame, theta_i, theta_o, dphi, self._offset(si, frame), inside
+
+        @staticmethod
+        def _offset(si, frame):
+            """``h`` of the ray that reached ``si``, in the bundle frame's cross-section."""
+            from models.fiber import lobes
+
+            x, _, z = frame
+            n = dr.normalize(mi.Vector2f(dr.dot(si.n, x), dr.dot(si.n, z)))
+            d = -si.to_world(si.wi)
+            u = dr.normalize(mi.Vector2f(dr.dot(d, x), dr.dot(d, z)))
+            # the entry normal is -sqrt(1 - h^2) u + h u_perp, u_perp = (-u_z, u_x)
+            h = dr.clip(-n.x * u.y + n.y * u.x, -1.0, 1.0)
+            return dr.select(dr.isfinite(h), h, 0.0), n, u
+
+        def _components(self, ctx):
+            """The paths ``ctx`` asks for (all, one, or none: the passing component)."""
+            c = ctx.component
+            if c == 0xFFFFFFFF:
+                return range(self.n_paths)
+            return [c] if c < self.n_paths else []
+
+        def _path_value(self, ctx, h, p, theta_si, theta_wo, dphi):
+            """Path ``p``'s value at every wavelength: the light side is the incident one
+            (``wo`` in radiance mode), the offset and azimuth those of ``si``'s ray."""
+            if ctx.mode == mi.TransportMode.Radiance:
+                f, _ = self.lobes.eval_spectrum(theta_wo, h, p, theta_si, dphi)
+                scale = adjoint_factor(theta_wo, theta_si)
+                return [v * scale for v in f]
+            f, _ = self.lobes.eval_spectrum(theta_si, h, p, theta_wo, dphi)
+            return f
+
+        def eval(self, ctx, si, wo, active=True):
+            _, theta_i, theta_o, dphi, (h, _, _), inside = self._local(si, si.to_world(wo))
+            total = [dr.zeros(mi.Float, dr.width(h)) for _ in range(self.lobes.L)]
+            for p in self._components(ctx):
+                f = self._path_value(ctx, h, dr.zeros(mi.UInt32, dr.width(h)) + p, theta_i, theta_o, dphi)
+                total = [a + b for a, b in zip(total, f)]
+            return dr.select(active & ~inside, self._spectrum(total, si), 0.0)
+
+        def pdf(self, ctx, si, wo, active=True):
+            _, theta_i, theta_o, dphi, (h, _, _), inside = self._local(si, si.to_world(wo))
+            pdf = dr.zeros(mi.Float, dr.width(h))
+            for p in self._components(ctx):
+                pdf += self.lobes.pdf(theta_i, h, dr.zeros(mi.UInt32, dr.width(h)) + p, theta_o, dphi)
+            return dr.select(active & ~inside, pdf / dr.maximum(dr.cos(theta_o), 1e-6), 0.0)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            frame, phi_i, theta_i, inside = self._setup(si)
+            h, _, _ = self._offset(si, frame)
+            u0, u1 = split_uniform(sample1)
+            p, theta_o, dphi, pdf = self.lobes.sample(theta_i, h, [u0, u1, sample2.x, sample2.y])
+            wo_world = direction(phi_i + dphi, theta_o, frame)
+            f = self._path_value(ctx, h, p, theta_i, theta_o, dphi)
+            pdf = pdf / dr.maximum(dr.cos(theta_o), 1e-6)
+            bs = dr.zeros(mi.BSDFSample3f)
+            bs.wo = dr.select(inside, -si.wi, si.to_local(wo_world))
+            bs.pdf = dr.select(inside, 1.0, pdf)
+            bs.eta = 1.0
+            bs.sampled_type = dr.select(inside, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
+                                        mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
+            bs.sampled_component = dr.select(inside, mi.UInt32(self.n_paths), p)
+            weight = dr.select(inside, 1.0, self._spectrum(f, si) / dr.maximum(pdf, 1e-20))
+            ok = active & (inside | (pdf > 0))
+            return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
+
+        def eval_attribute_3(self, name, si, active=True):
+            """``exit_<p>``: the world outward normal where path ``p`` leaves (zero for the
+            residual, which has no single exit, and for other names)."""
+            from models.fiber import lobes
+
+            zero = dr.zeros(mi.Color3f, dr.width(si.t))
+            if not name.startswith("exit_") or not name[5:].isdigit() or int(name[5:]) >= self.lobes.p_max:
+                return zero
+            p = int(name[5:])
+            frame, _, theta_i, _ = self._setup(si)
+            h, n, u = self._offset(si, frame)
+            eta_p = lobes.bravais(self.lobes.eta[self.lobes.ref], self.lobes.cos_in(theta_i), dr)
+            _, gamma_t = lobes.gammas(h, eta_p, dr)
+            nx, nz = self.lobes.exit_normal(n.x, n.y, dr.zeros(mi.UInt32, dr.width(h)) + p, self.lobes.p_max,
+                                            gamma_t, dr)
+            x, _, z = frame
+            w = nx * x + nz * z
+            return mi.Color3f(w.x, w.y, w.z)
+
+        def eval_attribute_1(self, name, si, active=True):
+            if name == "paths":
+                return dr.zeros(mi.Float, dr.width(si.t)) + self.n_paths
+            return super().eval_attribute_1(name, si, active)
+
+        def has_attribute(self, name, active=True):
+            return name in ("passthrough", "radius", "paths") or name.startswith("exit_")
+
+        def to_string(self):
+            return f"FiberRayBSDF[paths={self.n_paths}, wavelengths={len(self.wavelength)}]"
+
+    return {"fiber_bundle": FiberBundleBSDF, "fiber_table": FiberTableBSDF, "fiber_ray": FiberRayBSDF}

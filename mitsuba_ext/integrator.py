@@ -109,7 +109,7 @@ def shape_radius(shape):
 def check_bundles(scene) -> list[str]:
     """What is wrong with the bundles of a scene, in words (one line per shape).
 
-    ``fiber_bundle`` and ``fiber_table`` are defined on cylinders and B-spline curves
+    ``fiber_bundle``, ``fiber_table`` and ``fiber_ray`` are defined on cylinders and B-spline curves
     (the frame follows their tangent, the radius comes from their parametrization); a
     BSDF ``radius`` that disagrees with the shape's is named (the shape's is used).
     """
@@ -117,7 +117,7 @@ def check_bundles(scene) -> list[str]:
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         plugin = getattr(bsdf, "plugin", None)
-        if plugin not in ("fiber_bundle", "fiber_table"):
+        if plugin not in ("fiber_bundle", "fiber_table", "fiber_ray"):
             continue
         kind = shape.shape_type()
         if kind not in (int(mi.ShapeType.Cylinder), int(mi.ShapeType.BSplineCurve)):
@@ -198,15 +198,60 @@ def integrator_class():
             if props.get("hide_emitters", False):
                 raise ValueError("bundle_path: hide_emitters is not supported (directly visible emitters are "
                                  "always shown); leave it out")
-            self._checked = set()
+            self._checked = {}
+            self._paths = 0
 
         def _check(self, scene):
-            """Warn once per scene about bundles on shapes they are not defined on."""
-            if id(scene) in self._checked:
-                return
-            self._checked.add(id(scene))
-            for line in check_bundles(scene):
-                mi.Log(mi.LogLevel.Warn, "bundle_path: " + line)
+            """Warn once per scene about bundles on shapes they are not defined on; count the
+            paths of the scene's h-resolved fibers (``fiber_ray``: one emitter sample per path)."""
+            if id(scene) not in self._checked:
+                for line in check_bundles(scene):
+                    mi.Log(mi.LogLevel.Warn, "bundle_path: " + line)
+                self._checked[id(scene)] = max([int(getattr(s.bsdf(), "n_paths", 0)) for s in scene.shapes()] + [0])
+            self._paths = self._checked[id(scene)]
+
+        # -- h-resolved fibers: each path leaves from its own exit point --------------
+        def _path_exit(self, si, bsdf, radius, p, w, active):
+            """Start and outward normal of light leaving along ``w`` on path ``p`` (a Python
+            int) of an h-resolved fiber, and whether the path has a single exit (not the
+            residual). A direction into the fiber crosses it to the chord's far end."""
+            n = mi.Vector3f(bsdf.eval_attribute_3(f"exit_{p}", si, active))
+            ok = active & (dr.squared_norm(n) > 0.25)
+            t, n_perp, _ = bundle_axis(si)
+            w_perp = dr.normalize(w - dr.dot(w, t) * t)
+            nd = dr.dot(n, w_perp)
+            n = dr.select(nd < 0, n - 2 * nd * w_perp, n)
+            return si.p - radius * n_perp + radius * n, n, ok
+
+        def _sampled_exit(self, si, bsdf, radius, path, w, active):
+            """:meth:`_path_exit` of the sampled path (``bs.sampled_component`` per lane)."""
+            p_out, n_out, ok = si.p, si.n, mi.Bool(False)
+            for p in range(self._paths - 1):  # the last index is at most a residual
+                mine = active & (path == p)
+                q, n, good = self._path_exit(si, bsdf, radius, p, w, mine)
+                p_out, n_out, ok = dr.select(mine, q, p_out), dr.select(mine, n, n_out), ok | (mine & good)
+            return p_out, n_out, ok
+
+        def _emitter_paths(self, scene, si, bsdf, ds, radius, h, active):
+            """The emitter sample's contribution through every path of an h-resolved fiber,
+            each with its shadow ray from that path's exit and its own MIS weight."""
+            wo = si.to_local(ds.d)
+            total = mi.Spectrum(0.0)
+            for p in range(self._paths):
+                ctx = mi.BSDFContext()
+                ctx.component = p
+                f = bsdf.eval(ctx, si, wo, active)
+                pdf = bsdf.pdf(ctx, si, wo, active)
+                p_exit, radial, ok = self._path_exit(si, bsdf, radius, p, ds.d, active)
+                p_res, r_res = displaced_exit(si, radius, h, ds.d)
+                p_exit, radial = dr.select(ok, p_exit, p_res), dr.select(ok, radial, r_res)
+                dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
+                d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
+                shadow = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
+                T = self._transmittance(scene, shadow, active)
+                mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, pdf))
+                total += f * T * mis
+            return total
 
         # -- helpers ----------------------------------------------------------
         # what the BSDFs read (UV for the twist, the shading frame for the tangent); the
@@ -319,7 +364,11 @@ def integrator_class():
                 sample_2 = sampler.next_2d(active_next)
                 bsdf_val, bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_next)
                 mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
-                result = dr.select(active_em, dr.fma(throughput, bsdf_val * em_weight * T * mis_em, result), result)
+                nee = bsdf_val * T * mis_em
+                if dr.hint((self._paths > 0) & self.displace, mode="scalar"):  # h-resolved fibers in the scene
+                    lobed = active_em & bsdf.has_attribute("paths", active_em) & (radius > 0)
+                    nee = dr.select(lobed, self._emitter_paths(scene, si, bsdf, ds, radius, h, lobed), nee)
+                result = dr.select(active_em, dr.fma(throughput, nee * em_weight, result), result)
 
                 # ------------------ the next ray ------------------
                 passed = active_next & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
@@ -333,6 +382,10 @@ def integrator_class():
                     p_exit, radial = displaced_exit(si, radius, h, wo_world)
                     moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
                     next_ray = dr.select(bundle & ~passed & (radius > 0), moved, next_ray)
+                if dr.hint((self._paths > 0) & self.displace, mode="scalar"):
+                    lobed = bundle & ~passed & (radius > 0) & bsdf.has_attribute("paths", bundle)
+                    p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world, lobed)
+                    next_ray = dr.select(single, offset_ray(p_path, n_path, wo_world, si.wavelengths), next_ray)
                 ray = dr.select(active_next, next_ray, ray)
 
                 throughput = dr.select(active_next, throughput * bsdf_weight, throughput)

@@ -16,7 +16,7 @@ Figures per (ply, theta_i, model): albedo / exact, the energy per 30 deg sector 
 share within 2% + 3 standard errors and the worst ratio. Writes
 ``docs/exit_models.json`` (read by the report) and ``docs/images/exit_models.png``::
 
-    .venv/bin/python -m pipeline.bench_exit            # about 10 minutes on 2 cores
+    .venv/bin/python -m pipeline.bench_exit            # about 5 minutes on 2 cores
     .venv/bin/python -m pipeline.bench_exit --quick    # the default ply only, fewer rays
 """
 
@@ -123,16 +123,20 @@ def plot(rows, path) -> None:
 
     from .plots import save_figure
 
-    fig, axes = plt.subplots(1, len(rows), figsize=(3.2 * len(rows), 3.2), sharey=True, squeeze=False)
+    cols = min(3, len(rows))
+    n_rows = -(-len(rows) // cols)
+    fig, axes = plt.subplots(n_rows, cols, figsize=(3.4 * cols, 2.9 * n_rows), sharey=True, squeeze=False)
     centres = np.arange(15, 180, 30)
-    for ax, r in zip(axes[0], rows):
+    for ax, r in zip(axes.ravel(), rows):
         for m, style in zip(EXITS, ("o-", "s--", "^-")):
             ax.plot(centres, r[m]["sector_ratios"], style, label=m, ms=4)
         ax.axhspan(0.98, 1.02, color="0.85")
         ax.axhline(1.0, color="k", lw=0.6)
-        ax.set(title=f"{r['ply']}\ntheta_i {r['theta_i_deg']:.0f} deg", xlabel="|dphi| sector (deg)",
+        ax.set(title=f"{r['ply']} ({r['n_fibers']} fibers), theta_i {r['theta_i_deg']:.0f}", xlabel="|dphi| sector (deg)",
                xticks=[0, 60, 120, 180])
-    axes[0, 0].set_ylabel("bake / exact geometry (energy)")
+        ax.title.set_fontsize(8)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("bake / exact geometry")
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path)

@@ -120,6 +120,15 @@ def rendered_intensity(mi, scene_dict: dict, w_o, half_size) -> float:
     return float(img.sum() * pixel_area / visible_length(half_size, theta_o))
 
 
+def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float) -> dict:
+    """The BSDF of one explicit fiber that leaves as a bake with ``exit_model`` does:
+    ``fiber_ray`` (each path from its own exit) for the h-resolved ``lobe`` exit,
+    ``fiber_table`` (the displaced exit of ``bundle_path``, h uniform) otherwise. The
+    ``entry`` exit has no explicit counterpart yet; it is compared with ``fiber_table``."""
+    plugin = "fiber_ray" if exit_model == "lobe" else "fiber_table"
+    return {"type": plugin, "filename": str(fiber_table), "wavelength": float(wavelength_nm), "up": UP}
+
+
 def explicit_shapes(bundle, fiber_bsdf: dict, turn: float, half_length: float, unit: float = 1e-3) -> dict:
     """Every fiber of ``bundle`` (micrometres, centres in the bundle frame's x-z plane)
     as its own cylinder along ``+y``, the arrangement turned by ``turn`` (radians) about
@@ -222,10 +231,12 @@ def continuous(S_of, pairs, d: float = 1e-6) -> np.ndarray:
 
 
 
-def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False) -> list:
+def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, spp: int = 4) -> list:
     """``[theta_i, theta_o + theta_i, dphi (deg), rendered / predicted]`` per direction pair
     (radians) for one cylinder of radius ``R`` with ``bsdf``; ``S_of(pi, ti, po, to)`` is
-    what the BSDF was given. ``evaluated``: Dr.Jit's evaluated mode (the onnx backend).
+    what the BSDF was given. ``evaluated``: Dr.Jit's evaluated mode (the onnx backend);
+    ``spp``: samples per pixel (a BSDF that depends on the offset across the fiber, as
+    ``fiber_ray``, needs enough of them to integrate over it).
     Pairs where ``S`` is not :func:`continuous` are left out."""
     import drjit as dr
 
@@ -239,7 +250,7 @@ def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False) ->
             predicted = predicted_intensity(1.0, R, ti, S_of(pi_, ti, po, to))
             w_i, w_o = direction(pi_, ti), direction(po, to)
             hs = 1.5 * R
-            sc = scene(mi, {"f": cylinder(R, bsdf, half_length=40 * hs)}, w_i, w_o, hs, spp=4)
+            sc = scene(mi, {"f": cylinder(R, bsdf, half_length=40 * hs)}, w_i, w_o, hs, spp=spp)
             rows.append([float(np.rad2deg(ti)), float(np.rad2deg(to + ti)), float(np.rad2deg(po - pi_)),
                          rendered_intensity(mi, sc, w_o, hs) / float(predicted)])
     finally:

@@ -324,7 +324,10 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
                                        closure.evaluator(mi, b, props[b].get("table") or props[b].get("model"), wl),
                                        pairs)
            for b in ("table", "mlp") if b in props}
-    fiber_bsdf = {"type": "fiber_table", "filename": str(fiber_table), "wavelength": wl, "up": closure.UP}
+    # the explicit fibers leave their fibers as the bake did (closure compares like with like)
+    exit_model = raw.meta.get("exit", "uniform")
+    fiber_bsdf = closure.explicit_fiber(fiber_table, exit_model, wl)
+    result["exit"] = exit_model
     phi_bins = [int(len(raw.phi_o) * f) for f in (0.55, 0.75, 0.95)]  # dphi ~ 20, 90, 160 deg
     nodes = [j for j, ti in enumerate(raw.theta_i) if 5 < np.rad2deg(ti) < 85][::2]
     cases = [c for c in closure.cone_cases(raw, phi_bins, beside=False) if c[0] in nodes]
@@ -345,7 +348,8 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     per_turn = max(1, r.explicit_spp // turns)
     imgs, t_explicit = [], 0.0
     for k in tqdm(range(turns), desc="explicit fibers", unit="turn"):
-        scene = scenes.explicit_scene(mi, cfg, bundle, fiber_table, per_turn, k, turn=2 * np.pi * k / turns)
+        scene = scenes.explicit_scene(mi, cfg, bundle, fiber_table, per_turn, k, turn=2 * np.pi * k / turns,
+                                      plugin=fiber_bsdf["type"])
         img, seconds, _ = render_timed(mi, scene)
         imgs.append(img)
         t_explicit += seconds

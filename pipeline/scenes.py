@@ -79,9 +79,11 @@ def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) ->
     return scene
 
 
-def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, turn: float = 0.0) -> dict:
-    """The same ply, every fiber its own cylinder with the fiber model (``fiber_table``),
-    the arrangement turned by ``turn`` (radians) about the ply's axis.
+def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, turn: float = 0.0,
+                   plugin: str = "fiber_table") -> dict:
+    """The same ply, every fiber its own cylinder with the fiber model (``plugin``:
+    ``fiber_table``, or ``fiber_ray`` for a bake with the h-resolved exit), the
+    arrangement turned by ``turn`` (radians) about the ply's axis.
 
     Cylinders, not one ``bsplinecurve`` of all fibers: rays that leave a fiber next to
     a touching neighbour made Mitsuba 3.9's curve intersection read past its segment
@@ -89,7 +91,7 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, t
     """
     L = ply_length(cfg)
     scene = _base(mi, cfg, 0.5 * L, spp, seed)
-    fiber = {"type": "fiber_table", "filename": str(fiber_table_path)}
+    fiber = {"type": plugin, "filename": str(fiber_table_path)}
     # the bundle frame (x, t, z) of ply_scene without twist is (y, x, -z) of the scene;
     # the fibers run past the image edges so that their ends stay out of view
     c, s = np.cos(turn), np.sin(turn)
