@@ -14,25 +14,25 @@ test: setup
 	.venv/bin/python -m pytest -q --durations=15  # the slowest, for keeping the suite near 10 min
 
 bench: setup
-	.venv/bin/python -m pipeline.bench_fiber
+	.venv/bin/python -m pipeline.bench.fiber
 
 bench-bake: setup
-	.venv/bin/python -m pipeline.bench_bake
+	.venv/bin/python -m pipeline.bench.bake
 
 bench-neural: run
-	.venv/bin/python -m pipeline.bench_neural
+	.venv/bin/python -m pipeline.bench.neural
 
 bench-render: run
-	.venv/bin/python -m pipeline.bench_render $(CONFIG)
+	.venv/bin/python -m pipeline.bench.render $(CONFIG)
 
 bench-closure: run
-	.venv/bin/python -m pipeline.bench_closure $(CONFIG)
+	.venv/bin/python -m pipeline.bench.closure $(CONFIG)
 
 bench-exit: setup
-	.venv/bin/python -m pipeline.bench_exit
+	.venv/bin/python -m pipeline.bench.exit
 
 bench-cluster: setup
-	.venv/bin/python -m pipeline.bench_cluster
+	.venv/bin/python -m pipeline.bench.cluster
 
 stability: setup
 	.venv/bin/bcsdf stability $(CONFIG)

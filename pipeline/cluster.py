@@ -33,9 +33,9 @@ MAX_BATCHES_PER_TASK = 8
 
 def code_digest(cfg) -> str:
     """The digest of the code a bake runs (the bake stage's code deps in dvc.yaml)."""
-    from . import stages
+    from . import graph
 
-    return stages.digest(stages.spec("bake", cfg)["code"], stages.ROOT)[:16]
+    return graph.digest(graph.spec("bake", cfg)["code"], graph.ROOT)[:16]
 
 
 def trace_batches(cfg_json: str, fiber, items, code: str, threads: int = 0) -> list:
@@ -53,7 +53,7 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, thre
 
     from models.baker import Baker
 
-    from .bake import batch_seed, build_bundle, make_spec
+    from .stages.bake import batch_seed, build_bundle, make_spec
     from .config import Config
 
     cfg = Config.model_validate(json.loads(cfg_json))
@@ -150,7 +150,7 @@ def client(workers: int | None = None, scheduler: str | None = None):
 
 def ordered_tallies(c, bakes):
     """Yield ``(j, index, tally)`` for the remaining batches of every bake in ``bakes``
-    (:class:`pipeline.bake.Bake`), traced on the cluster; each bake's batches in order.
+    (:class:`pipeline.stages.bake.Bake`), traced on the cluster; each bake's batches in order.
 
     All remaining batches are submitted at once, bake after bake (Dask runs tasks
     roughly in the order they were submitted, so a worker seldom switches scenes), several

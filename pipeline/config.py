@@ -210,7 +210,7 @@ class BakeCfg(Strict):
 
 
 class TrainCfg(Strict):
-    """Neural compression of the bundle table (see pipeline/train.py)."""
+    """Neural compression of the bundle table (see pipeline/stages/train.py)."""
 
     models: dict[str, list[int]] = Field(default_factory=lambda: {
         "small": [32, 32], "medium": [64, 64, 64], "large": [128, 128, 128]})
@@ -246,7 +246,7 @@ VARIANTS = ("llvm_ad_rgb", "llvm_ad_spectral", "llvm_ad_mono", "cuda_ad_rgb", "c
 
 
 class RenderCfg(Strict):
-    """Mitsuba renders of the bundle BSDF (see pipeline/render.py)."""
+    """Mitsuba renders of the bundle BSDF (see pipeline/stages/render.py)."""
 
     variant: Literal[VARIANTS] = Field("llvm_ad_spectral", description="Mitsuba variant of the renders")
     scenes: list[Literal["ply", "yarn"]] = Field(default_factory=lambda: ["ply", "yarn"])
@@ -291,7 +291,7 @@ class Config(Strict):
     render: RenderCfg = RenderCfg()
     report: ReportCfg = ReportCfg()
     sweep: Optional[dict[str, list[Any]]] = Field(
-        None, description="axes of a family of bakes: dotted key -> values (bcsdf sweep; pipeline/sweep.py)")
+        None, description="axes of a family of bakes: dotted key -> values (bcsdf sweep; pipeline/stages/sweep.py)")
 
     @field_validator("sweep")
     @classmethod

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 
-from .stages import stamp_path
+from .graph import stamp_path
 
 # seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone,
 # session 6 (the stages' stamps; docs/BENCHMARKS.md, "The whole default pipeline")

@@ -42,8 +42,8 @@ def mi_plugins():
 @pytest.fixture(scope="session")
 def trained(tmp_path_factory):
     """Two small MLPs trained and exported from a synthetic table (passthrough 0.3)."""
-    from pipeline import export as export_stage
-    from pipeline import train as train_stage
+    from pipeline.stages import export as export_stage
+    from pipeline.stages import train as train_stage
     from tests.synthetic import make_config, synthetic_table
 
     tmp = tmp_path_factory.mktemp("neural")

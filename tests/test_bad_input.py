@@ -178,8 +178,8 @@ def test_damaged_or_foreign_artifacts_are_named(trained, tmp_path, capsys, damag
         t.save(table_path)  # save writes what it is given; load is what checks
     else:  # the same name, other training settings: its model.onnx copied over this one's
         other = cfg.model_copy(update={"train": cfg.train.model_copy(update={"epochs": 7})})
-        from pipeline import export as export_stage
-        from pipeline import train as train_stage
+        from pipeline.stages import export as export_stage
+        from pipeline.stages import train as train_stage
         root2 = tmp_path / "other"
         shutil.copytree(art / "n" / "bake", root2 / "n" / "bake")
         train_stage.run(other, root2)

@@ -8,8 +8,8 @@ from models.baker import Baker, BakeSpec
 from models.bundle import Bundle, poisson
 from models.bundle_table import BundleTable
 from models.fiber.patterns import PatternFiber
-from pipeline import bake as bake_stage
-from pipeline import fiber as fiber_stage
+from pipeline.stages import bake as bake_stage
+from pipeline.stages import fiber as fiber_stage
 from pipeline.config import ConfigError, load_config
 from tests.test_cli import ROOT, bcsdf
 

@@ -230,7 +230,7 @@ def test_table_lookup_keeps_its_bin_averages_and_moves_the_ridge_with_the_cone(t
 
 
 # ----------------------------------------------------------------------------------
-# Explicit fibers against the bake (light version; the full sweep: pipeline.bench_closure)
+# Explicit fibers against the bake (light version; the full sweep: pipeline.bench.closure)
 # ----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("plugin,exit_model", [("fiber_table", "uniform"), ("fiber_ray", "lobe")])

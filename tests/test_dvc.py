@@ -30,7 +30,7 @@ render: {width: 24, height: 12, spp: 2, scenes: [ply], mono_check: false, explic
 report: {queries: 5000}
 """
 STAGES = ("fiber", "bake", "train", "export", "render", "stability", "report")
-RUNNER = {"pipeline", "pipeline.cli", "pipeline.stages", "pipeline.estimate", "models", "mitsuba_ext"}  # the runner
+RUNNER = {"pipeline", "pipeline.cli", "pipeline.graph", "pipeline.stages", "pipeline.estimate", "models", "mitsuba_ext"}  # the runner
 
 
 def _clone(tmp_path):
@@ -102,7 +102,7 @@ def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
     stages = yaml.safe_load((repo / "dvc.yaml").read_text())["stages"]
     for stage in STAGES:
         deps = [d for d in stages[stage]["do"]["deps"] if not d.startswith("artifacts/")]
-        assert f"pipeline/{stage}.py" in deps or "pipeline" in deps, (stage, "its own module")
+        assert f"pipeline/stages/{stage}.py" in deps or "pipeline" in deps, (stage, "its own module")
         missing = sorted(m for m in _imported(trace / f"{stage}.err") - RUNNER if not _covered(m, deps))
         assert not missing, f"stage {stage} ran {missing}, which dvc.yaml does not list in its deps"
 
@@ -122,9 +122,9 @@ def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
         fh.write("\n# an edit\n")
     expected = {"export", "render", "stability", "report"}  # what runs mitsuba_ext
     assert _stale(run) == expected
-    probe = ("import sys, json; from pipeline.config import load_config; from pipeline import stages; "
+    probe = ("import sys, json; from pipeline.config import load_config; from pipeline import graph; "
              "cfg = load_config('configs/tiny.yaml'); "
-             "print(json.dumps([s for s in sys.argv[1:] if not stages.up_to_date(s, cfg)[0]]))")
+             "print(json.dumps([s for s in sys.argv[1:] if not graph.up_to_date(s, cfg)[0]]))")
     r = subprocess.run([sys.executable, "-c", probe, *STAGES], cwd=repo, env=env, capture_output=True, text=True)
     assert set(json.loads(r.stdout)) == expected, r.stderr
 

@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from models.bundle_table import BundleTable
-from pipeline import export as export_stage
-from pipeline import train as train_stage
+from pipeline.stages import export as export_stage
+from pipeline.stages import train as train_stage
 from pipeline.config import load_config
 from tests.synthetic import WL, make_config, synthetic_table
 
@@ -177,7 +177,7 @@ def test_folded_features_are_the_symmetries_and_nothing_more():
 
 
 def test_folds_are_chosen_by_the_data(tmp_path):
-    from pipeline.train import choose_folds
+    from pipeline.stages.train import choose_folds
 
     cfg = make_config(tmp_path)
     table = synthetic_table(cfg, tmp_path / "t.npz").expanded()
@@ -191,7 +191,7 @@ def test_folds_are_chosen_by_the_data(tmp_path):
 
 def test_held_out_bins_have_their_mirror_images_held_out(tmp_path):
     """A held-out bin whose mirror image is trained on would be a leak, not a test."""
-    from pipeline.train import held_out_bins
+    from pipeline.stages.train import held_out_bins
 
     cfg = make_config(tmp_path)
     table = synthetic_table(cfg, tmp_path / "t.npz").expanded()

@@ -65,8 +65,9 @@ def test_explicit_fibers_and_the_baked_bundle_look_the_same(baked, mi_plugins, m
     (one orientation of these ~15 fibers alone scatters +-5% differently)."""
     import copy
 
-    from pipeline import render, scenes
-    from pipeline.bake import build_bundle
+    from pipeline import scenes
+    from pipeline.stages import render
+    from pipeline.stages.bake import build_bundle
 
     mi = mi_plugins
     monkeypatch.setattr(scenes, "_sensor", wide_view)

@@ -2,7 +2,7 @@
 
 import pytest
 
-from pipeline.stability import CASES, Check, at_most
+from pipeline.stages.stability import CASES, Check, at_most
 
 
 @pytest.mark.parametrize("name", list(CASES))

@@ -34,7 +34,7 @@ import numpy as np
 
 from models.io import write_text
 
-from .metrics import write_metrics
+from ..metrics import write_metrics
 
 
 @dataclass
@@ -292,8 +292,8 @@ def neural_extremes() -> list[Check]:
     import yaml
 
     from models.bundle_table import BundleTable
-    from pipeline import export as export_stage
-    from pipeline import train as train_stage
+    from pipeline.stages import export as export_stage
+    from pipeline.stages import train as train_stage
     from pipeline.config import BAKE_SECTIONS, load_config
 
     checks = []
@@ -441,7 +441,7 @@ def run(cfg, out_root="artifacts") -> Path:
     checks = run_cases()
     rows = [asdict(c) for c in checks]
     write_text(out / "stability.json", json.dumps(rows, indent=1))
-    from pipeline.bake import _code_version
+    from pipeline.stages.bake import _code_version
     write_text(out / "provenance.json", json.dumps({"config_hash": cfg.hash(), "code": _code_version()}))
     md = ["| case | quantity | invariant | value | limit | result |", "|---|---|---|---|---|---|"]
     md += [f"| {c.case} | {c.quantity} | {c.invariant} | {c.value:.3e} | {c.limit:.1e} | "

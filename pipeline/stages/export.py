@@ -21,11 +21,11 @@ import numpy as np
 from models.io import atomic_path
 from models.neural import NeuralSpec, make_export_module, make_torch_model
 
-from . import bench_neural
-from .config import TRAIN_SECTIONS
+from .. import error_vs_time
+from ..config import TRAIN_SECTIONS
 from .train import load_checkpoint
-from .metrics import folder as metrics_folder
-from .metrics import write_curve, write_metrics
+from ..metrics import folder as metrics_folder
+from ..metrics import write_curve, write_metrics
 
 
 def run(cfg, out_root="artifacts") -> Path:
@@ -72,7 +72,7 @@ def run(cfg, out_root="artifacts") -> Path:
               f"weights {size} bytes")
 
     # -- error against run time of the table and every export (the report's figure) ----
-    result = bench_neural.measure(cfg, out_root, cfg.report.queries)
+    result = error_vs_time.measure(cfg, out_root, cfg.report.queries)
     rows = result["rows"]
     write_curve(metrics_folder(cfg, out_root) / "error_vs_time.csv",
                 [{"method": f"{r['method']} ({r['backend']})", "ns_per_query": r["ns_per_query"],

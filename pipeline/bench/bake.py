@@ -28,8 +28,8 @@ import yaml
 
 
 def median_rel_error(tally, spec, bins=None, fraction=0.9):
-    from pipeline.bake import tally_to_table
-    from pipeline.train import energy_bins
+    from pipeline.stages.bake import tally_to_table
+    from pipeline.stages.train import energy_bins
 
     t = tally_to_table(tally, spec, _FIBER, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
     v = t.values.astype(float)
@@ -56,7 +56,7 @@ def main(argv=None):
 
     from models import fiber as fiber_models
     from models.baker import Baker, BundleScene, Tally
-    from pipeline.bake import build_bundle, make_spec
+    from pipeline.stages.bake import build_bundle, make_spec
     from pipeline.config import load_config
 
     cfg = load_config(args.config)

@@ -21,7 +21,7 @@ import yaml
 
 from models.io import write_text
 
-from .plots import save_figure, spectral_image
+from ..plots import save_figure, spectral_image
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
 
@@ -135,7 +135,7 @@ def compare_slices(cfg, out_root, out) -> str:
 
     from mitsuba_ext.neural import DrJitMLP
     from models.neural import bin_average, table_cells
-    from pipeline.train import load_bundle_table
+    from pipeline.stages.train import load_bundle_table
 
     mi.set_variant(cfg.bake.variant)
     table, _ = load_bundle_table(cfg, out_root)
@@ -173,7 +173,7 @@ def compare_slices(cfg, out_root, out) -> str:
     return body
 
 
-EXIT_MODELS = Path(__file__).resolve().parents[1] / "docs" / "exit_models.json"
+EXIT_MODELS = Path(__file__).resolve().parents[2] / "docs" / "exit_models.json"
 EXIT_WORDS = {"uniform": "light leaves a fiber anywhere on its outgoing side (h uniform), whatever its path",
               "entry": "every path leaves where the light entered (as Mitsuba's hair on curves)",
               "lobe": "each path of the ray model leaves from its own exit point, at the ray's real offset h"}
@@ -181,12 +181,12 @@ EXIT_WORDS = {"uniform": "light leaves a fiber anywhere on its outgoing side (h 
 
 def exit_section(exit_model: str, out: Path) -> str:
     """Which exit model the bake used, and every exit model against exact geometry
-    (``docs/exit_models.json``, measured by ``python -m pipeline.bench_exit``)."""
+    (``docs/exit_models.json``, measured by ``python -m pipeline.bench.exit``)."""
     body = (f"<p>Exit model <b>{html.escape(exit_model)}</b>: {html.escape(EXIT_WORDS.get(exit_model, ''))}. "
             "Against exact geometry (smooth dielectric circles: Snell, Fresnel, nothing modelled), a smooth ray "
             "fiber baked with each exit model, energy per sector of |dphi| as bake / exact:</p>")
     if not EXIT_MODELS.exists():
-        return body + not_run("python -m pipeline.bench_exit")
+        return body + not_run("python -m pipeline.bench.exit")
     rows = json.loads(EXIT_MODELS.read_text())["rows"]
     head = ("<tr><th>ply</th><th>theta_i</th><th>exit</th><th>albedo</th>"
             + "".join(f"<th>{a}-{a + 30}</th>" for a in range(0, 180, 30))
@@ -216,7 +216,7 @@ def stability_section(root: Path) -> str:
     rows = json.loads(path.read_text())
     failed = sum(not r["passed"] for r in rows)
     body = (f"<p>{len(rows) - failed} of {len(rows)} checks pass (<code>bcsdf stability</code>; the cases are "
-            "listed in <code>pipeline/stability.py</code>, each is also a test).</p>")
+            "listed in <code>pipeline/stages/stability.py</code>, each is also a test).</p>")
     body += "<table><tr><th>case</th><th>quantity</th><th>invariant</th><th>value</th><th>limit</th><th></th></tr>"
     body += "".join(f"<tr><td>{html.escape(r['case'])}</td><td>{html.escape(r['quantity'])}</td>"
                     f"<td>{html.escape(r['invariant'])}</td><td>{r['value']:.3e}</td><td>{r['limit']:.1e}</td>"

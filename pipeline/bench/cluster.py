@@ -30,7 +30,7 @@ import numpy as np
 def _bake(cfg, root, workers=None) -> tuple[float, float, float]:
     """(stage seconds, tracing seconds, CPU seconds of this process while tracing) of one
     bake: with workers, this process is the client and the scheduler (LocalCluster runs it here)."""
-    from . import bake
+    from ..stages import bake
 
     t0 = time.perf_counter()
     bake.run(cfg, root, workers=workers)
@@ -49,13 +49,13 @@ def main(argv=None) -> int:
         # Dask's workers run numpy's BLAS on one thread (OMP/OPENBLAS/MKL_NUM_THREADS=1);
         # the serial bake must too, and BLAS reads these only when numpy loads: start again
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-        os.execve(sys.executable, [sys.executable, "-m", "pipeline.bench_cluster", *sys.argv[1:]], env)
+        os.execve(sys.executable, [sys.executable, "-m", "pipeline.bench.cluster", *sys.argv[1:]], env)
     os.environ.setdefault("TQDM_DISABLE", "1")
     from models.bundle_table import BundleTable
     from models.io import write_text
 
-    from . import fiber
-    from .config import load_config
+    from ..stages import fiber
+    from ..config import load_config
 
     import drjit as dr
 

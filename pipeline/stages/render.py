@@ -28,8 +28,8 @@ from tqdm import tqdm
 
 from models.io import atomic_path, write_text
 
-from .config import BAKE_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
-from .metrics import write_metrics
+from ..config import BAKE_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
+from ..metrics import write_metrics
 
 
 # -- inputs ------------------------------------------------------------------------
@@ -222,7 +222,7 @@ def headline(summary: dict) -> dict:
 
 
 def _scene(mi, cfg, name, bsdf, spp, out, seed=0):
-    from . import scenes
+    from .. import scenes
 
     if name == "ply":
         return scenes.ply_scene(mi, cfg, bsdf, spp, seed)
@@ -235,7 +235,7 @@ def side_by_side(images: dict, flip_maps: dict, entry: dict, path: Path, name: s
     """Each backend's image, and the FLIP map of each neural image, with their figures."""
     import matplotlib.pyplot as plt
 
-    from .plots import save_figure
+    from ..plots import save_figure
 
     cols = list(images)
     fig, axes = plt.subplots(2, len(cols), figsize=(3.6 * len(cols), 4.2), squeeze=False)
@@ -257,7 +257,7 @@ def mono_check(mi, cfg, table_props: dict, out: Path) -> dict:
     from mitsuba_ext.bsdf import spectral_weights
     from models.bundle_table import BundleTable
 
-    from . import scenes
+    from .. import scenes
 
     r = cfg.render
     small = cfg.model_copy(update={"render": r.model_copy(update={"width": r.mono_check_size[0],
@@ -302,7 +302,7 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     import mitsuba_ext
     from models.bundle_table import BundleTable
 
-    from . import closure, scenes
+    from .. import closure, scenes
     from .bake import build_bundle
 
     r = cfg.render

@@ -1,6 +1,6 @@
 """Closure benchmark: the whole chain's error budget, measured (docs/BENCHMARKS.md).
 
-    python -m pipeline.bench_closure [CONFIG] [--artifacts DIR] [--quick] [--spp N]
+    python -m pipeline.bench.closure [CONFIG] [--artifacts DIR] [--quick] [--spp N]
 
 Three parts, all printed and written to ``artifacts/<name>/closure/bench_closure.json``
 with a figure ``closure.png``:
@@ -31,7 +31,7 @@ import numpy as np
 
 from models.io import write_text
 
-from .config import load_config
+from ..config import load_config
 
 LAM = 550.0
 
@@ -57,8 +57,9 @@ def reciprocity(table, n: int = 40_000, seed: int = 0) -> dict:
 # -- 2. far-field closure ------------------------------------------------------------
 def far_field(mi, cfg, out_root) -> dict:
     """rendered / predicted of one fiber and of the bundle in every backend (config's artifacts)."""
-    from . import closure, render
-    from .bake import build_bundle
+    from ..stages import render
+    from .. import closure
+    from ..stages.bake import build_bundle
 
     root = Path(out_root) / cfg.name
     pairs = closure.direction_pairs(cone_offsets_deg=(0.0, 0.8, -1.7, -3.0))
@@ -80,13 +81,13 @@ def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
     from models.baker import BakeSpec
     from models.bundle import poisson
 
-    from . import closure
-    from .bake import bake_unreduced, build_bundle
-    from .config import load_config as load
+    from .. import closure
+    from ..stages.bake import bake_unreduced, build_bundle
+    from ..config import load_config as load
 
     wl = np.array([450.0, 550.0, 650.0])
     nodes = np.deg2rad(np.arange(0, 91, 5.0))
-    ray_cfg = load(Path(__file__).resolve().parents[1] / "configs" / "fiber_ray.yaml")
+    ray_cfg = load(Path(__file__).resolve().parents[2] / "configs" / "fiber_ray.yaml")
     r = cfg.fiber.radius_um
     fiber_models = {"mie": fibers.build(cfg.fiber, wl), "ray": fibers.build(ray_cfg.fiber, wl)}
     base = build_bundle(cfg)
@@ -134,8 +135,10 @@ def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
 
     import mitsuba_ext
 
-    from . import render, scenes
-    from .bake import build_bundle
+    from ..stages import render
+
+    from .. import scenes
+    from ..stages.bake import build_bundle
 
     r = cfg.render
     mi.set_variant(r.variant)
@@ -179,7 +182,7 @@ def main(argv=None) -> int:
     from models import fiber as fibers
 
     wl = np.linspace(cfg.wavelengths.start_nm, cfg.wavelengths.stop_nm, cfg.wavelengths.count)
-    ray_cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "fiber_ray.yaml")
+    ray_cfg = load_config(Path(__file__).resolve().parents[2] / "configs" / "fiber_ray.yaml")
     nodes = np.deg2rad(np.arange(0, 91, 5.0))
     result = {"reciprocity": {"mie": reciprocity(fibers.build(cfg.fiber, wl[::6]).tabulate(nodes)),
                               "ray": reciprocity(fibers.build(ray_cfg.fiber, wl[::6]).tabulate(nodes))}}
@@ -200,7 +203,7 @@ def main(argv=None) -> int:
     groups = {}
     for r_ in result["explicit"]:
         groups.setdefault(f"{r_['fiber']}, {r_['ply']} ({r_['fibers']} fibers)", []).append(r_)
-    from . import closure
+    from .. import closure
     closure.plot(result["far_field"], groups, out / "closure.png", f"{cfg.name}: the chain's closure")
     z = np.array([(r["ratio"] - 1) / r["sigma"] for r in result["explicit"]])
     within = np.mean([abs(r["ratio"] - 1) <= 0.02 + 3 * r["sigma"] for r in result["explicit"]])

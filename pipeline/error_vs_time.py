@@ -1,4 +1,4 @@
-"""Error against run time (``make bench-neural``): the table and every model size.
+"""Error against run time: the table and every model size (the export stage's measurement).
 
 For the baked table (nearest and multilinear lookup, numpy and Dr.Jit) and each
 trained model (PyTorch, onnxruntime, Dr.Jit), on the same queries:
@@ -15,14 +15,13 @@ trained model (PyTorch, onnxruntime, Dr.Jit), on the same queries:
 
 Prints a table, writes ``error_vs_time.png`` (marker area ~ bytes) and
 ``error_vs_time.json`` under ``artifacts/<name>/export/``. The export stage runs it on
-``report.queries`` queries (the report shows its figures); this command on 1M.
+``report.queries`` queries (the report shows its figures); ``make bench-neural``
+(:mod:`pipeline.bench.neural`) on 1M.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import time
 from pathlib import Path
 
@@ -40,18 +39,6 @@ def _best_of(fn, repeat=3):
     return best
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", default="configs/default.yaml")
-    parser.add_argument("--artifacts", default="artifacts")
-    parser.add_argument("--queries", type=int, default=1_000_000)
-    args = parser.parse_args(argv)
-    os.environ.setdefault("TQDM_DISABLE", "1")
-    from pipeline.config import load_config
-
-    measure(load_config(args.config), args.artifacts, args.queries)
-
-
 def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     """Run the whole comparison; print it, write the PNG and JSON, return the rows."""
     import drjit as dr
@@ -62,7 +49,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     from mitsuba_ext.table import DrJitTable
     from models.bundle_table import lookup
     from models.neural import NeuralSpec, bin_average, make_export_module, make_torch_model, table_cells
-    from pipeline.train import file_hash, held_out_bins, load_bundle_table, load_checkpoint
+    from pipeline.stages.train import file_hash, held_out_bins, load_bundle_table, load_checkpoint
 
     mi.set_variant(cfg.bake.variant)
     torch.set_num_threads(2)
@@ -231,7 +218,3 @@ def plot(rows, noise_l1, path, queries):
     fig.suptitle("error against run time (marker area ~ bytes)")
     fig.tight_layout()
     save_figure(fig, path)
-
-
-if __name__ == "__main__":
-    main()

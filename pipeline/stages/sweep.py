@@ -18,7 +18,7 @@ naming the member and the key)::
 ===============================  ====================================================
 
 Each member has its own artifacts, ``artifacts/<name>/sweep/<member>/{fiber,bake}/``, and
-stamps: a member that is up to date (``pipeline.stages``) is skipped, so a sweep grows
+stamps: a member that is up to date (``pipeline.graph``) is skipped, so a sweep grows
 by editing its axes. Members that share their fiber settings share one tabulation. On
 a cluster every remaining batch of every member is submitted at once (members x batches
 as tasks; ``pipeline.cluster``), and each member's table is its own ``bcsdf bake``'s, bit
@@ -48,9 +48,9 @@ import numpy as np
 
 from models.io import atomic_path, write_text
 
-from . import stages
-from .config import FIBER_SECTIONS, sweep_members
-from .metrics import write_curve, write_metrics
+from .. import graph
+from ..config import FIBER_SECTIONS, sweep_members
+from ..metrics import write_curve, write_metrics
 
 SEED = "bundle.seed"
 THETA_I_SHOWN = 30.0  # deg: the incidence of the slices and profiles on the family page
@@ -78,7 +78,7 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
             raise ValueError(f"sweep member {m.name}: {e}") from None
 
     tabulate_fibers(members, root)
-    todo = [m for m in members if not stages.up_to_date("bake", m, root)[0]]
+    todo = [m for m in members if not graph.up_to_date("bake", m, root)[0]]
     print(f"[sweep] {cfg.name}: {len(members)} members, {len(members) - len(todo)} up to date, "
           f"{len(todo)} to bake", flush=True)
     if todo:
@@ -93,11 +93,11 @@ def tabulate_fibers(members, root: Path) -> None:
     made: dict[str, object] = {}  # fiber settings -> the member that holds their table
     for m in members:
         key = m.hash(*FIBER_SECTIONS)
-        if stages.up_to_date("fiber", m, root)[0]:
+        if graph.up_to_date("fiber", m, root)[0]:
             made.setdefault(key, m)
             continue
         if key in made:  # the same fiber: copy its artifacts rather than tabulate again
-            for out in stages.spec("fiber", made[key], root)["outs"]:  # its folder and its metrics
+            for out in graph.spec("fiber", made[key], root)["outs"]:  # its folder and its metrics
                 files = [out] if out.is_file() else sorted(p for p in out.rglob("*") if p.is_file())
                 for f in files:
                     with atomic_path(root / m.name / f.relative_to(root / made[key].name)) as tmp:
@@ -105,7 +105,7 @@ def tabulate_fibers(members, root: Path) -> None:
         else:
             fiber_stage.run(m, root)
             made[key] = m
-        stages.stamp("fiber", m, root)
+        graph.stamp("fiber", m, root)
 
 
 # -- Bakes: members x batches, here or on a cluster ----------------------------------
@@ -115,7 +115,7 @@ def bake_members(todo, bundles: dict, root: Path, workers, scheduler) -> None:
     import mitsuba as mi
     from tqdm import tqdm
 
-    from . import cluster
+    from .. import cluster
     from .bake import Bake
 
     bakes = [Bake(m, root, bundles[m.name]) for m in todo]
@@ -137,7 +137,7 @@ def bake_members(todo, bundles: dict, root: Path, workers, scheduler) -> None:
                 if b.finished:
                     mi.set_variant(b.cfg.bake.variant)  # the summary's probe traces here
                     b.finish()
-                    stages.stamp("bake", b.cfg, root, seconds=b.elapsed)
+                    graph.stamp("bake", b.cfg, root, seconds=b.elapsed)
                     bar.set_postfix(members=f"{sum(x.finished for x in bakes)}/{len(bakes)}", refresh=False)
 
 
@@ -241,7 +241,7 @@ def plot_axis(rows, axes, key, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .plots import save_figure
+    from ..plots import save_figure
 
     values = axes[key]
     xs = values if _numeric(values) else list(range(len(values)))
@@ -289,7 +289,7 @@ def plot_profiles(rows, tables, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .plots import save_figure
+    from ..plots import save_figure
 
     fig, ax = plt.subplots(figsize=(8, 4), dpi=110)
     cmap = plt.get_cmap("viridis", max(len(rows), 2))

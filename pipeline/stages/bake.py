@@ -31,9 +31,9 @@ from models.bundle_table import BundleTable
 from models.fiber.base import FiberTable
 from models.io import atomic_path, clear_torn, write_text
 
-from .config import BAKE_SECTIONS, FIBER_SECTIONS
-from .metrics import write_metrics
-from .plots import save_figure, spectral_image
+from ..config import BAKE_SECTIONS, FIBER_SECTIONS
+from ..metrics import write_metrics
+from ..plots import save_figure, spectral_image
 
 
 def build_bundle(cfg) -> bundles.Bundle:
@@ -97,7 +97,7 @@ def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None
     Dask cluster's address) shard the batches (``pipeline.cluster``); the table is the
     same, bit for bit.
     """
-    from . import cluster
+    from .. import cluster
     import mitsuba as mi
     from tqdm import tqdm
 
@@ -132,7 +132,7 @@ class Bake:
     The work is a fixed list of batches with fixed seeds (:func:`batch_seed`), added in
     order, so that a bake resumed from its checkpoint, or traced on a cluster in any order
     (``pipeline.cluster``), gives the same table. Made by :func:`run` and by the sweep
-    (``pipeline.sweep``), which keeps several at once.
+    (``pipeline.stages.sweep``), which keeps several at once.
     """
 
     def __init__(self, cfg, out_root, bundle: bundles.Bundle | None = None):

@@ -22,9 +22,9 @@ from models import fiber as fiber_models
 from models.fiber.base import FiberTable, _linear
 from models.io import write_text
 
-from .config import FIBER_SECTIONS
-from .metrics import write_metrics
-from .plots import save_figure, spectral_image
+from ..config import FIBER_SECTIONS
+from ..metrics import write_metrics
+from ..plots import save_figure, spectral_image
 
 
 def run(cfg, out_root="artifacts") -> Path:

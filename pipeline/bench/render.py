@@ -1,7 +1,7 @@
 """Render benchmark: the table against every trained MLP size, jitted and through
 onnxruntime, at equal samples, in one run (side by side: these machines are noisy).
 
-    python -m pipeline.bench_render [CONFIG] [--artifacts DIR] [--spp N]
+    python -m pipeline.bench.render [CONFIG] [--artifacts DIR] [--spp N]
 
 Needs ``bcsdf run CONFIG`` (bake and export) first. Prints, per scene and method, the
 render time of a warm second render, its ratio to the table's, FLIP and PSNR against
@@ -17,7 +17,7 @@ from pathlib import Path
 
 from models.io import write_text
 
-from .config import load_config
+from ..config import load_config
 
 
 def measure(cfg, out_root="artifacts", spp=None) -> dict:
@@ -25,7 +25,7 @@ def measure(cfg, out_root="artifacts", spp=None) -> dict:
 
     import mitsuba_ext
 
-    from . import render
+    from ..stages import render
 
     r = cfg.render
     mi.set_variant(r.variant)

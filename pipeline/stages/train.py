@@ -50,10 +50,10 @@ from models.io import atomic_path, write_text
 from models.neural import (NeuralSpec, bin_average, features, fold_table, make_export_module, make_torch_model,
                            points_in_bins)
 
-from .config import BAKE_SECTIONS, TRAIN_SECTIONS
-from .metrics import folder as metrics_folder
-from .metrics import write_curve, write_metrics
-from .plots import save_figure
+from ..config import BAKE_SECTIONS, TRAIN_SECTIONS
+from ..metrics import folder as metrics_folder
+from ..metrics import write_curve, write_metrics
+from ..plots import save_figure
 
 
 def load_checkpoint(path) -> dict:

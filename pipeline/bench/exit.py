@@ -16,8 +16,8 @@ Figures per (ply, theta_i, model): albedo / exact, the energy per 30 deg sector 
 share within 2% + 3 standard errors and the worst ratio. Writes
 ``docs/exit_models.json`` (read by the report) and ``docs/images/exit_models.png``::
 
-    .venv/bin/python -m pipeline.bench_exit            # about 5 minutes on 2 cores
-    .venv/bin/python -m pipeline.bench_exit --quick    # the default ply only, fewer rays
+    .venv/bin/python -m pipeline.bench.exit            # about 5 minutes on 2 cores
+    .venv/bin/python -m pipeline.bench.exit --quick    # the default ply only, fewer rays
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ PLIES = {  # name: (radius um, packing or None for Poisson-disk tight)
     "sparse 400 um, packing 0.2": (400.0, 0.2),
     "thesis 600 um": (600.0, None),
 }
-DOCS = Path(__file__).resolve().parents[1] / "docs"
+DOCS = Path(__file__).resolve().parents[2] / "docs"
 
 
 def folded(energy, width_bins):
@@ -74,7 +74,7 @@ def measure(rays: int, paths: int, plies: dict, thetas) -> list:
     from models import bundle, exact
     from models.baker import BakeSpec
     from models.fiber.ray import RayFiber
-    from pipeline.bake import bake_unreduced
+    from pipeline.stages.bake import bake_unreduced
 
     nodes = np.deg2rad(np.arange(0, 91, 5.0))
     fiber = RayFiber([550.0], ETA, 0.0, 0.05, 0.05, 0.0, n_h=512, n_phi=1440, lobes=8).tabulate(nodes)
@@ -121,7 +121,7 @@ def plot(rows, path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .plots import save_figure
+    from ..plots import save_figure
 
     cols = min(3, len(rows))
     n_rows = -(-len(rows) // cols)
@@ -144,7 +144,7 @@ def plot(rows, path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipeline.bench_exit", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m pipeline.bench.exit", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="the default ply at theta_i 0 and 30, 100k rays and paths")
     ap.add_argument("--rays", type=int, default=400_000, help="exact rays per case")
     ap.add_argument("--paths", type=int, default=1_000_000, help="bake paths per case")
@@ -158,7 +158,7 @@ def main(argv=None) -> int:
     print(table)
     from models.io import write_text
     write_text(a.out / "exit_models.json", json.dumps({"rows": rows, "markdown": table,
-                                                       "command": "python -m pipeline.bench_exit"}, indent=1))
+                                                       "command": "python -m pipeline.bench.exit"}, indent=1))
     plot(rows, a.out / "images" / "exit_models.png")
     return 0
 
