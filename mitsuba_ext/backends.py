@@ -21,6 +21,7 @@ import numpy as np
 
 from mitsuba_ext.sampling import DirectionGrid
 from mitsuba_ext.table import axis_corners
+from models.grid import bin_solid_angle
 
 BACKENDS = ("table", "mlp", "onnx")
 
@@ -99,7 +100,7 @@ class _NeuralBackend:
         dr.eval(*S)  # one kernel for all wavelengths (each alone would recompute the network)
         mean = np.mean([np.asarray(s) for s in S], 0).reshape(PI.shape)
         mean = mean.reshape(len(phi_i), n_theta_i, n_phi, 2, n_theta, 2).mean((3, 5))
-        solid = np.outer(np.diff(phi_edges), np.diff(np.sin(theta_edges)))
+        solid = bin_solid_angle(phi_edges, theta_edges)
         return DirectionGrid(np.maximum(mean, 0) * solid, phi_i, theta_i, phi_edges, theta_edges,
                              self.relative, self.Float, uniform)
 

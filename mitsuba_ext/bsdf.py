@@ -591,8 +591,6 @@ def bsdf_classes() -> dict:
         @staticmethod
         def _offset(si, frame):
             """``h`` of the ray that reached ``si``, in the bundle frame's cross-section."""
-            from models.fiber import lobes
-
             x, _, z = frame
             n = dr.normalize(mi.Vector2f(dr.dot(si.n, x), dr.dot(si.n, z)))
             d = -si.to_world(si.wi)

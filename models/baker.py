@@ -49,6 +49,7 @@ import numpy as np
 
 from .bundle import Bundle
 from .fiber import lobes
+from .grid import bin_solid_angle
 from .fiber.base import FiberTable
 from .fiber.sampling import FiberSampler
 
@@ -97,7 +98,7 @@ class BakeSpec:
 
     def bin_solid_angle(self):
         """Solid angle of each (phi_o, theta_o) bin: [n_phi_o, n_theta_o]."""
-        return np.outer(np.diff(self.phi_o_edges), np.diff(np.sin(self.theta_o_edges)))
+        return bin_solid_angle(self.phi_o_edges, self.theta_o_edges)
 
 
 @dataclass

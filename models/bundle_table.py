@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .grid import bin_solid_angle, linear
 from .io import atomic_path, check_axis
 
 FORMAT = "bcsdf.bundle_table/1"
@@ -73,7 +74,7 @@ class BundleTable:
     @property
     def solid_angle(self):
         """[phi_o, theta_o] solid angle of each output bin."""
-        return np.outer(np.diff(self.phi_o_edges), np.diff(np.sin(self.theta_o_edges)))
+        return bin_solid_angle(self.phi_o_edges, self.theta_o_edges)
 
     @property
     def scattered(self):
@@ -226,12 +227,11 @@ def bin_slopes(table: BundleTable) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _node_corners(grid, x, periodic, nearest):
-    from models.fiber.base import _linear
 
     if len(grid) == 1:
         z = np.zeros(np.shape(x), np.int64)
         return [(z, np.ones(np.shape(x)))]
-    i0, i1, w = _linear(grid, x, periodic=periodic) if periodic else _linear(grid, np.clip(x, grid[0], grid[-1]))
+    i0, i1, w = linear(grid, x, periodic=periodic) if periodic else linear(grid, np.clip(x, grid[0], grid[-1]))
     if nearest:
         return [(np.where(w < 0.5, i0, i1), np.ones(np.shape(x)))]
     return [(i0, 1 - w), (i1, w)]

@@ -102,14 +102,13 @@ def main(argv=None) -> int:
 
 def _run(args, cfg) -> None:
     """The stages ``args.command`` asks for (``run``: each that is not up to date)."""
-    from . import graph
+    from . import estimate, graph
 
     stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
     if args.command == "run":
         todo = [s for s in stages if args.force or not graph.up_to_date(s, cfg, args.artifacts)[0]]
         if todo:
-            from .estimate import plan
-            print(plan(cfg, todo, args.artifacts), flush=True)
+            print(estimate.plan(cfg, todo, args.artifacts), flush=True)
     for stage in stages:
         if args.command == "run":  # asked again: an earlier stage may have rewritten this one's inputs
             fresh, why = graph.up_to_date(stage, cfg, args.artifacts)
@@ -120,7 +119,7 @@ def _run(args, cfg) -> None:
         t0 = time.perf_counter()
         shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
         _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
-        graph.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0)
+        graph.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0, work=estimate.work(stage, cfg))
 
 
 def _applies(stage: str, cfg) -> bool:

@@ -53,7 +53,7 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, thre
 
     from models.baker import Baker
 
-    from .stages.bake import batch_seed, build_bundle, make_spec
+    from .build import batch_seed, build_bundle, make_spec
     from .config import Config
 
     cfg = Config.model_validate(json.loads(cfg_json))

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from models.errors import albedo_error, log_mae, relative_l1
 from models.io import write_text
 
 
@@ -49,7 +50,8 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     from mitsuba_ext.table import DrJitTable
     from models.bundle_table import lookup
     from models.neural import NeuralSpec, bin_average, make_export_module, make_torch_model, table_cells
-    from pipeline.stages.train import file_hash, held_out_bins, load_bundle_table, load_checkpoint
+    from .artifacts import load_bundle_table
+    from .stages.train import file_hash, held_out_bins, load_checkpoint
 
     mi.set_variant(cfg.bake.variant)
     torch.set_num_threads(2)
@@ -80,10 +82,10 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
         p, t = pred[val], truth[val]
         albedo = (pred * omega[:, None]).reshape(table.values.shape[:2] + (-1, n_l)).sum(axis=2)
         return {
-            "relative_l1": float(np.abs(p - t).sum() / t.sum()),
-            "log_mae": float(np.mean(np.abs(np.log1p(p / s0) - np.log1p(t / s0)))),
+            "relative_l1": relative_l1(p, t),
+            "log_mae": log_mae(p, t, s0),
             "worst_bin": float(np.max(np.abs(p - t)) / truth.max()),
-            "albedo_error": float(np.max(np.abs(albedo - scattered) / np.maximum(scattered, 1e-12))),
+            "albedo_error": albedo_error(albedo, scattered),
         }
 
     rows = []

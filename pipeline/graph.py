@@ -21,6 +21,8 @@ from pathlib import Path
 
 import yaml
 
+from models.io import write_text
+
 ROOT = Path(__file__).resolve().parents[1]
 DVC_YAML = ROOT / "dvc.yaml"
 SKIP = ("__pycache__", ".stamps")
@@ -91,17 +93,14 @@ def stamp_path(stage: str, cfg, root="artifacts") -> Path:
     return Path(root) / cfg.name / ".stamps" / f"{stage}.json"
 
 
-def stamp(stage: str, cfg, root="artifacts", seconds: float | None = None) -> None:
+def stamp(stage: str, cfg, root="artifacts", seconds: float | None = None, work: float | None = None) -> None:
     """Record that ``stage`` just ran for this config: its fingerprint, its outputs, and
-    how long it took for how much work (what ``pipeline.estimate`` scales from)."""
-    from models.io import write_text
-
-    from .estimate import work
-
+    how long it took for how much ``work`` (``pipeline.estimate.work``, what the estimate
+    scales from)."""
     outs = {str(p.relative_to(root)): digest([p], Path(root)) for p in spec(stage, cfg, root)["outs"]}
     record = {"fingerprint": fingerprint(stage, cfg, root), "outs": outs}
-    if seconds is not None:
-        record.update(seconds=seconds, work=work(stage, cfg))
+    if seconds is not None and work is not None:
+        record.update(seconds=seconds, work=work)
     write_text(stamp_path(stage, cfg, root), json.dumps(record, indent=1))
 
 

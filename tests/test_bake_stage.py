@@ -10,6 +10,7 @@ from models.bundle_table import BundleTable
 from models.fiber.patterns import PatternFiber
 from pipeline.stages import bake as bake_stage
 from pipeline.stages import fiber as fiber_stage
+from pipeline.artifacts import load_fiber_table
 from pipeline.config import ConfigError, load_config
 from tests.test_cli import ROOT, bcsdf
 
@@ -60,10 +61,10 @@ def test_bake_refuses_a_fiber_table_from_other_settings(tmp_path, mi_llvm):
     cfg = config(tmp_path, name="c")
     fiber_stage.run(cfg, tmp_path)
     other = config(tmp_path, name="c", estimator="thesis")  # bake settings only: fiber table still valid
-    bake_stage.load_fiber_table(other, tmp_path)
+    load_fiber_table(other, tmp_path)
     changed = cfg.model_copy(update={"fiber": cfg.fiber.model_copy(update={"radius_um": 10.0})})
     with pytest.raises(ValueError, match="re-run `bcsdf fiber`"):
-        bake_stage.load_fiber_table(changed, tmp_path)
+        load_fiber_table(changed, tmp_path)
 
 
 @pytest.mark.parametrize("make,match", [

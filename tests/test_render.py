@@ -67,7 +67,7 @@ def test_explicit_fibers_and_the_baked_bundle_look_the_same(baked, mi_plugins, m
 
     from pipeline import scenes
     from pipeline.stages import render
-    from pipeline.stages.bake import build_bundle
+    from pipeline.build import build_bundle
 
     mi = mi_plugins
     monkeypatch.setattr(scenes, "_sensor", wide_view)

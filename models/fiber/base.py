@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..grid import linear
 from ..io import atomic_path, check_axis
 from .longitudinal import Longitudinal
 from .reciprocal import half_angle, scale_at
@@ -61,27 +62,6 @@ class Lobe:
         return self.scale is not None
 
 
-def _linear(grid: np.ndarray, x: np.ndarray, periodic: bool = False):
-    """Indices and weights of linear interpolation on a sorted grid.
-
-    Periodic grids are uniform over ``[grid[0], grid[0] + 2 pi)``; other grids clamp
-    ``x`` to their range (a constant extension at the ends).
-    """
-    n = len(grid)
-    if n == 1:
-        z = np.zeros(x.shape, dtype=np.int64)
-        return z, z, np.zeros(x.shape)
-    if periodic:
-        step = 2 * np.pi / n
-        t = np.mod(x - grid[0], 2 * np.pi) / step
-        i0 = np.floor(t).astype(np.int64) % n
-        return i0, (i0 + 1) % n, t - np.floor(t)
-    x = np.clip(x, grid[0], grid[-1])
-    i0 = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, n - 2)
-    w = (x - grid[i0]) / (grid[i0 + 1] - grid[i0])
-    return i0, i0 + 1, w
-
-
 @dataclass
 class FiberTable:
     """A single-fiber scattering function, tabulated as a sum of lobes.
@@ -110,7 +90,7 @@ class FiberTable:
         theta_i, phi_i, theta_o, phi_o, wavelength = np.broadcast_arrays(
             *(np.asarray(a, dtype=np.float64) for a in (theta_i, phi_i, theta_o, phi_o, wavelength)))
         f = self.eval_spectrum(theta_i, theta_o, phi_o - phi_i)  # [..., n_lambda]
-        l0, l1, w = _linear(self.wavelength, wavelength)
+        l0, l1, w = linear(self.wavelength, wavelength)
         take = lambda idx: np.take_along_axis(f, idx[..., None], axis=-1)[..., 0]  # noqa: E731
         return (1 - w) * take(l0) + w * take(l1)
 
@@ -125,9 +105,9 @@ class FiberTable:
         check_theta(theta_i, "theta_i")
         check_theta(theta_o, "theta_o")
         mirror = np.where(theta_i < 0, -1.0, 1.0)
-        ti = _linear(self.theta_i, np.abs(theta_i))
-        to = _linear(self.theta_o, mirror * theta_o)
-        ph = _linear(self.phi, dphi, periodic=True)
+        ti = linear(self.theta_i, np.abs(theta_i))
+        to = linear(self.theta_o, mirror * theta_o)
+        ph = linear(self.phi, dphi, periodic=True)
         if lambda_index is None:
             out, expand, pick = np.zeros(theta_i.shape + (len(self.wavelength),), np.float32), (..., None), ()
         else:
@@ -139,7 +119,7 @@ class FiberTable:
             nodes, factor = ti, 1.0
             if lobe.reciprocal:  # N at the half angle, times the symmetric weight and scale
                 abs_d, weight = half_angle(theta_i, theta_o, np)
-                nodes = _linear(self.theta_i, abs_d)
+                nodes = linear(self.theta_i, abs_d)
                 cc = scale_at(lobe.scale, np.abs(theta_i)) * scale_at(lobe.scale, np.abs(theta_o))
                 cc = cc if lambda_index is None else np.take_along_axis(cc, pick[0][..., None], -1)[..., 0]
                 factor = (weight[expand] * cc).astype(np.float32)
@@ -157,7 +137,7 @@ class FiberTable:
         Exact for the interpolated table: ``f`` is linear in theta_i between nodes and
         every ``M`` integrates to one for any theta_i.
         """
-        i0, i1, w = _linear(self.theta_i, np.abs(np.asarray(theta_i, dtype=np.float64)))
+        i0, i1, w = linear(self.theta_i, np.abs(np.asarray(theta_i, dtype=np.float64)))
         E = self.energy()
         return (1 - w)[..., None] * E[i0] + w[..., None] * E[i1]  # [..., n_lambda]
 

@@ -26,7 +26,30 @@ from __future__ import annotations
 import numpy as np
 
 TWO_PI = 2 * np.pi
+P_MAX = 3  # Chiang's explicit paths: R, TT, TRT (then the residual)
 COS_GRAZING = float(np.cos(np.deg2rad(89.99)))
+
+
+# --------------------------------------------------------------------------
+# Roughness parameterization (Chiang et al. 2016, eq. 7-8)
+# --------------------------------------------------------------------------
+
+def longitudinal_variance(beta_m: float, p_max: int = P_MAX) -> np.ndarray:
+    """``v_p`` for p = 0..p_max (the last the residual) from the longitudinal roughness."""
+    v0 = (0.726 * beta_m + 0.812 * beta_m**2 + 3.7 * beta_m**20) ** 2
+    return np.array([v0, 0.25 * v0] + [4 * v0] * (p_max - 1))
+
+
+def logistic_scale(beta_n: float) -> float:
+    """Logistic scale ``s`` from the azimuthal roughness in [0, 1]."""
+    return float(np.sqrt(np.pi / 8) * (0.265 * beta_n + 1.194 * beta_n**2 + 5.372 * beta_n**22))
+
+
+def tilt_shifts(alpha_deg: float, p_max: int = P_MAX) -> np.ndarray:
+    """Longitudinal shifts of the R, TT, TRT lobes by the cuticle tilt (none beyond, as
+    Chiang's residual)."""
+    a = np.deg2rad(alpha_deg)
+    return np.array([-2 * a, a, 4 * a] + [0.0] * (p_max - 2))
 
 
 def _select(xp):
@@ -134,7 +157,6 @@ class LobeSampler:
         import drjit as dr
 
         from .longitudinal import Longitudinal
-        from .ray import longitudinal_variance, logistic_scale, tilt_shifts
 
         if meta.get("model") != "ray":
             raise ValueError(f"the h-resolved exit needs a 'ray' fiber (this table is {meta.get('model')!r}); "
@@ -222,7 +244,6 @@ class LobeSampler:
     def eval_spectrum(self, theta_in, h, p, theta_out, dphi):
         """``f_p = M_p A_p N_p`` of path ``p`` at every wavelength (no cosine), and the kept
         energy ``sum_p A_p`` (the albedo at this ``h``) at every wavelength."""
-        dr = self.dr
         cos_in = self.cos_in(theta_in)
         A = self.attenuations(cos_in, h)
         M = self._longitudinal(p, theta_in, theta_out)

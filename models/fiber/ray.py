@@ -26,33 +26,9 @@ import numpy as np
 from scipy import special
 
 from . import lobes
+from .lobes import P_MAX, logistic_scale, longitudinal_variance, tilt_shifts  # noqa: F401 (this model's API)
 from .base import FiberModel, FiberTable, Lobe, check_theta
 from .longitudinal import Longitudinal
-
-P_MAX = 3
-
-
-# --------------------------------------------------------------------------
-# Roughness parameterization (Chiang et al. 2016, eq. 7-8)
-# --------------------------------------------------------------------------
-
-def longitudinal_variance(beta_m: float, p_max: int = P_MAX) -> np.ndarray:
-    """``v_p`` for p = 0..p_max (the last the residual) from the longitudinal roughness."""
-    v0 = (0.726 * beta_m + 0.812 * beta_m**2 + 3.7 * beta_m**20) ** 2
-    return np.array([v0, 0.25 * v0] + [4 * v0] * (p_max - 1))
-
-
-def logistic_scale(beta_n: float) -> float:
-    """Logistic scale ``s`` from the azimuthal roughness in [0, 1]."""
-    return float(np.sqrt(np.pi / 8) * (0.265 * beta_n + 1.194 * beta_n**2 + 5.372 * beta_n**22))
-
-
-def tilt_shifts(alpha_deg: float, p_max: int = P_MAX) -> np.ndarray:
-    """Longitudinal shifts of the R, TT, TRT lobes by the cuticle tilt (none beyond, as
-    Chiang's residual)."""
-    a = np.deg2rad(alpha_deg)
-    return np.array([-2 * a, a, 4 * a] + [0.0] * (p_max - 2))
-
 
 # --------------------------------------------------------------------------
 # Small pure pieces of the physics (the per-h formulas live in models.fiber.lobes)

@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..grid import linear
+
 
 def half_angle(theta_i, theta_o, xp):
     """``(|theta_d|, cos(theta_o) / cos(theta_d))`` for numpy (``xp=np``) or Dr.Jit (``xp=dr``)."""
@@ -45,9 +47,7 @@ def scale_nodes(c) -> np.ndarray:
 
 def scale_at(c, abs_theta):
     """``c`` interpolated linearly in ``|theta|`` (numpy): [..., n_lambda]."""
-    from .base import _linear
-
-    i0, i1, w = _linear(scale_nodes(c), abs_theta)
+    i0, i1, w = linear(scale_nodes(c), abs_theta)
     return (1 - w)[..., None] * c[i0] + w[..., None] * c[i1]
 
 
@@ -72,10 +72,8 @@ def symmetric_scale(nodes, longitudinal, albedo, n_scale: int = 181, tol: float 
     form against the hat functions of the nodes); ``E = albedo`` is solved by Newton's
     method from ``c = 1`` (symmetric Sinkhorn scaling, converging in a few steps).
     """
-    from .base import _linear
-
     def albedo_at(abs_theta):
-        i0, i1, w = _linear(np.asarray(nodes, np.float64), abs_theta)
+        i0, i1, w = linear(np.asarray(nodes, np.float64), abs_theta)
         return (1 - w)[..., None] * albedo[i0] + w[..., None] * albedo[i1]
 
     albedo = np.asarray(albedo, np.float64)
@@ -88,7 +86,7 @@ def symmetric_scale(nodes, longitudinal, albedo, n_scale: int = 181, tol: float 
     K = (longitudinal(ti, theta_o[None, :]) * weight * np.cos(theta_o)[None, :] * w_o[None, :])[..., None] \
         * albedo_at(abs_d)                                                # [node, quad, lambda]
     target = albedo_at(s_nodes)                                           # [node, lambda]
-    j0, j1, wj = _linear(s_nodes, np.abs(theta_o))                        # hat functions at the points
+    j0, j1, wj = linear(s_nodes, np.abs(theta_o))                        # hat functions at the points
     H = np.zeros((n_quad, n_scale))
     np.add.at(H, (np.arange(n_quad), j0), 1 - wj)
     np.add.at(H, (np.arange(n_quad), j1), wj)

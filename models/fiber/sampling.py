@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import FiberTable, _linear
+from ..grid import linear
+from .base import FiberTable
 
 _FLOOR = 1e-12
 # Keep samples this fraction of a cell away from its edges, so that float32 rounding of
@@ -61,7 +62,7 @@ class FiberSampler:
 
     # ------------------------------------------------------------------
     def _lobe_probabilities(self, abs_theta_i):
-        i0, i1, w = _linear(self.table.theta_i, abs_theta_i)
+        i0, i1, w = linear(self.table.theta_i, abs_theta_i)
         E = (1 - w) * self.energy[:, i0] + w * self.energy[:, i1]  # [lobe, ...]
         return E / E.sum(axis=0), (i0, i1, w)
 

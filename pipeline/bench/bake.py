@@ -56,7 +56,7 @@ def main(argv=None):
 
     from models import fiber as fiber_models
     from models.baker import Baker, BundleScene, Tally
-    from pipeline.stages.bake import build_bundle, make_spec
+    from pipeline.build import build_bundle, make_spec
     from pipeline.config import load_config
 
     cfg = load_config(args.config)

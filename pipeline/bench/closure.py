@@ -59,7 +59,7 @@ def far_field(mi, cfg, out_root) -> dict:
     """rendered / predicted of one fiber and of the bundle in every backend (config's artifacts)."""
     from ..stages import render
     from .. import closure
-    from ..stages.bake import build_bundle
+    from ..build import build_bundle
 
     root = Path(out_root) / cfg.name
     pairs = closure.direction_pairs(cone_offsets_deg=(0.0, 0.8, -1.7, -3.0))
@@ -82,7 +82,8 @@ def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
     from models.bundle import poisson
 
     from .. import closure
-    from ..stages.bake import bake_unreduced, build_bundle
+    from ..build import build_bundle
+    from ..stages.bake import bake_unreduced
     from ..config import load_config as load
 
     wl = np.array([450.0, 550.0, 650.0])
@@ -138,7 +139,7 @@ def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
     from ..stages import render
 
     from .. import scenes
-    from ..stages.bake import build_bundle
+    from ..build import build_bundle
 
     r = cfg.render
     mi.set_variant(r.variant)

@@ -31,63 +31,11 @@ from models.bundle_table import BundleTable
 from models.fiber.base import FiberTable
 from models.io import atomic_path, clear_torn, write_text
 
-from ..config import BAKE_SECTIONS, FIBER_SECTIONS
+from ..artifacts import load_fiber_table
+from ..build import batch_seed, build_bundle, code_version, make_spec
+from ..config import BAKE_SECTIONS
 from ..metrics import write_metrics
 from ..plots import save_figure, spectral_image
-
-
-def build_bundle(cfg) -> bundles.Bundle:
-    b, r = cfg.bundle, cfg.fiber.radius_um
-    if b.arrangement == "zhao2016":
-        return bundles.zhao2016(b.yarn, r, seed=b.seed, name=f"{cfg.name} ({b.yarn})")
-    if b.arrangement == "file":
-        return bundles.from_file(b.file, b.semi_axes(), name=cfg.name)
-    return bundles.poisson(b.semi_axes(), r, gap=b.gap_um, packing=b.packing, seed=b.seed, name=cfg.name)
-
-
-def load_fiber_table(cfg, out_root) -> FiberTable:
-    path = Path(out_root) / cfg.name / "fiber" / "fiber_table.npz"
-    if not path.exists():
-        raise ValueError(f"{path} does not exist; run `bcsdf fiber {cfg.name}` (or `bcsdf run`) first")
-    table = FiberTable.load(path)
-    if table.meta.get("config_hash") != cfg.hash(*FIBER_SECTIONS):
-        raise ValueError(f"{path} was made from different fiber settings than this config; "
-                         "re-run `bcsdf fiber` with this config")
-    return table
-
-
-def exit_model(name: str, fiber: FiberTable, estimator: str = "fast") -> str:
-    """The exit model a bake uses: ``auto`` is the one that agrees with exact geometry where
-    the fiber knows its paths (``lobe`` for ray fibers with the fast estimator), else
-    ``uniform`` (measured on the ray model's smooth limit: docs/BENCHMARKS.md, "Exit models")."""
-    is_ray = fiber.meta.get("model") == "ray"
-    if name == "auto":
-        return "lobe" if is_ray and estimator == "fast" else "uniform"
-    if name == "lobe" and not is_ray:
-        raise ValueError(f"bake.exit: lobe needs a ray fiber (fiber.model is {fiber.meta.get('model')!r}); "
-                         "use auto, uniform or entry")
-    if name != "uniform" and estimator != "fast":
-        raise ValueError(f"bake.exit: {name} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
-    return name
-
-
-def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
-    """Incident directions and bins, after the symmetry reductions the scene allows."""
-    c = cfg.bake
-    mirror_theta = bool(fiber.meta.get("mirror_symmetric", True))
-    step = np.deg2rad(c.theta_i_step_deg)
-    # clipped: the last node of the arange can exceed pi/2 by a rounding error
-    theta_i = np.clip(np.arange(0 if mirror_theta else -np.pi / 2, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2)
-    if bundle.is_circle:
-        phi_i, phi_reduction = np.zeros(1), "rotation"
-    else:
-        phi_i, phi_reduction = np.deg2rad(np.arange(0, 90 + 1e-9, c.phi_i_step_deg)), "mirror_xz"
-    spec = BakeSpec(theta_i, phi_i, c.n_theta_o, c.n_phi_o, relative_phi=bundle.is_circle,
-                    estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
-                    exit=exit_model(c.exit, fiber, c.estimator))
-    reductions = {"theta_i": "mirror" if mirror_theta else None, "phi_i": phi_reduction,
-                  "phi_o": "relative" if bundle.is_circle else "absolute"}
-    return spec, reductions
 
 
 def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None) -> Path:
@@ -119,11 +67,6 @@ def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None
                 bar.set_postfix(batches=f"{bake.done}/{len(bake.work)}", vertices=f"{bake.tally.vertices:.3g}",
                                 refresh=False)  # the bar prints on its own clock
     return bake.finish()
-
-
-def batch_seed(cfg, a: int, k: int) -> np.random.SeedSequence:
-    """The seed of batch ``k`` of incident azimuth ``a``: fixed, wherever it is traced."""
-    return np.random.SeedSequence([cfg.bake.seed, a, k])
 
 
 class Bake:
@@ -235,7 +178,7 @@ class Bake:
                           samples_per_phi_i=c.paths_per_phi_i, vertices=int(tally.vertices),
                           bake_seconds=self.elapsed, n_fibers=len(bundle.radii),
                           packing_fraction=bundle.packing_fraction, bounding_radius_um=bundle.bounding_radius,
-                          variant=c.variant, code_version=_code_version())
+                          variant=c.variant, code_version=code_version())
         table.save(out / "bundle_table.npz")
         balance = table.energy_balance()
         elapsed = self.elapsed
@@ -385,12 +328,3 @@ def plot_balance(table: BundleTable, path: Path) -> None:
     ax.legend(loc="lower left", fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
-
-
-def _code_version() -> str:
-    import subprocess
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, timeout=5).stdout.strip() or "unknown"
-    except Exception:
-        return "unknown"

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from models import fiber as fiber_models
-from models.fiber.base import FiberTable, _linear
+from models.fiber.base import FiberTable
+from models.grid import linear
 from models.io import write_text
 
 from ..config import FIBER_SECTIONS
@@ -72,7 +73,7 @@ def slice_at_node(table: FiberTable, i: int, theta_o: np.ndarray) -> np.ndarray:
     for lobe in table.lobes:
         M = lobe.longitudinal(ti, theta_o)[:, None, None]
         if lobe.dense:
-            a, b, w = _linear(table.theta_o, theta_o)
+            a, b, w = linear(table.theta_o, theta_o)
             N = (1 - w)[:, None, None] * lobe.azimuthal[i, a] + w[:, None, None] * lobe.azimuthal[i, b]
         else:
             N = lobe.azimuthal[i, 0][None]

@@ -303,7 +303,7 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     from models.bundle_table import BundleTable
 
     from .. import closure, scenes
-    from .bake import build_bundle
+    from ..build import build_bundle
 
     r = cfg.render
     root = Path(out_root) / cfg.name

@@ -114,9 +114,9 @@ def run(cfg, out_root="artifacts") -> Path:
 
     # -- versions and config ---------------------------------------------------------
     versions = "".join(f"<tr><td>{p}</td><td>{_version(p)}</td></tr>" for p in PACKAGES)
-    from .bake import _code_version
+    from ..build import code_version
     sections.append(("Versions and config",
-                     f"<p>code {_code_version()}, config hash {cfg.hash()}</p><table>{versions}</table>"
+                     f"<p>code {code_version()}, config hash {cfg.hash()}</p><table>{versions}</table>"
                      f"<pre>{html.escape(yaml.safe_dump(cfg.model_dump(mode='json'), sort_keys=False))}</pre>"))
 
     page = html_page(cfg.name, sections)
@@ -135,7 +135,7 @@ def compare_slices(cfg, out_root, out) -> str:
 
     from mitsuba_ext.neural import DrJitMLP
     from models.neural import bin_average, table_cells
-    from pipeline.stages.train import load_bundle_table
+    from ..artifacts import load_bundle_table
 
     mi.set_variant(cfg.bake.variant)
     table, _ = load_bundle_table(cfg, out_root)

@@ -441,8 +441,8 @@ def run(cfg, out_root="artifacts") -> Path:
     checks = run_cases()
     rows = [asdict(c) for c in checks]
     write_text(out / "stability.json", json.dumps(rows, indent=1))
-    from pipeline.stages.bake import _code_version
-    write_text(out / "provenance.json", json.dumps({"config_hash": cfg.hash(), "code": _code_version()}))
+    from ..build import code_version
+    write_text(out / "provenance.json", json.dumps({"config_hash": cfg.hash(), "code": code_version()}))
     md = ["| case | quantity | invariant | value | limit | result |", "|---|---|---|---|---|---|"]
     md += [f"| {c.case} | {c.quantity} | {c.invariant} | {c.value:.3e} | {c.limit:.1e} | "
            f"{'pass' if c.passed else '**FAIL**'} |" for c in checks]

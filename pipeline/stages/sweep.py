@@ -48,7 +48,7 @@ import numpy as np
 
 from models.io import atomic_path, write_text
 
-from .. import graph
+from .. import estimate, graph
 from ..config import FIBER_SECTIONS, sweep_members
 from ..metrics import write_curve, write_metrics
 
@@ -63,7 +63,7 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
                          "sweep: {bundle.packing: [0.3, 0.5], bundle.seed: [1, 2]}")
     if cfg.bundle is None:
         raise ValueError(f"config {cfg.name} has no 'bundle:' section: a sweep bakes bundles")
-    from .bake import build_bundle
+    from ..build import build_bundle
 
     expanded = sweep_members(cfg)
     members = [m for _, m in expanded]
@@ -137,7 +137,7 @@ def bake_members(todo, bundles: dict, root: Path, workers, scheduler) -> None:
                 if b.finished:
                     mi.set_variant(b.cfg.bake.variant)  # the summary's probe traces here
                     b.finish()
-                    graph.stamp("bake", b.cfg, root, seconds=b.elapsed)
+                    graph.stamp("bake", b.cfg, root, seconds=b.elapsed, work=estimate.work("bake", b.cfg))
                     bar.set_postfix(members=f"{sum(x.finished for x in bakes)}/{len(bakes)}", refresh=False)
 
 

@@ -45,12 +45,13 @@ from pathlib import Path
 
 import numpy as np
 
-from models.bundle_table import BundleTable
+from models import errors
 from models.io import atomic_path, write_text
 from models.neural import (NeuralSpec, bin_average, features, fold_table, make_export_module, make_torch_model,
                            points_in_bins)
 
-from ..config import BAKE_SECTIONS, TRAIN_SECTIONS
+from ..artifacts import load_bundle_table
+from ..config import TRAIN_SECTIONS
 from ..metrics import folder as metrics_folder
 from ..metrics import write_curve, write_metrics
 from ..plots import save_figure
@@ -71,16 +72,6 @@ def load_checkpoint(path) -> dict:
     except Exception as e:  # torch raises RuntimeError, pickle and zip errors for a damaged file
         raise ValueError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e}); "
                          "re-run `bcsdf train`") from None
-
-
-def load_bundle_table(cfg, out_root) -> tuple[BundleTable, Path]:
-    path = Path(out_root) / cfg.name / "bake" / "bundle_table.npz"
-    if not path.exists():
-        raise ValueError(f"{path} does not exist; run `bcsdf bake` (or `bcsdf run`) with this config first")
-    table = BundleTable.load(path, expand=True)
-    if table.meta.get("config_hash") != cfg.hash(*BAKE_SECTIONS):
-        raise ValueError(f"{path} was baked from different settings than this config; re-run `bcsdf bake`")
-    return table, path
 
 
 def file_hash(path) -> str:
@@ -166,14 +157,13 @@ def run(cfg, out_root="artifacts") -> Path:
             with torch.no_grad():
                 return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
         S_pred = bin_average(predict, data.cell[val_idx])  # the model's bin averages
-        y_pred = np.log1p(S_pred / s0)
         S_val, E_val, n_val = data.S[val_idx], data.E[val_idx], data.count[val_idx, None]
         core = energy_bins(S_val * n_val)
         metrics = {
             "val_weighted_loss": best,
             # over the expanded bins the held-out classes stand for
-            "relative_l1": float((n_val * np.abs(S_pred - S_val)).sum() / max((n_val * S_val).sum(), 1e-300)),
-            "log_mae": float(np.average(np.abs(y_pred - data.y[val_idx]), axis=0, weights=n_val[:, 0]).mean()),
+            "relative_l1": errors.relative_l1(S_pred, S_val, n_val),
+            "log_mae": errors.log_mae(S_pred, S_val, s0, n_val),
             # rms of (model - table) / table standard error over the bins holding 90% of
             # the held-out energy: 1 means the model is as close as the table's own noise
             "noise_ratio": float(np.sqrt(np.mean(((S_pred - S_val).ravel()[core] / E_val.ravel()[core]) ** 2))),
