@@ -1,4 +1,16 @@
-"""Artifact I/O: nothing half-written ever replaces a good file (every stage and model writes through it)."""
+"""Artifact I/O: nothing half-written ever replaces a good file (every stage and model writes through it).
+
+Three guarantees, each one mechanism here:
+
+* **atomic files**: :func:`atomic_path` writes a temporary beside the artifact and renames
+  it over the artifact only when the write finished;
+* **nothing outside the root**: under :func:`confined` every write (and the lock) is
+  refused unless its folder, links resolved, lies inside the artifacts root; a link in
+  the tree that points out of it is named;
+* **all-or-nothing stages**: under :func:`journal` every file a stage replaces is kept
+  until the stage finishes; a stage that fails (or a process killed mid-stage, at the
+  next command) is rolled back, so the earlier set of artifacts stays whole.
+"""
 
 from __future__ import annotations
 
@@ -19,22 +31,72 @@ def _file_mode() -> int:
 
 
 _FILE_MODE = _file_mode()
+_ROOT: list = []      # the confining root, while a command runs (see confined)
+_JOURNAL: list = []   # the open journal, while a stage runs (see journal)
 
 
 @contextlib.contextmanager
-def atomic_path(path):
+def confined(root):
+    """Refuse every write outside ``root`` (links resolved) while the body runs."""
+    _ROOT.append(Path(root).resolve())
+    try:
+        yield
+    finally:
+        _ROOT.pop()
+
+
+@contextlib.contextmanager
+def scratch(folder):
+    """A stage's own temporary folder (the stability stage's small bakes): the body may write
+    there, confined to it, outside any stage journal (scratch work is thrown away whole)."""
+    saved = _JOURNAL[:]
+    _JOURNAL.clear()
+    _ROOT.append(Path(folder).resolve())
+    try:
+        yield
+    finally:
+        _ROOT.pop()
+        _JOURNAL[:] = saved
+
+
+def check_inside(path) -> Path:
+    """``path`` if its folder, links resolved, lies inside the confining root; else a
+    ``ValueError`` naming the link that leads out. Without a root, any path."""
+    path = Path(path)
+    if not _ROOT:
+        return path
+    root = _ROOT[-1]
+    real = path.parent.resolve()
+    if real != root and root not in real.parents:
+        raise ValueError(f"refusing to write {path}: its folder leads to {real}, outside the artifacts root {root} "
+                         "(a symbolic link in the artifacts tree?); remove the link")
+    if path.is_symlink():
+        target = path.resolve()
+        if target != root and root not in target.parents:
+            raise ValueError(f"refusing to write {path}: it is a link to {target}, outside the artifacts root "
+                             f"{root}; remove the link")
+    return path
+
+
+@contextlib.contextmanager
+def atomic_path(path, journaled: bool = True):
     """Yield a temporary path beside ``path``; on success rename it over ``path``.
 
-    If the body raises, the temporary file is removed and ``path`` is untouched.
+    If the body raises, the temporary file is removed and ``path`` is untouched. Under a
+    :func:`journal` the earlier file is kept until the stage finishes (``journaled=False``
+    for what must outlive a failed stage: a bake's checkpoint).
     """
-    path = Path(path)
+    path = check_inside(path)
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        check_inside(path)  # the folders just made are real folders, but check what they resolve to
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         os.close(fd)
         yield tmp
         os.chmod(tmp, _FILE_MODE)  # mkstemp's 0600 would make the artifact private
+        if _JOURNAL and journaled:
+            _JOURNAL[-1].keep(path)
         os.replace(tmp, path)
     except OSError as e:
         if e.errno in WRITE_ERRORS:  # name the artifact, not its temporary (a full disk, a read-only one)
@@ -57,6 +119,66 @@ def clear_torn(path) -> None:
         torn.unlink(missing_ok=True)
 
 
+class _Journal:
+    """What a stage replaced or created: ``undo/`` holds the earlier files (hard links),
+    ``created`` lists the new ones, both on disk so that a killed stage can be undone."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self.undo = folder / "undo"
+        self.created = folder / "created"
+        self.seen: set = set()
+
+    def keep(self, path: Path) -> None:
+        key = str(path.resolve())
+        if key in self.seen:
+            return
+        self.seen.add(key)
+        if path.exists() and not path.is_symlink():
+            n = len(self.seen)
+            self.undo.mkdir(parents=True, exist_ok=True)
+            os.link(path, self.undo / f"{n:06d}")
+            with open(self.undo / f"{n:06d}.path", "w") as fh:
+                fh.write(key)
+        else:
+            with open(self.created, "a") as fh:
+                fh.write(key + "\n")
+
+    def roll_back(self) -> None:
+        if self.created.exists():
+            for line in self.created.read_text().splitlines():
+                Path(line).unlink(missing_ok=True)
+        if self.undo.exists():
+            for rec in sorted(self.undo.glob("*.path")):
+                os.replace(rec.with_suffix(""), rec.read_text())
+        self.clear()
+
+    def clear(self) -> None:
+        import shutil
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def journal(folder):
+    """Run a stage all or nothing: the files it writes under ``folder`` (``.journal`` there)
+    are committed together when the body returns; if it raises, every file it replaced is
+    restored and every file it created removed. A journal left by a killed process is
+    rolled back first."""
+    j = _Journal(Path(folder) / ".journal")
+    j.roll_back()  # a stage killed mid-way left this: undo it before anything else
+    j.folder.mkdir(parents=True, exist_ok=True)
+    _JOURNAL.append(j)
+    try:
+        yield
+    except BaseException:
+        _JOURNAL.remove(j)
+        j.roll_back()
+        raise
+    else:
+        _JOURNAL.remove(j)
+        j.clear()
+
+
 def write_text(path, text: str) -> None:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
@@ -66,6 +188,7 @@ def writable_folder(path) -> Path:
     """``path`` as a folder this process can write into (made if missing), checked before
     any long work; a ``ValueError`` that names it otherwise."""
     path = Path(path)
+    check_inside(path / ".lock")  # the config's folder itself may be a link out of the root
     for parent in (path, *path.parents):
         if parent.exists() and not parent.is_dir():
             raise ValueError(f"{parent} is a file, not a folder: give --artifacts a folder")
@@ -88,8 +211,14 @@ def exclusive(folder, what: str):
     import fcntl
     import time
 
-    path = Path(folder) / ".lock"
-    fh = open(path, "a+")
+    path = check_inside(Path(folder) / ".lock")
+    try:  # never through a link: a planted link must not truncate the file it points at
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, _FILE_MODE)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise ValueError(f"{path} is a symbolic link; remove it (the lock is a plain file)") from None
+        raise
+    fh = os.fdopen(fd, "r+")
     try:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)

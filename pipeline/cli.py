@@ -74,7 +74,8 @@ def main(argv=None) -> int:
     try:
         with contextlib.ExitStack() as hold:
             cfg = load_config(args.config, args.overrides)
-            from models.io import exclusive, writable_folder
+            from models.io import confined, exclusive, writable_folder
+            hold.enter_context(confined(args.artifacts))  # no write leaves the artifacts root
             folder = writable_folder(Path(args.artifacts) / cfg.name)  # before any long work, not after it
             hold.enter_context(exclusive(folder, f"bcsdf {args.command} {args.config}"))  # one writer per config
             _run(args, cfg)
@@ -102,6 +103,8 @@ def main(argv=None) -> int:
 
 def _run(args, cfg) -> None:
     """The stages ``args.command`` asks for (``run``: each that is not up to date)."""
+    from models.io import journal
+
     from . import estimate, graph
 
     stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
@@ -118,7 +121,9 @@ def _run(args, cfg) -> None:
             print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
         t0 = time.perf_counter()
         shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
-        _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
+        # all or nothing (the sweep keeps each member as it finishes, as a bake keeps its checkpoint)
+        with contextlib.nullcontext() if stage == "sweep" else journal(Path(args.artifacts) / cfg.name):
+            _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
         graph.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0, work=estimate.work(stage, cfg))
 
 

@@ -120,7 +120,7 @@ def wrap(x, xp):
 
 def logistic_trim(s: float) -> float:
     """Mass of the logistic of scale ``s`` inside [-pi, pi] (float64)."""
-    return float(1 / (1 + np.exp(-np.pi / s)) - 1 / (1 + np.exp(np.pi / s)))
+    return float(1 / (1 + np.exp(-np.pi / s)) - 1 / (1 + np.exp(min(np.pi / s, 700.0))))
 
 
 def logistic(x, s: float, xp):
@@ -131,7 +131,7 @@ def logistic(x, s: float, xp):
 
 def sample_logistic(u, s: float, xp):
     """Inverse CDF of :func:`logistic` at ``u`` in [0, 1)."""
-    lo = float(1 / (1 + np.exp(np.pi / s)))
+    lo = float(1 / (1 + np.exp(min(np.pi / s, 700.0))))
     y = xp.clip(lo + u * (1 - 2 * lo), 1e-7, 1 - 1e-7)
     return xp.clip(s * xp.log(y / (1 - y)), -np.pi, np.pi)
 

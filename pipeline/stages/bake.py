@@ -31,6 +31,7 @@ from models.bundle_table import BundleTable
 from models.fiber.base import FiberTable
 from models.io import atomic_path, clear_torn, write_text
 
+from .. import cluster
 from ..artifacts import load_fiber_table
 from ..build import batch_seed, build_bundle, code_version, make_spec
 from ..config import BAKE_SECTIONS
@@ -45,7 +46,6 @@ def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None
     Dask cluster's address) shard the batches (``pipeline.cluster``); the table is the
     same, bit for bit.
     """
-    from .. import cluster
     import mitsuba as mi
     from tqdm import tqdm
 
@@ -89,6 +89,8 @@ class Bake:
         self.work = [(a, k) for a in range(len(self.spec.phi_i)) for k in range(n_batches)]
         self.sizes = [min(c.batch_paths, c.paths_per_phi_i - k * c.batch_paths) for _, k in self.work]
         self.key = cfg.hash(*BAKE_SECTIONS)
+        # a checkpoint resumes only with the code that wrote it: batches of two codes never mix
+        self.code = cluster.code_digest(cfg)
         self.ckpt = self.out / "checkpoint.npz"
         self.tally, self.done, self.elapsed = Tally.zeros(self.spec, len(self.fiber.wavelength)), 0, 0.0
         self.cpu = 0.0  # this process's CPU time while tracing (on a cluster: the client's and the scheduler's)
@@ -149,7 +151,11 @@ class Bake:
             return
         try:
             with np.load(self.ckpt, allow_pickle=False) as z:
-                if str(z["key"]) == self.key:
+                code = str(z["code"]) if "code" in z.files else None
+                if str(z["key"]) == self.key and code != self.code:
+                    print(f"[bake] {self.cfg.name}: checkpoint was written by other code (the baker or its stage "
+                          "changed since); starting over")
+                elif str(z["key"]) == self.key:
                     self.tally, self.done, self.elapsed = Tally.from_arrays(z), int(z["done"]), float(z["elapsed"])
                     self.cpu = float(z["cpu"]) if "cpu" in z.files else 0.0
                     for q in self.batch_estimates:  # unknown (NaN) in a checkpoint of older code
@@ -163,9 +169,9 @@ class Bake:
             print(f"[bake] {self.cfg.name}: unreadable checkpoint ({e}); starting over")
 
     def save_checkpoint(self) -> None:
-        with atomic_path(self.ckpt) as tmp:
+        with atomic_path(self.ckpt, journaled=False) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, key=np.array(self.key), done=np.array(self.done), elapsed=np.array(self.elapsed),
+                np.savez(fh, key=np.array(self.key), code=np.array(self.code), done=np.array(self.done), elapsed=np.array(self.elapsed),
                          cpu=np.array(self.cpu),
                          **{f"batch_{q}": np.array(v) for q, v in self.batch_estimates.items()}, **self.tally.arrays())
 

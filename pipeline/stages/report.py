@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from models.io import write_text
+from models.io import atomic_path, write_text
 
 from ..plots import save_figure, spectral_image
 
@@ -302,7 +302,8 @@ def img_tag(out: Path, src: Path, alt: str, copy: bool = True) -> str:
         return f'<img src="{html.escape(src.relative_to(out).as_posix())}" alt="{html.escape(alt)}">'
     dst = out / (src.parent.name + "_" + src.name if src.parent != out else src.name)
     if src.resolve() != dst.resolve():
-        shutil.copyfile(src, dst)
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
     return f'<img src="{html.escape(dst.name)}" alt="{html.escape(alt)}">'
 
 

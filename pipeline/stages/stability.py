@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.io import write_text
+from models.io import scratch, write_text
 
 from ..metrics import write_metrics
 
@@ -297,7 +297,7 @@ def neural_extremes() -> list[Check]:
     from pipeline.config import BAKE_SECTIONS, load_config
 
     checks = []
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, scratch(tmp):
         tmp = Path(tmp)
         cfg_path = tmp / "stiff.yaml"
         cfg_path.write_text(yaml.safe_dump({
@@ -378,7 +378,7 @@ def plugin_extremes() -> list[Check]:
     mi.set_variant("llvm_ad_rgb")
     mitsuba_ext.register()
     checks = []
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, scratch(tmp):
         tmp = Path(tmp)
         # a small ellipse-like table (absolute phi, mirror_xz) with a passthrough
         phi_i, theta_i = np.deg2rad([0.0, 45.0, 90.0]), np.deg2rad(np.arange(0, 91, 15.0))
