@@ -237,6 +237,23 @@ def bsdf_classes() -> dict:
         def _passthrough(self, si, phi_i, inside):
             return dr.select(inside, 1.0, 0.0)
 
+        def _load_fiber(self, props, what: str):
+            """The single-fiber table named by ``filename`` (``what``: the words for the error)."""
+            from models.fiber.base import FiberTable
+
+            if "filename" not in props:
+                raise ValueError(f"{self.plugin}: needs 'filename' ({what})")
+            return FiberTable.load(resolve_path(self.plugin, "filename", props["filename"]))
+
+        def _fiber_components(self, n_scatter: int = 1):
+            """A single fiber's components: ``n_scatter`` glossy ones (one per path where the
+            model has paths), then passing, for hits from inside the shape only."""
+            scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
+                       mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
+            passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
+            self.m_components = [scatter] * n_scatter + [passing]
+            self.m_flags = scatter | passing
+
         def eval_attribute_1(self, name, si, active=True):
             if name == "passthrough":
                 _, phi_i, _, inside = self._setup(si)
@@ -450,20 +467,13 @@ def bsdf_classes() -> dict:
 
         def __init__(self, props):
             super().__init__(props)
-            from models.fiber.base import FiberTable
             from models.fiber.sampling import FiberSampler
             from models.fiber.sampling_drjit import DrJitFiber
 
-            if "filename" not in props:
-                raise ValueError("fiber_table: needs 'filename' (a fiber_table.npz written by `bcsdf fiber`)")
-            table = FiberTable.load(resolve_path(self.plugin, "filename", props["filename"]))
+            table = self._load_fiber(props, "a fiber_table.npz written by `bcsdf fiber`")
             self.fiber = DrJitFiber(table, FiberSampler(table), mi.Float)
             self._init_curve(props, table.wavelength)
-            scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
-                       mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
-            passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
-            self.m_components = [scatter, passing]  # passing: only hits from inside the shape
-            self.m_flags = scatter | passing
+            self._fiber_components()
 
         def _angles(self, si, wo_world):
             """Longitudes of ``si.wi`` and ``wo`` and their azimuth difference (wrapped)."""
@@ -551,7 +561,7 @@ def bsdf_classes() -> dict:
 
         .. code-block:: python
 
-            fiber = {"type": "fiber_ray", "filename": "artifacts/ray/fiber/fiber_table.npz"}
+            fiber = {"type": "fiber_ray", "filename": "artifacts/ray_ply/fiber/fiber_table.npz"}
             scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
                                 "bsdf": fiber}
         """
@@ -560,23 +570,16 @@ def bsdf_classes() -> dict:
 
         def __init__(self, props):
             super().__init__(props)
-            from models.fiber.base import FiberTable
             from models.fiber.lobes import LobeSampler
 
-            if "filename" not in props:
-                raise ValueError("fiber_ray: needs 'filename' (a fiber_table.npz of a ray fiber, from `bcsdf fiber`)")
-            table = FiberTable.load(resolve_path(self.plugin, "filename", props["filename"]))
+            table = self._load_fiber(props, "a fiber_table.npz of a ray fiber, from `bcsdf fiber`")
             if table.meta.get("model") != "ray":
                 raise ValueError(f"fiber_ray: {props['filename']} holds a {table.meta.get('model')!r} fiber; "
                                  "fiber_ray needs a ray fiber (use fiber_table for other models)")
             self.lobes = LobeSampler(table.meta, table.wavelength, mi.Float)
             self.n_paths = self.lobes.p_max + 1
             self._init_curve(props, table.wavelength)
-            scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
-                       mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
-            passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
-            self.m_components = [scatter] * self.n_paths + [passing]  # one per path, then hits from inside
-            self.m_flags = scatter | passing
+            self._fiber_components(self.n_paths)
 
         def _local(self, si, wo_world):
             """Frame, ``theta`` of ``si.wi`` and ``wo``, ``dphi`` (wrapped), the offset ``h``
