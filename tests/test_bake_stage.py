@@ -125,7 +125,8 @@ def test_sigint_and_kill_9_mid_bake_then_resume_give_the_same_table(tmp_path, mi
     import sys
     import time
 
-    cfg = config(tmp_path, name="k", paths_per_phi_i=80_000, checkpoint_every_s=0.01)
+    # enough batches that the bake cannot finish between the checkpoint seen and the signal
+    cfg = config(tmp_path, name="k", paths_per_phi_i=320_000, checkpoint_every_s=0.01)
     path = tmp_path / "k.yaml"
     fiber_stage.run(cfg, tmp_path / "ref")
     bake_stage.run(cfg, tmp_path / "ref")
