@@ -330,6 +330,15 @@ class Config(Strict):
         return n_phi_i, int(round((180 if expanded else 90) / b.theta_i_step_deg)) + 1
 
     @model_validator(mode="after")
+    def _render_model_is_trained(self):
+        """``render.model`` names one of ``train.models`` (checked before any work, not at render)."""
+        m = self.render.model
+        if self.bundle is not None and m is not None and m not in self.train.models:
+            raise ValueError(f"render.model: {m!r} is not one of train.models {sorted(self.train.models)}; "
+                             f"set render.model to one of them (e.g. --set render.model={next(iter(self.train.models))})")
+        return self
+
+    @model_validator(mode="after")
     def _exit_fits_fiber(self):
         """The h-resolved exit knows the paths of a ray fiber only; every exit but the uniform
         one needs the fast estimator."""

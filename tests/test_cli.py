@@ -37,6 +37,9 @@ def write_config(path, **fiber):
     (lambda c: c["fiber"].update(model="wave"), "fiber.model", "mie"),
     (lambda c: c["tabulate"].update(theta_i_step_deg=7), "tabulate.theta_i_step_deg", "divide 90"),
     (lambda c: c["fiber"].update(model="table"), "fiber", "table"),
+    # the README's quick trial without render.model: refused before any work, not at render
+    (lambda c: c.update(bundle={"radius_um": 20.0}, train={"models": {"s": [16]}}, render={"model": "small"}),
+     "render.model", "not one of train.models ['s']"),
 ])
 def test_bad_config_names_the_key(tmp_path, edit, key, words):
     cfg = {"wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
