@@ -134,8 +134,11 @@ def test_sigint_and_kill_9_mid_bake_then_resume_give_the_same_table(tmp_path, mi
     ckpt = tmp_path / "cut" / "k" / "bake" / "checkpoint.npz"
 
     def bake_until(done_at_least, sig):
+        # SIGINT at its default in the child, as a shell gives it: an ignored SIGINT is inherited
+        # (Python then installs no KeyboardInterrupt), and an earlier test of the suite may leave one
         p = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "--artifacts", str(tmp_path / "cut"), "bake",
-                              str(path)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                              str(path)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         start = time.time()
         while time.time() - start < 120:
             try:
