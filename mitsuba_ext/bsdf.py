@@ -656,18 +656,13 @@ def bsdf_classes() -> dict:
         def eval_attribute_3(self, name, si, active=True):
             """``exit_<p>``: the world outward normal where path ``p`` leaves (zero for the
             residual, which has no single exit, and for other names)."""
-            from models.fiber import lobes
-
             zero = dr.zeros(mi.Color3f, dr.width(si.t))
             if not name.startswith("exit_") or not name[5:].isdigit() or int(name[5:]) >= self.lobes.p_max:
                 return zero
             p = int(name[5:])
             frame, _, theta_i, _ = self._setup(si)
-            h, n, u = self._offset(si, frame)
-            eta_p = lobes.bravais(self.lobes.eta[self.lobes.ref], self.lobes.cos_in(theta_i), dr)
-            _, gamma_t = lobes.gammas(h, eta_p, dr)
-            nx, nz = self.lobes.exit_normal(n.x, n.y, dr.zeros(mi.UInt32, dr.width(h)) + p, self.lobes.p_max,
-                                            gamma_t, dr)
+            h, n, _ = self._offset(si, frame)
+            nx, nz = self.lobes.exit_normal(n.x, n.y, dr.zeros(mi.UInt32, dr.width(h)) + p, h, theta_i, dr)
             x, _, z = frame
             w = nx * x + nz * z
             return mi.Color3f(w.x, w.y, w.z)

@@ -237,13 +237,13 @@ def integrator_class():
             each with its shadow ray from that path's exit and its own MIS weight."""
             wo = si.to_local(ds.d)
             total = mi.Spectrum(0.0)
+            p_res, r_res = displaced_exit(si, radius, h, ds.d)  # where the residual leaves
             for p in range(self._paths):
                 ctx = mi.BSDFContext()
                 ctx.component = p
                 f = bsdf.eval(ctx, si, wo, active)
                 pdf = bsdf.pdf(ctx, si, wo, active)
                 p_exit, radial, ok = self._path_exit(si, bsdf, radius, p, ds.d, active)
-                p_res, r_res = displaced_exit(si, radius, h, ds.d)
                 p_exit, radial = dr.select(ok, p_exit, p_res), dr.select(ok, radial, r_res)
                 dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
                 d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))

@@ -187,11 +187,7 @@ class BundleScene:
         """Where light leaving ``fiber`` along ``phi_out`` with offset ``h`` starts (on the surface)."""
         c = self.bundle.centers[fiber]
         r = self.bundle.radii[fiber]
-        d = np.stack([np.cos(phi_out), np.sin(phi_out)], -1)
-        side = np.stack([d[:, 1], -d[:, 0]], -1)  # y x d, in (x, z)
-        along = np.sqrt(np.maximum(0.0, 1 - h**2))
-        # a hair beyond the surface so that the next cast cannot re-hit this fiber at t ~ 0
-        return c + r[:, None] * (h[:, None] * side + (along + 1e-4)[:, None] * d)
+        return np.stack(lobes.leave_uniform(c[:, 0], c[:, 1], r, h, np.cos(phi_out), np.sin(phi_out), np), -1)
 
     def entry(self, phi_i, t: np.ndarray):
         """Rays of light arriving from azimuths ``phi_i`` (w_i; one, or one per ray), offsets
@@ -273,35 +269,39 @@ class Baker:
         j = rng.integers(n_ti, size=n)
         u = rng.uniform(size=(5, n))
         lobe_state = ()
+        h1 = None if spec.exit == "uniform" else self._offsets(origin, phi_t, fiber)
         if spec.exit == "lobe":
             # the path (lobe) and direction at the ray's own offset h; the mixture over the
             # theta_i nodes as below, each node's pdf its own lobe probabilities and azimuths
             lob = self._lobes()
-            h1 = self._offsets(origin, phi_t, fiber)
             h_d = mi.Float(h1.astype(np.float32))
             p1_d, theta1_d, dphi1_d, _ = lob.sample(mi.Float(theta_nodes[j].astype(np.float32)), h_d,
                                                     [mi.Float(a) for a in u[:4]])
-            pdf_mix_d = lob.pdf(dr.full(mi.Float, float(theta_nodes[0]), n), h_d, p1_d, theta1_d, dphi1_d)
-            for t in theta_nodes[1:]:
-                pdf_mix_d = pdf_mix_d + lob.pdf(dr.full(mi.Float, float(t), n), h_d, p1_d, theta1_d, dphi1_d)
-            dr.eval(p1_d, theta1_d, dphi1_d, pdf_mix_d)
             lobe_state = (h_d, p1_d)
-            tally.absorbed[phi_index] += self._first_loss(h1)
+
+            def pdf_at(t):
+                return lob.pdf(dr.full(mi.Float, t, n), h_d, p1_d, theta1_d, dphi1_d)
+            loss = self._first_loss(h1)
         else:
             theta1_d, dphi1_d = twin.sample(mi.Float(theta_nodes[j].astype(np.float32)), [mi.Float(a) for a in u])
-            pdf_mix_d = twin.pdf(dr.full(mi.Float, float(theta_nodes[0]), n), theta1_d, dphi1_d)
-            for t in theta_nodes[1:]:
-                pdf_mix_d = pdf_mix_d + twin.pdf(dr.full(mi.Float, float(t), n), theta1_d, dphi1_d)
-            dr.eval(theta1_d, dphi1_d, pdf_mix_d)  # pdf_mix_d: n_ti times the mixture pdf
+
+            def pdf_at(t):
+                return twin.pdf(dr.full(mi.Float, t, n), theta1_d, dphi1_d)
             # every hit path loses 1 - albedo(theta_i) at its first fiber (expected value)
-            tally.absorbed[phi_index] += n * (1 - self.fiber.albedo(theta_nodes))
+            loss = n * (1 - self.fiber.albedo(theta_nodes))
+        pdf_mix_d = pdf_at(float(theta_nodes[0]))
+        for t in theta_nodes[1:]:
+            pdf_mix_d = pdf_mix_d + pdf_at(float(t))
+        dr.eval(theta1_d, dphi1_d, pdf_mix_d, *lobe_state)  # pdf_mix_d: n_ti times the mixture pdf
+        tally.absorbed[phi_index] += loss
         theta1, dphi1 = theta1_d.numpy().astype(np.float64), dphi1_d.numpy().astype(np.float64)
         phi_t_in = phi_t
         phi_t = phi_t + np.pi + dphi1
         if spec.exit == "uniform":
             origin = self.geometry.exit_point(fiber, phi_t, rng.uniform(-1, 1, n))
         else:
-            origin = self._leave(origin, phi_t_in, fiber, phi_t, theta1, lobe_state, u[4])
+            p1 = lobe_state[1].numpy() if lobe_state else None
+            origin = self._leave(h1, phi_t_in, fiber, phi_t, theta1, p1, u[4])
 
         # Phase 2: bounce in Dr.Jit until every path has escaped, been stopped, or hit the cap
         final = self._bounce_loop(origin, phi_t, theta1, phi_i, int(rng.integers(2**62)))
@@ -477,25 +477,19 @@ class Baker:
             s_o, c_o = dr.sincos(phi_n)
             if exit_model == "uniform":  # anywhere on the outgoing side, h uniform
                 k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, alive)
-                h = 2 * h_u - 1
-                r = dr.gather(Float, radii, k, alive)
-                along = dr.safe_sqrt(1 - h * h) + 1e-4
-                ox = dr.select(alive, dr.gather(Float, centers_x, k, alive) + r * (h * s_o + along * c_o), ox)
-                oz = dr.select(alive, dr.gather(Float, centers_z, k, alive) + r * (-h * c_o + along * s_o), oz)
+                cx, cz = dr.gather(Float, centers_x, k, alive), dr.gather(Float, centers_z, k, alive)
+                new_x, new_z = lobes.leave_uniform(cx, cz, dr.gather(Float, radii, k, alive), 2 * h_u - 1, c_o, s_o, dr)
             else:  # where the light entered, or where its path leaves
                 nx, nz = lobes.entry_normal(h_in, cp, sp, dr)
                 if exit_model == "lobe":
-                    _, gamma_t = lobes.gammas(h_in, lobes.bravais(lob.eta[lob.ref], lob.cos_in(theta_in), dr), dr)
-                    nx, nz = lob.exit_normal(nx, nz, p, lob.p_max, gamma_t, dr)
+                    nx, nz = lob.exit_normal(nx, nz, p, h_in, theta_in, dr)
                 new_x, new_z = lobes.leave(cx, cz, r, nx, nz, c_o, s_o, dr)
                 if exit_model == "lobe":  # the residual has no single exit: the uniform one
-                    h = 2 * h_u - 1
-                    along = dr.safe_sqrt(1 - h * h) + 1e-4
+                    res_x, res_z = lobes.leave_uniform(cx, cz, r, 2 * h_u - 1, c_o, s_o, dr)
                     residual = p == lob.p_max
-                    new_x = dr.select(residual, cx + r * (h * s_o + along * c_o), new_x)
-                    new_z = dr.select(residual, cz + r * (-h * c_o + along * s_o), new_z)
-                ox = dr.select(alive, new_x, ox)
-                oz = dr.select(alive, new_z, oz)
+                    new_x, new_z = dr.select(residual, res_x, new_x), dr.select(residual, res_z, new_z)
+            ox = dr.select(alive, new_x, ox)
+            oz = dr.select(alive, new_z, oz)
             phi = dr.select(alive, phi_n, phi)
             th = dr.select(alive, theta_out, th)
             return ox, oz, phi, th, B, R, depth, status, bins, alive, pid, phi_i_path, steps
@@ -545,39 +539,29 @@ class Baker:
         eta, sigma_a = np.asarray(lob.eta), np.asarray(lob.sigma_a)
         loss = np.zeros((len(self.spec.theta_i), len(eta)))
         for i, t in enumerate(self.spec.theta_i):
-            cos_t = np.cos(min(abs(t), np.deg2rad(89.99)))
+            cos_t = max(np.cos(t), lobes.COS_GRAZING)
             A = lobes.attenuation(cos_t, eta[None, :], h[:, None], sigma_a[None, :], lob.p_max, np)
             loss[i] = np.sum(1 - sum(A[1:], A[0]), axis=0)
         return loss
 
-    def _leave(self, origin, phi_in, fiber, phi_out, theta_out, lobe_state, h_u):
-        """Start points of the rays leaving the first fibers (exits ``entry`` and ``lobe``).
+    def _leave(self, h, phi_in, fiber, phi_out, theta_out, p, h_u):
+        """Start points of the rays leaving the first fibers, entered at offsets ``h``
+        (exits ``entry`` and ``lobe``).
 
-        ``entry``: where the light entered; ``lobe``: where the sampled path leaves, with
-        Bravais' index at the outgoing longitude (the same exit for every theta_i node the
-        path carries; exactly the incident one for smooth fibers), the residual uniformly
-        over the outgoing side as the ``uniform`` exit.
+        ``entry``: where the light entered; ``lobe``: where the sampled path ``p`` leaves,
+        with Bravais' index at the outgoing longitude (the same exit for every theta_i node
+        the path carries; exactly the incident one for smooth fibers), the residual
+        uniformly over the outgoing side as the ``uniform`` exit.
         """
-        import drjit as dr
-        import mitsuba as mi
-
         c, r = self.bundle.centers[fiber], self.bundle.radii[fiber]
-        ux, uz = np.cos(phi_in), np.sin(phi_in)
-        h = lobes.entry_offset(c[:, 0], c[:, 1], r, origin[:, 0], origin[:, 1], ux, uz, np)
-        nx, nz = lobes.entry_normal(h, ux, uz, np)
+        nx, nz = lobes.entry_normal(h, np.cos(phi_in), np.sin(phi_in), np)
         dx, dz = np.cos(phi_out), np.sin(phi_out)
-        if self.spec.exit == "entry":
-            return np.stack(lobes.leave(c[:, 0], c[:, 1], r, nx, nz, dx, dz, np), -1)
-        lob = self._lobes()
-        h_d, p_d = lobe_state
-        F = mi.Float
-        eta_p = lobes.bravais(lob.eta[lob.ref], lob.cos_in(F(theta_out.astype(np.float32))), dr)
-        _, gamma_t = lobes.gammas(h_d, eta_p, dr)
-        ex, ez = lob.exit_normal(F(nx.astype(np.float32)), F(nz.astype(np.float32)), p_d, lob.p_max, gamma_t, dr)
-        ex, ez = ex.numpy().astype(np.float64), ez.numpy().astype(np.float64)
-        out = np.stack(lobes.leave(c[:, 0], c[:, 1], r, ex, ez, dx, dz, np), -1)
-        residual = p_d.numpy() == lob.p_max
-        if residual.any():
+        if self.spec.exit == "lobe":
+            lob = self._lobes()
+            nx, nz = lob.exit_normal(nx, nz, p, h, theta_out, np)
+        out = np.stack(lobes.leave(c[:, 0], c[:, 1], r, nx, nz, dx, dz, np), -1)
+        if self.spec.exit == "lobe":
+            residual = p == self._lobes().p_max
             out[residual] = self.geometry.exit_point(fiber[residual], phi_out[residual], 2 * h_u[residual] - 1)
         return out
 

@@ -254,14 +254,18 @@ class LobeSampler:
             kept.append(sum((A[q][l] for q in range(1, self.p_max + 1)), A[0][l]))
         return f, kept
 
-    @staticmethod
-    def exit_normal(nx, nz, p, p_max, gamma_t, dr):
-        """The outward normal where path ``p`` leaves, from the entry normal ``(nx, nz)``.
+    def exit_normal(self, nx, nz, p, h, theta, xp):
+        """The outward normal where path ``p`` leaves, from the entry normal ``(nx, nz)``,
+        for light of longitude ``theta`` entering at offset ``h`` (the middle wavelength's
+        refraction; numpy or Dr.Jit).
 
         The residual (p = p_max) has no single exit; it is given the entry normal and the
         caller places it (the baker: uniformly over the outgoing side)."""
-        turn = dr.select(p == p_max, 0.0, exit_turn(type(gamma_t)(p), gamma_t))
-        s, c = dr.sincos(turn)
+        cos = xp.maximum(xp.cos(theta), COS_GRAZING)
+        _, gamma_t = gammas(h, bravais(self.eta[self.ref], cos, xp), xp)
+        pf = np.asarray(p, np.float64) if xp is np else self.Float(p)
+        turn = _select(xp)(p == self.p_max, 0.0, exit_turn(pf, gamma_t))
+        s, c = xp.sin(turn), xp.cos(turn)
         return c * nx - s * nz, s * nx + c * nz
 
 
@@ -278,6 +282,13 @@ def entry_normal(h, ux, uz, xp):
     """Outward normal where a ray travelling along ``u`` enters at offset ``h``."""
     along = xp.sqrt(xp.maximum(0.0, 1 - h * h))
     return -along * ux - h * uz, -along * uz + h * ux
+
+
+def leave_uniform(cx, cz, r, h, dx, dz, xp):
+    """The thesis's exit: light leaving along ``d`` starts at the lateral offset ``h r``
+    along the side vector ``y x d`` on the outgoing side, a hair beyond the surface."""
+    along = xp.sqrt(xp.maximum(0.0, 1 - h * h)) + 1e-4
+    return cx + r * (h * dz + along * dx), cz + r * (-h * dx + along * dz)
 
 
 def leave(cx, cz, r, nx, nz, dx, dz, xp):
