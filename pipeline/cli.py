@@ -5,6 +5,7 @@
     bcsdf train CONFIG     fit the MLP sizes of the config to the baked table
     bcsdf export CONFIG    write each trained model as ONNX and as plain weights
     bcsdf render CONFIG    render the bundle BSDF in Mitsuba: table, ONNX and jitted MLP
+    bcsdf cloth CONFIG     render the config's yarn-level model (a .bcc file or a swatch)
     bcsdf stability CONFIG check finiteness, energy and references on stiff and extreme cases
     bcsdf sweep CONFIG     bake every member of the config's sweep, write the family page
     bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
@@ -32,7 +33,7 @@ artifacts/<name>/ and carry the changed settings' hash, so later stages see the
 change (a quick trial: --set name=trial keeps it apart from the real artifacts).
 Errors print what is wrong and exit with status 2; earlier artifacts stay intact."""
 
-STAGES = ("fiber", "bake", "train", "export", "render", "stability", "sweep", "report")
+STAGES = ("fiber", "bake", "train", "export", "render", "cloth", "stability", "sweep", "report")
 
 
 def main(argv=None) -> int:
@@ -44,6 +45,7 @@ def main(argv=None) -> int:
                         ("train", "fit the neural models to the baked table"),
                         ("export", "write the models as ONNX and plain weights"),
                         ("render", "render the bundle BSDF in Mitsuba (table, ONNX, jitted MLP)"),
+                        ("cloth", "render the config's yarn-level model (cloth: a .bcc file or a swatch)"),
                         ("stability", "numerical stability on stiff and extreme cases"),
                         ("sweep", "bake every member of the config's sweep: section, write the family page"),
                         ("report", "write the HTML report"),
@@ -131,6 +133,8 @@ def _applies(stage: str, cfg) -> bool:
     """Whether ``bcsdf run`` runs ``stage`` for this config (a fiber alone: no bake ...)."""
     if stage == "sweep":
         return bool(cfg.sweep)
+    if stage == "cloth":
+        return cfg.cloth is not None and cfg.bundle is not None
     return stage in ("fiber", "stability", "report") or cfg.bundle is not None
 
 

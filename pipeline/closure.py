@@ -231,12 +231,13 @@ def continuous(S_of, pairs, d: float = 1e-6) -> np.ndarray:
 
 
 
-def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, spp: int = 4) -> list:
+def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, spp: int = 4, shape=None) -> list:
     """``[theta_i, theta_o + theta_i, dphi (deg), rendered / predicted]`` per direction pair
     (radians) for one cylinder of radius ``R`` with ``bsdf``; ``S_of(pi, ti, po, to)`` is
     what the BSDF was given. ``evaluated``: Dr.Jit's evaluated mode (the onnx backend);
     ``spp``: samples per pixel (a BSDF that depends on the offset across the fiber, as
-    ``fiber_ray``, needs enough of them to integrate over it).
+    ``fiber_ray``, needs enough of them to integrate over it); ``shape(R, bsdf, half_length)``:
+    the shape dict along ``+y`` (default :func:`cylinder`; the cloth tests give a curve).
     Pairs where ``S`` is not :func:`continuous` are left out."""
     import drjit as dr
 
@@ -250,7 +251,8 @@ def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, sp
             predicted = predicted_intensity(1.0, R, ti, S_of(pi_, ti, po, to))
             w_i, w_o = direction(pi_, ti), direction(po, to)
             hs = 1.5 * R
-            sc = scene(mi, {"f": cylinder(R, bsdf, half_length=40 * hs)}, w_i, w_o, hs, spp=spp)
+            make = shape or (lambda R_, b, half_length: cylinder(R_, b, half_length=half_length))
+            sc = scene(mi, {"f": make(R, bsdf, 40 * hs)}, w_i, w_o, hs, spp=spp)
             rows.append([float(np.rad2deg(ti)), float(np.rad2deg(to + ti)), float(np.rad2deg(po - pi_)),
                          rendered_intensity(mi, sc, w_o, hs) / float(predicted)])
     finally:

@@ -272,6 +272,63 @@ class RenderCfg(Strict):
         return list(dict.fromkeys(v))
 
 
+class Swatch(Strict):
+    """A procedural stockinette swatch (models/cloth/knit.py) instead of a model file."""
+
+    courses: int = Field(4, ge=1, le=1000)
+    wales: int = Field(6, ge=1, le=1000)
+
+
+class ClothCfg(Strict):
+    """A yarn-level model rendered with the bundle BSDF (bcsdf cloth; pipeline/stages/cloth.py).
+
+    Units: the model file's own, times ``units_mm`` millimetres; the scene is in millimetres.
+    """
+
+    model: Optional[str] = Field(None, description="a .bcc yarn-level model (relative to the config's folder)")
+    swatch: Optional[Swatch] = Field(None, description="or a procedural stockinette swatch")
+    units_mm: float = Field(10.0, gt=0.0, le=1e6, description="millimetres per unit of the model file")
+    curves: Optional[int] = Field(None, ge=1, description="render only the first N yarn curves")
+    yarn: str = Field("Cotton 1", description="row of zhao2016_table2.csv: ply count, offset and pitch")
+    yarn_radius_mm: float = Field(0.9, gt=0.0, le=1000.0)
+    plies: Optional[int] = Field(None, ge=1, le=16, description="ply count (default: the Zhao yarn's)")
+    ply_pitch_mm: Optional[float] = Field(None, description="one turn of the plies, signed (default: Zhao's, scaled)")
+    tolerance: float = Field(0.01, gt=0.0, le=0.5, description="centre-line conversion, in yarn radii")
+    rotate_deg: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="about x, then y, then z")
+    variant: Literal[VARIANTS] = "llvm_ad_spectral"
+    backends: list[Literal["table", "mlp", "onnx"]] = Field(default_factory=lambda: ["table", "mlp"])
+    width: int = Field(640, ge=8, le=8192)
+    height: int = Field(480, ge=8, le=8192)
+    spp: int = Field(16, ge=1, le=1 << 16)
+    max_depth: int = Field(16, ge=1, le=100_000)
+    camera_azimuth_deg: float = Field(90.0, ge=-360.0, le=360.0, description="about the up axis, 0 = +z")
+    camera_elevation_deg: float = Field(25.0, ge=-89.0, le=89.0)
+    fov_deg: float = Field(30.0, gt=1.0, lt=170.0)
+    framing: float = Field(1.0, gt=0.05, le=100.0, description="camera distance, in that of the bounding sphere")
+    sun_azimuth_deg: float = Field(40.0, ge=-360.0, le=360.0)
+    sun_elevation_deg: float = Field(35.0, gt=0.0, le=90.0)
+    turbidity: float = Field(3.0, ge=1.0, le=10.0, description="of Mitsuba's sunsky emitter")
+    ground: bool = Field(True, description="a diffuse floor under the model")
+    ground_reflectance: float = Field(0.35, ge=0.0, le=1.0)
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.model is None) == (self.swatch is None):
+            raise ValueError("give either cloth.model (a .bcc file) or cloth.swatch ({courses: 4, wales: 6}), "
+                             "not both and not neither")
+        if self.ply_pitch_mm is not None and not (1e-3 <= abs(self.ply_pitch_mm) <= 1e6):
+            raise ValueError(f"cloth.ply_pitch_mm must be a length of 0.001 .. 1e6 mm, either sign "
+                             f"(got {self.ply_pitch_mm})")
+        return self
+
+    @field_validator("backends")
+    @classmethod
+    def _backends(cls, v):
+        if not v:
+            raise ValueError("at least one backend is needed, e.g. [table]")
+        return list(dict.fromkeys(v))
+
+
 class ReportCfg(Strict):
     queries: int = Field(200_000, ge=1000, le=10_000_000, description="batch size of the timings")
 
@@ -289,6 +346,7 @@ class Config(Strict):
     bake: BakeCfg = BakeCfg()
     train: TrainCfg = TrainCfg()
     render: RenderCfg = RenderCfg()
+    cloth: Optional[ClothCfg] = None
     report: ReportCfg = ReportCfg()
     sweep: Optional[dict[str, list[Any]]] = Field(
         None, description="axes of a family of bakes: dotted key -> values (bcsdf sweep; pipeline/stages/sweep.py)")
@@ -542,7 +600,7 @@ def load_config(path, overrides=()) -> Config:
 
 
 # file names in a config are relative to the config's folder
-PATH_KEYS = ("bundle.file", "fiber.table.path")
+PATH_KEYS = ("bundle.file", "fiber.table.path", "cloth.model")
 
 
 def _resolve_paths(data: dict, base: Path) -> None:

@@ -18,10 +18,10 @@ from .graph import stamp_path
 
 # seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone,
 # session 6 (the stages' stamps; docs/BENCHMARKS.md, "The whole default pipeline")
-OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "stability": 0.0,
+OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "cloth": 8.0, "stability": 0.0,
             "sweep": 3.0, "report": 2.0}
 REFERENCE = {"fiber": 1.1e-3, "bake": 1.4e-6, "train": 1.7e-6, "export": 2.2, "render": 2.0e-6,
-             "stability": 9.0, "sweep": 1.4e-6, "report": 10.0}  # a sweep's work: its members' bakes
+             "cloth": 1.5e-5,             "stability": 9.0, "sweep": 1.4e-6, "report": 10.0}  # a sweep's work: its members' bakes
 
 
 def _fiber_work(cfg) -> float:
@@ -69,6 +69,11 @@ def _render_work(cfg) -> float:
     return float(work)
 
 
+def _cloth_work(cfg) -> float:
+    c = cfg.cloth
+    return float(c.width * c.height * c.spp * len(c.backends))
+
+
 def _sweep_work(cfg) -> float:
     from .config import sweep_members
 
@@ -76,7 +81,7 @@ def _sweep_work(cfg) -> float:
 
 
 WORK = {"fiber": _fiber_work, "bake": _bake_work, "train": _train_work, "export": _export_work,
-        "render": _render_work, "sweep": _sweep_work, "stability": lambda cfg: 1.0, "report": lambda cfg: 1.0}
+        "render": _render_work, "cloth": _cloth_work, "sweep": _sweep_work, "stability": lambda cfg: 1.0, "report": lambda cfg: 1.0}
 
 
 def work(stage: str, cfg) -> float:

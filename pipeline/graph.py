@@ -32,6 +32,8 @@ def template(stage: str, cfg) -> str:
     """The ``dvc.yaml`` stage that runs ``stage`` for this config (reports differ by kind)."""
     if stage == "report" and cfg.bundle is None:
         return "report_fiber"
+    if stage == "report" and cfg.cloth is not None:
+        return "report_cloth"  # it reads the cloth stage's pictures too
     return stage
 
 

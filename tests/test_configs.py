@@ -27,8 +27,9 @@ def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
     path = ROOT / "configs" / name
     cfg = load_config(path)
     stages = ["fiber"] + (["bake", "train", "export", "render"] if cfg.bundle is not None else []) \
-        + (["sweep"] if cfg.sweep else []) + ["report"]
-    shrink = SHRINK + (["wavelengths.count=3"] if cfg.wavelengths.count > 3 else [])
+        + (["cloth"] if cfg.cloth else []) + (["sweep"] if cfg.sweep else []) + ["report"]
+    shrink = SHRINK + (["wavelengths.count=3"] if cfg.wavelengths.count > 3 else []) \
+        + (["cloth.width=24", "cloth.height=16", "cloth.spp=1", "cloth.curves=2"] if cfg.cloth else [])
     sets = [a for s in shrink for a in ("--set", s)]
     for stage in stages:
         assert cli.main(["--artifacts", str(tmp_path), stage, str(path), *sets]) == 0, capsys.readouterr().err

@@ -28,8 +28,9 @@ bake: {paths_per_phi_i: 20000, batch_paths: 8192, theta_i_step_deg: 30, n_theta_
 train: {models: {s: [8]}, epochs: 5, batch_size: 256, calibration_steps: 5}
 render: {width: 24, height: 12, spp: 2, scenes: [ply], mono_check: false, explicit: false}
 report: {queries: 5000}
+cloth: {swatch: {courses: 2, wales: 2}, width: 24, height: 16, spp: 2, max_depth: 4}
 """
-STAGES = ("fiber", "bake", "train", "export", "render", "stability", "report")
+STAGES = ("fiber", "bake", "train", "export", "render", "cloth", "stability", "report")
 RUNNER = {"pipeline", "pipeline.cli", "pipeline.graph", "pipeline.stages", "pipeline.estimate", "models", "mitsuba_ext"}  # the runner
 
 
@@ -52,6 +53,8 @@ def _clone(tmp_path):
     text = re.sub(r"  - bundles: \[[^\]]*\]", "  - bundles: [tiny]", text)
     text = re.sub(r"  - fibers_only: \[[^\]]*\]", "  - fibers_only: []", text)
     text = re.sub(r"  - sweeps: \[[^\]]*\]", "  - sweeps: []", text)
+    text = re.sub(r"  - cloths: \[[^\]]*\]", "  - cloths: [tiny]", text)
+    text = re.sub(r"  - plain_bundles: \[[^\]]*\]", "  - plain_bundles: []", text)
     (repo / "dvc.yaml").write_text(text)
     trace = tmp_path / "trace"
     trace.mkdir()
@@ -84,7 +87,8 @@ def _covered(module: str, deps: list) -> bool:
 
 def _stale(run) -> set:
     out = run("status", "--json").stdout
-    return {name.split("@")[0] for name in json.loads(out or "{}")}
+    names = {name.split("@")[0] for name in json.loads(out or "{}")}
+    return {"report" if n == "report_cloth" else n for n in names}  # the tiny config's report reads its cloth
 
 
 def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
@@ -92,9 +96,9 @@ def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
     assert (repo / ".dvc").is_dir()  # committed: `dvc repro` works on a fresh clone
 
     # -- the whole pipeline of the tiny config, each stage once --------------------------
-    out = run("repro", "report@tiny").stdout
+    out = run("repro", "report_cloth@tiny").stdout
     for stage in STAGES:
-        assert f"Running stage '{stage}@tiny'" in out
+        assert f"Running stage '{'report_cloth' if stage == 'report' else stage}@tiny'" in out
     assert (repo / "artifacts" / "tiny" / "report" / "index.html").exists()
     assert _stale(run) == set()
 
@@ -120,7 +124,7 @@ def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
     assert r.returncode == 0 and r.stdout.count("up to date, skipped") == len(STAGES), r.stdout + r.stderr
     with open(repo / "mitsuba_ext" / "bsdf.py", "a") as fh:
         fh.write("\n# an edit\n")
-    expected = {"export", "render", "stability", "report"}  # what runs mitsuba_ext
+    expected = {"export", "render", "cloth", "stability", "report"}  # what runs mitsuba_ext
     assert _stale(run) == expected
     probe = ("import sys, json; from pipeline.config import load_config; from pipeline import graph; "
              "cfg = load_config('configs/tiny.yaml'); "
@@ -159,6 +163,8 @@ def test_shipped_configs_match_dvc_yaml():
     assert set(lists["bundles"]) == with_bundle
     assert set(lists["fibers_only"]) == set(shipped) - with_bundle
     assert set(lists["sweeps"]) == {n for n, p in shipped.items() if load_config(p).sweep}
+    assert set(lists["cloths"]) == {n for n, p in shipped.items() if load_config(p).cloth is not None}
+    assert set(lists["plain_bundles"]) == with_bundle - set(lists["cloths"])
     for name, path in shipped.items():
         assert load_config(path).name == name, f"{path}: its name must be its file's stem (artifacts/<name>)"
         keys = set(yaml.safe_load(path.read_text()))
@@ -166,5 +172,5 @@ def test_shipped_configs_match_dvc_yaml():
             if name not in lists[spec["foreach"].strip("${}")]:
                 continue
             for entry in spec["do"].get("params", []):
-                tracked = next(iter(entry.values()))
-                assert set(tracked) <= keys, f"{path} lacks {set(tracked) - keys}, which stage {stage} tracks"
+                tracked = {key.split(".")[0] for key in next(iter(entry.values()))}
+                assert tracked <= keys, f"{path} lacks {set(tracked) - keys}, which stage {stage} tracks"

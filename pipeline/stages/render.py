@@ -77,8 +77,9 @@ def backend_props(cfg, out_root, backend: str) -> dict:
 
 
 # -- rendering ---------------------------------------------------------------------
-def render_timed(mi, scene_dict: dict, backend: str = "table") -> tuple[np.ndarray, float, float]:
-    """``(image, seconds, first_seconds)``: the second of two renders is timed (warm kernels)."""
+def render_timed(mi, scene_dict: dict, backend: str = "table", warm: bool = True) -> tuple[np.ndarray, float, float]:
+    """``(image, seconds, first_seconds)``: the second of two renders is timed (warm kernels);
+    ``warm=False``: one render, timed with its compilation (large images)."""
     import drjit as dr
 
     evaluated = backend == "onnx"  # onnxruntime needs Dr.Jit's evaluated mode
@@ -92,12 +93,13 @@ def render_timed(mi, scene_dict: dict, backend: str = "table") -> tuple[np.ndarr
         img = mi.render(scene)
         dr.eval(img)
         dr.sync_thread()
-        first = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        img = mi.render(scene, seed=1)
-        dr.eval(img)
-        dr.sync_thread()
-        seconds = time.perf_counter() - t0
+        first = seconds = time.perf_counter() - t0
+        if warm:
+            t0 = time.perf_counter()
+            img = mi.render(scene, seed=1)
+            dr.eval(img)
+            dr.sync_thread()
+            seconds = time.perf_counter() - t0
     finally:
         dr.set_flag(dr.JitFlag.SymbolicLoops, flags[0])
         dr.set_flag(dr.JitFlag.SymbolicCalls, flags[1])

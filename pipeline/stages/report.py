@@ -108,6 +108,8 @@ def run(cfg, out_root="artifacts") -> Path:
         sections.append(("Neural compression", not_run("bcsdf train && bcsdf export")))
 
     sections.append(("Renders and FLIP maps", render_section(cfg, root, out)))
+    if cfg.cloth is not None:
+        sections.append(("Cloth", cloth_section(root, out)))
     sections.append(("Numerical stability", stability_section(root)))
     if cfg.sweep:
         sections.append(("Family (sweep)", sweep_section(cfg, root)))
@@ -280,6 +282,31 @@ def render_section(cfg, root: Path, out: Path) -> str:
                  + " (the explicit fibers are resolved, the bundle is its far field).</p>")
         body += img_tag(out, root / "render" / "explicit_vs_bundle.png",
                      "explicit fibers (16 turns) against the bundle with the table and the MLP")
+    return body
+
+
+def cloth_section(root: Path, out: Path) -> str:
+    """The yarn-level model's geometry, render times and pictures, from ``cloth/summary.json``."""
+    path = root / "cloth" / "summary.json"
+    if not path.exists():
+        return not_run("bcsdf cloth")
+    s = json.loads(path.read_text())
+    g = s["geometry"]
+    body = (f"<p>{g['yarn_curves']} yarn curves ({html.escape(g['curve_type'])}, {g['closed']} closed) wound into "
+            f"{g['ply_curves']} plies of {g['plies']} per yarn (ply radius {g['ply_radius_mm']:.3g} mm at "
+            f"{g['ply_offset_mm']:.3g} mm, pitch {g['ply_pitch_mm']:.3g} mm; yarn radius {g['yarn_radius_mm']:.3g} "
+            f"mm), {g['control_points']:,} B-spline control points, built in {g['build_seconds']:.1f} s. The "
+            f"centre lines' B-splines stay within {100 * g['centre_deviation_yarn_radii']:.2f}% of a yarn radius "
+            f"of the file's curves. Ply table: {html.escape(g['ply_table'])}.</p>")
+    if g.get("overlap_warning"):
+        body += f"<p class=missing>{html.escape(g['overlap_warning'])}.</p>"
+    rows = "".join(f"<tr><td>{b}</td><td>{e['seconds']:.1f}</td><td>{e.get('flip', float('nan')):.4f}</td></tr>"
+                   for b, e in s["backends"].items())
+    body += (f"<p>Mitsuba {html.escape(s['variant'])}, {s['size'][0]} x {s['size'][1]} pixels, {s['spp']} samples "
+             "per pixel, sun and sky (<code>sunsky</code>), <code>bundle_path</code>; times include the kernels' "
+             "compilation; FLIP against the table's image.</p><table><tr><th>backend</th><th>render s</th>"
+             f"<th>FLIP</th></tr>{rows}</table>")
+    body += "".join(img_tag(out, root / "cloth" / f"cloth_{b}.png", f"cloth, {b}") for b in s["backends"])
     return body
 
 

@@ -1,0 +1,141 @@
+"""From a yarn-level model (centre lines) to the ply curves a renderer draws.
+
+:func:`build_plies` takes a :class:`~models.cloth.bcc.CurveCollection` in the model's
+units, scales it to scene units, and winds ``K`` plies about every yarn
+(:mod:`models.cloth.plies`); each ply becomes a closed (or open) uniform cubic B-spline
+with the ply's radius at every control point: the control points of one Mitsuba
+``bsplinecurve`` (:func:`write_curves`, Mitsuba's text format ``x y z r`` per line, a
+blank line between curves). What it measured travels with the result (:class:`PlyGeometry`):
+how far the B-splines stay from the file's centre lines, and how close yarns come.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..io import atomic_path
+from .bcc import CurveCollection
+from .curves import evaluate, interpolate_bspline, n_segments, to_bspline
+from .plies import nearest_other, transport_frames, wind_plies
+
+
+@dataclass
+class YarnSpec:
+    """A yarn's plies in scene units: ``K`` plies of radius ``r_ply`` at ``R`` from the yarn's
+    centre line, one turn per ``pitch`` (signed: the twist direction)."""
+
+    K: int
+    r_ply: float
+    R: float
+    pitch: float
+
+    @property
+    def radius(self) -> float:
+        """The yarn's radius: the circle around its plies."""
+        return self.R + self.r_ply if self.K > 1 else self.r_ply
+
+    @classmethod
+    def from_zhao(cls, row: dict, yarn_radius: float, K: int | None = None) -> "YarnSpec":
+        """Zhao et al. 2016's plies (``K_plies``, ``R_ply``, ``alpha_ply``, the ply's
+        ``e_X``, ``e_Y``), scaled so that the yarn's radius is ``yarn_radius``. The ply is
+        drawn as its bounding circle (the bundle BSDF's cylinder)."""
+        K = int(row["K_plies"]) if K is None else int(K)
+        r_ply = max(float(row["eX"]), float(row["eY"]))
+        R = float(row["R_ply"]) if K > 1 else 0.0
+        scale = yarn_radius / (R + r_ply)
+        return cls(K, r_ply * scale, R * scale, float(row["alpha_ply"]) * scale)
+
+    def overlap(self) -> float:
+        """How far neighbouring plies of one yarn interpenetrate (0: they do not)."""
+        if self.K < 2:
+            return 0.0
+        return max(0.0, 2 * self.r_ply - 2 * self.R * np.sin(np.pi / self.K))
+
+
+@dataclass
+class PlyGeometry:
+    """Ply curves (Mitsuba B-spline control points ``[n, 3]``, with ``radius``) and measurements."""
+
+    curves: list[np.ndarray]
+    radius: float
+    centre_deviation: float          # B-spline of a centre line vs the file's curve, largest (scene units)
+    closest_yarns: float             # smallest centre-to-centre distance of two yarn passes (scene units)
+    overlapping: float               # share of the yarn length nearer another pass than a yarn diameter
+    pitch_used: list[float] = field(default_factory=list)
+
+    @property
+    def control_points(self) -> int:
+        return sum(len(c) for c in self.curves)
+
+    def overlap_warning(self, yarn: YarnSpec) -> str | None:
+        """A sentence about interpenetrating yarns, with the amounts (None if they do not)."""
+        if self.overlapping == 0:
+            return None
+        return (f"yarns interpenetrate: the nearest two passes are {self.closest_yarns:.3g} apart centre to centre "
+                f"(a yarn diameter is {2 * yarn.radius:.3g}), and {100 * self.overlapping:.1f}% of the yarn length "
+                "comes nearer another pass than a yarn diameter; a smaller cloth.yarn_radius_mm separates them")
+
+
+def centre_lines(collection: CurveCollection, scale: float, tol: float):
+    """Each curve as ``(B-spline control points, closed)`` in scene units within ``tol``, and
+    the largest deviation."""
+    out, worst = [], 0.0
+    for k, c in enumerate(collection.curves):
+        P = scale * c.points
+        if len(P) < (3 if c.closed else 4):
+            raise ValueError(f"curve {k} has {len(P)} control points; a yarn needs at least 4 "
+                             "(3 on a closed loop)")
+        step = np.linalg.norm(np.diff(np.concatenate([P, P[:1]]) if c.closed else P, axis=0), axis=1)
+        if np.any(step <= 1e-9 * max(1.0, float(np.abs(P).max()))):
+            raise ValueError(f"curve {k} has coincident control points (point {int(np.argmax(step <= 1e-9))}); "
+                             "remove zero-length segments from the model")
+        C, deviation, _ = to_bspline(P, c.closed, collection.kind, tol)
+        out.append((C, c.closed))
+        worst = max(worst, deviation)
+    return out, worst
+
+
+def build_plies(collection: CurveCollection, scale: float, yarn: YarnSpec, tol_fraction: float = 0.01,
+                samples_per_turn: int = 16, progress=None) -> PlyGeometry:
+    """The plies of every yarn of ``collection`` (model units times ``scale`` = scene units).
+
+    ``tol_fraction``: how far (in yarn radii) a centre line's B-spline may leave the file's
+    curve. The plies are wound about the file's own curve (evaluated exactly, 8 samples per
+    segment), so the B-spline conversion's deviation does not add up along them.
+    """
+    if not scale > 0:
+        raise ValueError(f"the model's scale must be positive (got {scale})")
+    centres, deviation = centre_lines(collection, scale, tol_fraction * yarn.radius)
+    plies, passes, closed, pitches = [], [], [], []
+    for k, c in enumerate(collection.curves):
+        P = scale * c.points
+        n = n_segments(P, c.closed, collection.kind)
+        u = np.arange(8 * n + (0 if c.closed else 1)) / 8
+        samples = evaluate(P, c.closed, collection.kind, u)
+        passes.append(samples)
+        closed.append(c.closed)
+        frames = transport_frames(samples, c.closed, stride=4)
+        if yarn.K == 1:  # a single ply is the yarn: its centre line as converted
+            plies.append(centres[k][0])
+        else:
+            wound, pitch = wind_plies(frames, yarn.K, yarn.R, yarn.pitch, samples_per_turn)
+            pitches.append(pitch)
+            plies += [interpolate_bspline(q, c.closed) for q in wound]
+        if progress is not None:
+            progress(k + 1)
+    near = nearest_other([q[::4] for q in passes], closed, along_min=4 * yarn.radius)
+    return PlyGeometry(plies, yarn.r_ply, deviation, float(near.min()), float(np.mean(near < 2 * yarn.radius)),
+                       pitches)
+
+
+def write_curves(path, geometry: PlyGeometry) -> None:
+    """Mitsuba's curve text format: ``x y z r`` per control point, a blank line between curves."""
+    r = geometry.radius
+    with atomic_path(path) as tmp:
+        with open(tmp, "w") as f:
+            for k, C in enumerate(geometry.curves):
+                if k:
+                    f.write("\n")
+                np.savetxt(f, np.column_stack([C, np.full(len(C), r)]), fmt="%.6f")

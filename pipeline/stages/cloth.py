@@ -1,0 +1,149 @@
+"""``bcsdf cloth CONFIG``: a yarn-level model (a ``.bcc`` file or a procedural swatch)
+rendered with the bundle BSDF.
+
+Phases:
+
+1. **Centre lines**: the model's curves (``cloth.model``, or ``cloth.swatch``), the first
+   ``cloth.curves`` of them, turned by ``cloth.rotate_deg`` and scaled by ``cloth.units_mm``;
+   each curve type converted to Mitsuba's uniform cubic B-spline within ``cloth.tolerance``
+   yarn radii (measured, in the summary).
+2. **Plies**: every yarn wound into the plies of a Zhao et al. 2016 yarn (``cloth.yarn``,
+   scaled to ``cloth.yarn_radius_mm``), in a rotation-minimizing frame; yarns that come
+   nearer each other than a yarn diameter are reported with the amount (a warning: knitted
+   models are compressed where yarns touch). One ``bsplinecurve`` file holds every ply.
+3. **Renders**: the plies carrying ``fiber_bundle`` with each backend of ``cloth.backends``
+   (the bake's table; the ``render.model`` MLP), under Mitsuba's ``sunsky`` on a floor,
+   ``bundle_path`` integrator; FLIP of every neural image against the table's.
+
+The ply's table is the bake of this config's ``bundle`` (parallel fibers: the twisted-ply
+bake is not there yet; the summary says so). Outputs in ``artifacts/<name>/cloth/``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from models.io import write_text
+
+from ..metrics import write_metrics
+
+
+def yarn_model(c):
+    """The centre lines of ``c`` (the config's cloth section), turned, in the model's units."""
+    from scipy.spatial.transform import Rotation
+
+    from models.cloth.bcc import CurveCollection, read_bcc
+    from models.cloth.knit import stockinette
+
+    if c.model is not None:
+        collection = read_bcc(c.model)
+    else:
+        # the swatch is drawn in yarn radii: in millimetres, one unit is the yarn radius
+        collection = stockinette(c.swatch.courses, c.swatch.wales, r=c.yarn_radius_mm / c.units_mm)
+    curves = collection.curves[: c.curves] if c.curves else collection.curves
+    turn = Rotation.from_euler("xyz", c.rotate_deg, degrees=True).as_matrix()
+    for curve in curves:
+        curve.points = curve.points @ turn.T
+    return CurveCollection(curves, collection.kind, collection.up)
+
+
+def yarn_spec(c):
+    from models.bundle import zhao2016_row
+    from models.cloth.yarn import YarnSpec
+
+    spec = YarnSpec.from_zhao(zhao2016_row(c.yarn), c.yarn_radius_mm, K=c.plies)
+    if c.ply_pitch_mm is not None:
+        spec.pitch = float(c.ply_pitch_mm)
+    if spec.overlap() > 0:
+        raise ValueError(f"cloth: {spec.K} plies of radius {spec.r_ply:.3g} mm at {spec.R:.3g} mm from the yarn's "
+                         f"centre overlap by {spec.overlap():.3g} mm; use fewer cloth.plies")
+    return spec
+
+
+def build(cfg, out: Path) -> tuple[dict, object]:
+    """Phases 1 and 2: write ``plies.txt``; return the geometry's summary and the plies."""
+    from models.cloth.yarn import build_plies, write_curves
+
+    c = cfg.cloth
+    t0 = time.perf_counter()
+    collection = yarn_model(c)
+    yarn = yarn_spec(c)
+    with tqdm(total=len(collection.curves), desc="plies", unit="yarn") as bar:
+        geometry = build_plies(collection, c.units_mm, yarn, c.tolerance, progress=lambda k: bar.update(1))
+    write_curves(out / "plies.txt", geometry)
+    warning = geometry.overlap_warning(yarn)
+    if warning:
+        warnings.warn(f"cloth: {warning}", stacklevel=2)
+    pts = np.concatenate(geometry.curves)
+    info = {"yarn_curves": len(collection.curves), "curve_type": collection.kind,
+            "closed": sum(cv.closed for cv in collection.curves), "ply_curves": len(geometry.curves),
+            "control_points": geometry.control_points, "plies": yarn.K, "ply_radius_mm": yarn.r_ply,
+            "ply_offset_mm": yarn.R, "ply_pitch_mm": float(np.mean(np.abs(geometry.pitch_used or [yarn.pitch]))),
+            "yarn_radius_mm": yarn.radius,
+            "centre_deviation_yarn_radii": geometry.centre_deviation / yarn.radius,
+            "closest_yarns_mm": geometry.closest_yarns, "overlapping_length": geometry.overlapping,
+            "overlap_warning": warning, "bbox_mm": [pts.min(0).tolist(), pts.max(0).tolist()],
+            "build_seconds": time.perf_counter() - t0,
+            "ply_table": "parallel fibers (the twisted-ply bake is not there yet)"}
+    print(f"[cloth] {info['yarn_curves']} yarns -> {info['ply_curves']} plies, {info['control_points']:,} control "
+          f"points, centre lines within {100 * info['centre_deviation_yarn_radii']:.2f}% of a yarn radius, "
+          f"built in {info['build_seconds']:.1f} s")
+    return info, geometry
+
+
+def run(cfg, out_root="artifacts") -> Path:
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    from .. import scenes
+    from .render import backend_props, exposure_of, flip_and_psnr, model_size, render_timed, save_images, save_png
+
+    if cfg.cloth is None:
+        raise ValueError("cloth: this config has no `cloth:` section (see configs/glove.yaml)")
+    if cfg.bundle is None:
+        raise ValueError("cloth: the plies need a bundle table; add a `bundle:` section")
+    c = cfg.cloth
+    props = {b: backend_props(cfg, out_root, b) for b in c.backends}  # refuse mismatches before building
+    out = Path(out_root) / cfg.name / "cloth"
+    out.mkdir(parents=True, exist_ok=True)
+
+    # -- phases 1 and 2: centre lines and plies
+    info, geometry = build(cfg, out)
+
+    # -- phase 3: renders
+    mi.set_variant(c.variant)
+    mitsuba_ext.register()
+    summary = {"variant": c.variant, "size": [c.width, c.height], "spp": c.spp, "geometry": info,
+               "model": model_size(cfg) if set(c.backends) - {"table"} else None, "backends": {}}
+    images = {}
+    for backend in c.backends:
+        scene = scenes.cloth_scene(mi, c, props[backend], out / "plies.txt", geometry.radius, info["bbox_mm"],
+                                   c.spp)
+        img, seconds, first = render_timed(mi, scene, backend, warm=False)
+        images[backend] = img
+        summary["backends"][backend] = {"seconds": seconds, "mean_radiance": img.mean(axis=(0, 1)).tolist()}
+        print(f"[cloth] {backend}: {c.width} x {c.height} x {c.spp} spp in {seconds:.1f} s (compilation included)")
+    reference = "table" if "table" in images else c.backends[0]
+    exposure = exposure_of(images[reference])
+    summary["exposure"] = exposure
+    for backend, img in images.items():
+        save_images(mi, img, out / f"cloth_{backend}", exposure)
+        if backend != reference:
+            mean_flip, psnr, error_map = flip_and_psnr(images[reference], img, exposure)
+            save_png(error_map, out / f"cloth_{backend}_flip.png")
+            summary["backends"][backend].update(flip=mean_flip, psnr=psnr, reference=reference)
+            print(f"[cloth] {backend} vs {reference}: FLIP {mean_flip:.4f}, PSNR {psnr:.1f} dB")
+    write_text(out / "summary.json", json.dumps(summary, indent=1))
+    write_metrics(cfg, out_root, "cloth", {"build_seconds": info["build_seconds"],
+                                            "control_points": info["control_points"],
+                                            **{f"{b}_seconds": e["seconds"] for b, e in summary["backends"].items()},
+                                            **{f"{b}_flip": e["flip"] for b, e in summary["backends"].items()
+                                               if "flip" in e}})
+    return out

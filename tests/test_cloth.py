@@ -1,0 +1,279 @@
+"""Cloth: yarn-level models in (BCC), centre lines as Mitsuba B-splines, plies wound about
+them, and the cloth render's closure.
+
+References are independent of the code under test: the BCC layout written here byte by
+byte, circles (a Catmull-Rom and a Bezier circle are within known distances of the true
+circle), Mitsuba's own curve intersection for what the renderer sees, a straight line for
+the plies' helices, the plane of a planar loop for the rotation-minimizing frame, and the
+far field of DESIGN.md for the render.
+"""
+
+import struct
+
+import numpy as np
+import pytest
+
+from models.cloth.bcc import BCCError, Curve, CurveCollection, read_bcc, write_bcc
+from models.cloth.curves import evaluate, to_bspline
+from models.cloth.knit import stockinette
+from models.cloth.plies import nearest_other, transport_frames, wind_plies
+from models.cloth.yarn import YarnSpec, build_plies, write_curves
+from tests.test_cli import ROOT
+
+GLOVE = ROOT / "data" / "glove.bcc"
+
+
+def bcc_bytes(code=b"C0", curves=((False, [[0, 0, 0], [1, 0, 0], [2, 1, 0], [3, 1, 1]]),), n_curves=None,
+              n_points=None, size=0x44, magic=b"BCC"):
+    """A BCC file written from the format's description (not by write_bcc)."""
+    body = b""
+    for closed, pts in curves:
+        body += struct.pack("<i", -len(pts) if closed else len(pts)) + np.asarray(pts, "<f4").tobytes()
+    n_c = len(curves) if n_curves is None else n_curves
+    n_p = sum(len(p) for _, p in curves) if n_points is None else n_points
+    return magic + bytes([size]) + code + bytes([3, 1]) + struct.pack("<QQ", n_c, n_p) + b"info".ljust(40, b"\0") + body
+
+
+# -- BCC ---------------------------------------------------------------------------------
+def test_reads_the_glove_as_its_attribution_describes():
+    c = read_bcc(GLOVE)
+    assert (len(c.curves), c.point_count, c.kind, c.up) == (70, 58537, "catmull_rom", 1)
+    assert all(curve.closed for curve in c.curves)
+    # yarns pass within about 0.2 units of each other (centimetres: a yarn of ~2 mm)
+    spacing = np.linalg.norm(np.diff(c.curves[0].points, axis=0), axis=1)
+    assert 0.1 < np.median(spacing) < 0.4
+
+
+def test_reads_what_the_format_says_and_writes_it_back(tmp_path):
+    pts = [[0, 0, 0], [1, 0, 0], [1, 1, 0.5]]
+    path = tmp_path / "a.bcc"
+    path.write_bytes(bcc_bytes(b"PL", curves=((True, pts), (False, pts + [[2, 2, 2]]))))
+    c = read_bcc(path)
+    assert c.kind == "polyline" and [cv.closed for cv in c.curves] == [True, False]
+    assert np.array_equal(c.curves[1].points[-1], [2, 2, 2])
+    write_bcc(tmp_path / "b.bcc", c)
+    assert (tmp_path / "b.bcc").read_bytes()[:24] == path.read_bytes()[:24]
+    assert (tmp_path / "b.bcc").read_bytes()[64:] == path.read_bytes()[64:]
+
+
+@pytest.mark.parametrize("name,data,says", [
+    ("truncated", bcc_bytes()[:-5], "truncated"),
+    ("short", b"BCC", "shorter than the 64-byte"),
+    ("signature", bcc_bytes(magic=b"OBJ"), "not a Binary Curve Collection"),
+    ("type", bcc_bytes(code=b"XX"), "curve type"),
+    ("sizes", bcc_bytes(size=0x48), "0x48"),
+    ("curve count", bcc_bytes(n_curves=2), "promises 2 curves"),
+    ("point count", bcc_bytes(n_points=5), "promises 1 curves and 5 points"),
+    ("nan", bcc_bytes(curves=((False, [[0, 0, 0], [np.nan, 0, 0], [2, 0, 0], [3, 0, 0]]),)), "non-finite"),
+])
+def test_malformed_files_are_refused_with_the_reason(tmp_path, name, data, says):
+    path = tmp_path / "bad.bcc"
+    path.write_bytes(data)
+    with pytest.raises(BCCError, match=says):
+        read_bcc(path)
+
+
+def test_point_counts_that_disagree_with_the_data_are_refused(tmp_path):
+    data = bytearray(bcc_bytes(curves=((False, [[0, 0, 0]] * 4), (False, [[1, 1, 1]] * 4))))
+    data[64:68] = struct.pack("<i", 6)  # the first curve claims 6 of the 8 points: the total still fits
+    (tmp_path / "bad.bcc").write_bytes(bytes(data))
+    with pytest.raises(BCCError):
+        read_bcc(tmp_path / "bad.bcc")
+
+
+# -- centre lines as B-splines -----------------------------------------------------------
+def circle(n, R=10.0):
+    a = 2 * np.pi * np.arange(n) / n
+    return np.stack([R * np.cos(a), R * np.sin(a), np.zeros(n)], -1)
+
+
+def bezier_circle(R=10.0):
+    """Four cubic Bezier quarter arcs, handles k R long (k = 4/3 (sqrt 2 - 1)): within
+    2.7e-4 R of the circle (a classical closed form)."""
+    k = 4 / 3 * (np.sqrt(2) - 1)
+    pts = []
+    for q in range(4):
+        a, b = q * np.pi / 2, (q + 1) * np.pi / 2
+        p0, p3 = R * np.array([np.cos(a), np.sin(a), 0]), R * np.array([np.cos(b), np.sin(b), 0])
+        pts += [p0, p0 + k * R * np.array([-np.sin(a), np.cos(a), 0]), p3 - k * R * np.array([-np.sin(b), np.cos(b), 0])]
+    return np.array(pts)
+
+
+@pytest.mark.parametrize("kind,points,near", [("catmull_rom", circle(24), 2e-3), ("bezier", bezier_circle(), 3e-3),
+                                              ("polyline", circle(96), 6e-3)])
+def test_closed_loops_render_where_the_file_says_without_a_seam(mi_llvm, tmp_path, kind, points, near):
+    """Mitsuba's own intersection of the converted loop: rays from the circle's centre, in its
+    plane, at 720 azimuths (the seam included), all hit the tube's inner wall at R - r,
+    within the conversion tolerance plus how far the file's curve is from the circle."""
+    mi = mi_llvm
+    R, r, tol = 10.0, 0.5, 0.01 * 0.5
+    C, deviation, _ = to_bspline(points, True, kind, tol)
+    assert deviation <= tol
+    (tmp_path / "loop.txt").write_text("\n".join(f"{x} {y} {z} {r}" for x, y, z in C))
+    scene = mi.load_dict({"type": "scene", "loop": {"type": "bsplinecurve", "filename": str(tmp_path / "loop.txt")}})
+    a = 2 * np.pi * np.arange(720) / 720 + 1e-4
+    rays = mi.Ray3f(mi.Point3f(0, 0, 0), mi.Vector3f(np.cos(a), np.sin(a), np.zeros_like(a)))
+    t = np.asarray(scene.ray_intersect(rays).t)
+    assert np.all(np.isfinite(t)), f"{np.sum(~np.isfinite(t))} rays found no curve (a gap at the seam?)"
+    # the file's curve is within `near` R of the circle (Catmull-Rom of 24 points, the Bezier
+    # circle, the chords of a 96-gon: 1 - cos(pi / 96) = 5.4e-4 R inwards)
+    assert np.max(np.abs(t - (R - r))) < tol + near * R + 1e-3 * r, np.max(np.abs(t - (R - r)))
+
+
+def test_bspline_input_is_kept_exactly_and_open_curves_end_at_their_ends():
+    P = np.random.default_rng(1).normal(size=(9, 3))
+    C, deviation, _ = to_bspline(P, True, "bspline", 1e-3)
+    assert deviation == 0 and np.array_equal(C, np.concatenate([P, P[:3]]))
+    # an open Catmull-Rom runs from its first point to its last, and so does its B-spline
+    C, deviation, m = to_bspline(P, False, "catmull_rom", 1e-3)
+    ends = evaluate(C, False, "bspline", np.array([0.0, len(C) - 3]))
+    assert np.allclose(ends, P[[0, -1]], atol=1e-9)
+
+
+def test_glove_centre_lines_stay_within_one_percent_of_the_yarn_radius():
+    from models.cloth.yarn import centre_lines
+
+    c = read_bcc(GLOVE)
+    c.curves = c.curves[::10]
+    lines, worst = centre_lines(c, 1.0, 0.01 * 0.09)
+    assert worst <= 0.01 * 0.09
+    # the measure is an upper bound of the distance: check it independently at random
+    # parameters against the Catmull-Rom written as Hermite segments (tangents (P+1 - P-1) / 2)
+    rng = np.random.default_rng(0)
+    for (C, _), curve in zip(lines, c.curves):
+        P = curve.points
+        n = len(P)
+        u = rng.uniform(0, n, 200)
+        i, t = np.floor(u).astype(int), (u - np.floor(u))[:, None]
+        p0, p1 = P[i % n], P[(i + 1) % n]
+        m0, m1 = (P[(i + 1) % n] - P[(i - 1) % n]) / 2, (P[(i + 2) % n] - P[i % n]) / 2
+        hermite = ((2 * t**3 - 3 * t**2 + 1) * p0 + (t**3 - 2 * t**2 + t) * m0 + (-2 * t**3 + 3 * t**2) * p1
+                   + (t**3 - t**2) * m1)
+        spline = evaluate(C, False, "bspline", u * (len(C) - 3) / n)
+        assert np.max(np.linalg.norm(spline - hermite, axis=1)) <= 0.01 * 0.09
+
+
+# -- frames and plies ----------------------------------------------------------------------
+def test_frame_of_a_planar_loop_keeps_the_plane_and_closes():
+    f = transport_frames(circle(200), closed=True)
+    assert np.allclose(np.abs(f.b[:, 2]), 1.0, atol=1e-9) or np.allclose(np.abs(f.n[:, 2]), 1.0, atol=1e-9)
+    assert np.allclose(np.sum(f.n * f.t, 1), 0, atol=1e-9)
+
+
+def test_frame_of_a_twisted_loop_is_continuous_and_closes():
+    s = np.linspace(0, 2 * np.pi, 600, endpoint=False)
+    knot = np.stack([(2 + np.cos(3 * s)) * np.cos(2 * s), (2 + np.cos(3 * s)) * np.sin(2 * s), np.sin(3 * s)], -1)
+    f = transport_frames(knot, closed=True, stride=4)
+    turn = np.arccos(np.clip(np.sum(f.n * np.roll(f.n, -1, 0), 1), -1, 1))
+    bend = np.arccos(np.clip(np.sum(f.t * np.roll(f.t, -1, 0), 1), -1, 1))
+    assert np.max(turn) < 2 * np.max(bend) + 1e-3, "the normal jumps (or spins) somewhere, the seam included"
+    assert np.allclose(np.linalg.norm(f.n, axis=1), 1) and np.allclose(np.sum(f.n * f.t, 1), 0, atol=1e-9)
+
+
+def test_plies_of_a_straight_yarn_are_helices_of_the_pitch():
+    z = np.linspace(0, 20, 401)
+    line = np.stack([np.zeros_like(z), np.zeros_like(z), z], -1)
+    plies, pitch = wind_plies(transport_frames(line, closed=False), K=3, R=0.6, pitch=-5.0)
+    assert pitch == -5.0
+    for k, p in enumerate(plies):
+        assert np.allclose(np.hypot(p[:, 0], p[:, 1]), 0.6)
+        angle = np.unwrap(np.arctan2(p[:, 1], p[:, 0]))
+        slope = np.polyfit(p[:, 2], angle, 1)[0]
+        assert abs(abs(slope) - 2 * np.pi / 5.0) < 1e-6
+    a0 = [np.arctan2(p[0, 1], p[0, 0]) for p in plies]
+    assert np.allclose(np.sort(np.mod(np.diff(a0), 2 * np.pi)), 2 * np.pi / 3)
+    # opposite signs of the pitch turn opposite ways
+    other, _ = wind_plies(transport_frames(line, closed=False), K=3, R=0.6, pitch=5.0)
+    s1 = np.polyfit(z, np.unwrap(np.arctan2(plies[0][:, 1], plies[0][:, 0])), 1)[0]
+    s2 = np.polyfit(z, np.unwrap(np.arctan2(other[0][:, 1], other[0][:, 0])), 1)[0]
+    assert s1 * s2 < 0
+
+
+def test_plies_of_a_loop_close_on_themselves():
+    f = transport_frames(circle(300), closed=True)
+    plies, pitch = wind_plies(f, K=2, R=0.5, pitch=3.0)
+    L = f.length  # the 300-gon's perimeter
+    assert abs(L - 2 * np.pi * 10) < 1e-3 * L
+    assert abs(L / pitch - round(L / pitch)) < 1e-9   # a whole number of turns
+    for p in plies:
+        step = np.linalg.norm(np.diff(np.concatenate([p, p[:1]]), axis=0), axis=1)
+        assert step.max() < 1.5 * np.median(step)      # no jump where the loop closes
+
+
+def test_zhao_yarn_scaled_to_its_radius_and_plies_do_not_overlap():
+    from models.bundle import zhao2016_row
+
+    y = YarnSpec.from_zhao(zhao2016_row("Cotton 1"), 0.9)
+    assert y.K == 3 and abs(y.radius - 0.9) < 1e-12 and y.overlap() == 0
+    # Zhao's ratios: ply offset / ply semi-axis and pitch / offset are kept
+    assert abs(y.R / y.r_ply - 0.038 / 0.026) < 1e-12 and abs(y.pitch / y.R - 0.453 / 0.038) < 1e-12
+    assert YarnSpec(3, 1.0, 0.5, 5.0).overlap() > 0
+
+
+def test_swatch_yarns_stay_a_diameter_apart_and_interpenetration_is_measured():
+    r = 1.0
+    sw = stockinette(4, 5, r=r)
+    passes = [evaluate(c.points, False, sw.kind, np.linspace(0, len(c.points) - 1, 40 * len(c.points)))
+              for c in sw.curves]
+    near = nearest_other(passes, [False] * 4, along_min=4 * r)
+    assert near.min() >= 2 * r * 0.999, near.min()
+    g = build_plies(sw, 1.0, YarnSpec(3, 0.4, 0.5, 6.0))
+    assert g.overlapping == 0 and g.overlap_warning(YarnSpec(3, 0.4, 0.5, 6.0)) is None
+    # the same swatch with a yarn twice as thick interpenetrates, and says by how much
+    thick = YarnSpec(3, 0.8, 1.0, 6.0)
+    g = build_plies(sw, 1.0, thick)
+    assert g.overlapping > 0 and "interpenetrate" in g.overlap_warning(thick)
+
+
+def test_degenerate_centre_lines_are_refused():
+    yarn = YarnSpec(1, 0.1, 0.0, 1.0)
+    few = CurveCollection([Curve(np.zeros((3, 3)) + np.arange(3)[:, None], False)], "catmull_rom")
+    with pytest.raises(ValueError, match="at least 4"):
+        build_plies(few, 1.0, yarn)
+    doubled = CurveCollection([Curve(np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0.0]]), False)],
+                              "catmull_rom")
+    with pytest.raises(ValueError, match="coincident"):
+        build_plies(doubled, 1.0, yarn)
+
+
+# -- the render: a ply built by the cloth path reproduces its far field ------------------
+@pytest.fixture
+def mono(mi_llvm):
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    yield mi
+    mi.set_variant("llvm_ad_rgb")
+
+
+def test_cloth_ply_curve_renders_the_far_field_of_its_table(mono, tmp_path):
+    """A straight one-ply yarn from a BCC file, through the cloth path (read, B-spline, ply
+    file), carrying fiber_bundle: the closure of DESIGN.md, ``E 2R cos(theta_i) S``."""
+    from pipeline import closure
+    from tests.synthetic import make_config, synthetic_table
+
+    mi = mono
+    cfg = make_config(tmp_path)
+    synthetic_table(cfg, tmp_path / "table.npz", relative=True, passthrough=0.3)
+    S = closure.evaluator(mi, "table", tmp_path / "table.npz", 550.0)
+    R = 0.2
+
+    def ply(R_, bsdf, half_length):
+        y = np.linspace(-half_length, half_length, 9)
+        path = tmp_path / "yarn.bcc"
+        (tmp_path / "yarn.bcc").write_bytes(bcc_bytes(b"PL", curves=((False, np.stack(
+            [np.zeros_like(y), y, np.zeros_like(y)], -1)),)))
+        g = build_plies(read_bcc(path), 1.0, YarnSpec(1, R_, 0.0, 1.0))
+        write_curves(tmp_path / "plies.txt", g)
+        return {"type": "bsplinecurve", "filename": str(tmp_path / "plies.txt"), "bsdf": bsdf}
+
+    bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "table.npz"), "wavelength": 550.0, "up": closure.UP}
+    pairs = closure.direction_pairs(cone_offsets_deg=(0.8, 1.5, -1.7, -3.0))
+    pairs = pairs[closure.continuous(S, pairs)][::2]
+    rows = closure.far_field_ratios(mi, bsdf, R, S, pairs, shape=ply)
+    r = np.array([row[3] for row in rows])
+    print(np.round(r, 4))
+    assert len(r) >= 8 and np.allclose(r, 1.0, atol=0.01), r
