@@ -328,6 +328,22 @@ class ClothCfg(Strict):
             raise ValueError("at least one backend is needed, e.g. [table]")
         return list(dict.fromkeys(v))
 
+    @field_validator("yarn")
+    @classmethod
+    def _known_yarn(cls, v):
+        from models.bundle import zhao2016_row
+        zhao2016_row(v)  # names the yarns there are
+        return v
+
+    @field_validator("model")
+    @classmethod
+    def _readable_model(cls, v):
+        """The model file is read here, before any stage works (a few ms for the glove)."""
+        if v is not None:
+            from models.cloth.bcc import read_bcc
+            read_bcc(v)
+        return v
+
 
 class ReportCfg(Strict):
     queries: int = Field(200_000, ge=1000, le=10_000_000, description="batch size of the timings")

@@ -128,38 +128,49 @@ def yarn_scene(mi, cfg, bsdf: dict, curve_path, row: dict, spp: int, seed: int =
     return scene
 
 
-def cloth_scene(mi, c, bsdf: dict, curve_path, ply_radius: float, bbox, spp: int, seed: int = 0) -> dict:
-    """A yarn-level model (its plies in ``curve_path``, mm) on a floor under Mitsuba's sun and sky.
+def ply_shape(curve_path, bsdf: dict, radius: float) -> dict:
+    """One ``bsplinecurve`` file of plies carrying ``bsdf`` (a ``fiber_bundle`` of that radius)."""
+    return {"type": "bsplinecurve", "filename": str(curve_path), "bsdf": {**bsdf, "radius": float(radius)}}
 
-    ``c`` is the config's ``cloth`` section, ``bbox`` the plies' ``(lo, hi)`` corners (mm).
-    The camera looks at the model's centre from ``camera_azimuth_deg`` / ``camera_elevation_deg``
-    (about the y axis, 0 = +z), at ``framing`` times the distance where its bounding sphere
-    just fits the view's width (a long model fills the view at less than 1).
-    """
+
+def cloth_view(c, bbox) -> tuple[np.ndarray, np.ndarray]:
+    """``(eye, target)`` of the config's camera: the model's centre seen from
+    ``camera_azimuth_deg`` / ``camera_elevation_deg`` (about the y axis, 0 = +z), at
+    ``framing`` times the distance where its bounding sphere just fits the view's width."""
     lo, hi = (np.asarray(v, float) for v in bbox)
     centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+    return centre + sky_direction(c.camera_azimuth_deg, c.camera_elevation_deg) * (
+        c.framing * radius / np.sin(np.radians(c.fov_deg / 2))), centre
 
-    def direction(azimuth, elevation):
-        a, e = np.radians(azimuth), np.radians(elevation)
-        return np.array([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)])
 
-    eye = centre + direction(c.camera_azimuth_deg, c.camera_elevation_deg) * (
-        c.framing * radius / np.sin(np.radians(c.fov_deg / 2)))
+def sky_direction(azimuth_deg, elevation_deg) -> np.ndarray:
+    a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return np.array([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)])
+
+
+def cloth_scene(mi, c, shapes: dict, bbox, spp: int, seed: int = 0, view=None) -> dict:
+    """``shapes`` (the plies, :func:`ply_shape`, or explicit fibers) on a floor under Mitsuba's
+    sun and sky; ``c`` is the config's ``cloth`` section, ``bbox`` the model's ``(lo, hi)``
+    corners (mm), ``view`` an ``(eye, target)`` (default :func:`cloth_view`)."""
+    eye, target = cloth_view(c, bbox) if view is None else view
+    lo, hi = (np.asarray(v, float) for v in bbox)
     scene = {
         "type": "scene",
         "integrator": {"type": "bundle_path", "max_depth": c.max_depth},
         "sensor": {"type": "perspective", "fov": c.fov_deg, "fov_axis": "x",
-                   "to_world": mi.ScalarTransform4f().look_at(eye.tolist(), centre.tolist(), [0, 1, 0]),
+                   "to_world": mi.ScalarTransform4f().look_at(np.asarray(eye).tolist(), np.asarray(target).tolist(),
+                                                              [0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": c.width, "height": c.height,
                             "rfilter": {"type": "gaussian"},
                             "pixel_format": "luminance" if "mono" in mi.variant() else "rgb"},
                    "sampler": {"type": "independent", "sample_count": spp, "seed": seed}},
         "sky": {"type": "sunsky", "turbidity": c.turbidity,
-                "sun_direction": direction(c.sun_azimuth_deg, c.sun_elevation_deg).tolist()},
-        "yarn": {"type": "bsplinecurve", "filename": str(curve_path), "bsdf": {**bsdf, "radius": float(ply_radius)}},
+                "sun_direction": sky_direction(c.sun_azimuth_deg, c.sun_elevation_deg).tolist()},
+        **shapes,
     }
     if c.ground:
+        size = 10 * float(np.linalg.norm(hi - lo))
         scene["floor"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate(
-            [centre[0], lo[1], centre[2]]).rotate([1, 0, 0], -90).scale(20 * radius),
+            [0.5 * (lo[0] + hi[0]), lo[1], 0.5 * (lo[2] + hi[2])]).rotate([1, 0, 0], -90).scale(size),
             "bsdf": {"type": "diffuse", "reflectance": {"type": "spectrum", "value": c.ground_reflectance}}}
     return scene

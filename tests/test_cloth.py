@@ -277,3 +277,52 @@ def test_cloth_ply_curve_renders_the_far_field_of_its_table(mono, tmp_path):
     r = np.array([row[3] for row in rows])
     print(np.round(r, 4))
     assert len(r) >= 8 and np.allclose(r, 1.0, atol=0.01), r
+
+
+# -- explicit fibers, patches, and what is refused before building ------------------------
+def test_explicit_fibers_of_a_straight_ply_keep_the_arrangement_scaled():
+    from models.cloth.curves import bspline_samples, interpolate_bspline
+    from models.cloth.fibers import explicit_fibers
+
+    z = np.linspace(0, 10, 41)
+    ply = interpolate_bspline(np.stack([np.zeros_like(z), np.zeros_like(z), z], -1), closed=False)
+    centres, radii = np.array([[0.0, 0.0], [100.0, 0.0], [0.0, -150.0]]), np.full(3, 20.0)
+    curves, r = explicit_fibers([ply], 0.5, centres, radii, R_b=200.0)
+    assert np.allclose(r, 20.0 * 0.5 / 200.0)
+    offsets = [np.hypot(*bspline_samples(cv, 4)[:, :2].T) for cv in curves]
+    assert np.allclose([o.mean() for o in offsets], [0.0, 0.25, 0.375], atol=1e-9)
+    assert max(np.ptp(o) for o in offsets) < 1e-9    # parallel to the ply, as the bake assumes
+
+
+def test_patch_cuts_runs_inside_the_sphere():
+    from models.cloth.fibers import patch
+
+    loop = CurveCollection([Curve(circle(40), True)], "catmull_rom")
+    piece = patch(loop, [10.0, 0.0, 0.0], 5.0)
+    assert len(piece.curves) == 1 and not piece.curves[0].closed   # one run, across the loop's start
+    assert np.all(np.linalg.norm(piece.curves[0].points - [10, 0, 0], axis=1) <= 5.0)
+    assert len(piece.curves[0].points) == np.sum(np.linalg.norm(circle(40) - [10, 0, 0], axis=1) <= 5.0)
+
+
+def test_a_model_too_large_for_memory_is_refused_before_building():
+    from pipeline.config import load_config
+    from pipeline.stages.cloth import check_fits, yarn_model, yarn_spec
+
+    cfg = load_config(ROOT / "configs" / "glove.yaml", ["cloth.units_mm=100000"])
+    with pytest.raises(ValueError, match="more than half of this machine"):
+        check_fits(yarn_model(cfg.cloth), cfg.cloth, yarn_spec(cfg.cloth))
+    cfg = load_config(ROOT / "configs" / "glove.yaml")
+    check_fits(yarn_model(cfg.cloth), cfg.cloth, yarn_spec(cfg.cloth))  # the glove itself fits
+
+
+@pytest.mark.parametrize("sets,says", [
+    (["cloth.yarn=Wool"], "is not in"),
+    (["cloth.model=missing.bcc"], "cannot read"),
+    (["cloth.swatch={courses: 2}"], "either cloth.model"),
+    (["cloth.ply_pitch_mm=0"], "ply_pitch_mm"),
+])
+def test_bad_cloth_configs_are_refused_when_loaded(sets, says):
+    from pipeline.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError, match=says):
+        load_config(ROOT / "configs" / "glove.yaml", sets)

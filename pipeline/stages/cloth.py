@@ -66,6 +66,30 @@ def yarn_spec(c):
     return spec
 
 
+# bytes a ply control point costs once Mitsuba holds it (curve, BVH, file parsing), with a
+# margin: the glove's 1.38 M points took ~270 MB above a bare scene (docs/BENCHMARKS.md, "Cloth")
+BYTES_PER_POINT = 800
+
+
+def estimated_points(collection, c, yarn) -> int:
+    """Ply control points the model will make, from its centre lines' lengths (before building)."""
+    length = sum(float(np.linalg.norm(np.diff(cv.points, axis=0), axis=1).sum()) for cv in collection.curves)
+    length *= c.units_mm
+    return int(yarn.K * max(length / abs(yarn.pitch) * 16, length / (0.25 * yarn.radius)))
+
+
+def check_fits(collection, c, yarn) -> None:
+    """Refuse, before building, a model whose plies would not fit in memory."""
+    from ..config import _memory_bytes
+
+    points = estimated_points(collection, c, yarn)
+    need, have = points * BYTES_PER_POINT, _memory_bytes()
+    if need > 0.5 * have:
+        raise ValueError(f"cloth: the plies would take about {points:,} control points, ~{need / 2**30:.1f} GiB, more "
+                         f"than half of this machine's {have / 2**30:.0f} GiB: render fewer curves (cloth.curves), "
+                         "a larger cloth.ply_pitch_mm, or a smaller model")
+
+
 def build(cfg, out: Path) -> tuple[dict, object]:
     """Phases 1 and 2: write ``plies.txt``; return the geometry's summary and the plies."""
     from models.cloth.yarn import build_plies, write_curves
@@ -74,6 +98,7 @@ def build(cfg, out: Path) -> tuple[dict, object]:
     t0 = time.perf_counter()
     collection = yarn_model(c)
     yarn = yarn_spec(c)
+    check_fits(collection, c, yarn)
     with tqdm(total=len(collection.curves), desc="plies", unit="yarn") as bar:
         geometry = build_plies(collection, c.units_mm, yarn, c.tolerance, progress=lambda k: bar.update(1))
     write_curves(out / "plies.txt", geometry)
@@ -124,8 +149,8 @@ def run(cfg, out_root="artifacts") -> Path:
                "model": model_size(cfg) if set(c.backends) - {"table"} else None, "backends": {}}
     images = {}
     for backend in c.backends:
-        scene = scenes.cloth_scene(mi, c, props[backend], out / "plies.txt", geometry.radius, info["bbox_mm"],
-                                   c.spp)
+        plies = {"yarn": scenes.ply_shape(out / "plies.txt", props[backend], geometry.radius)}
+        scene = scenes.cloth_scene(mi, c, plies, info["bbox_mm"], c.spp)
         img, seconds, first = render_timed(mi, scene, backend, warm=False)
         images[backend] = img
         summary["backends"][backend] = {"seconds": seconds, "mean_radiance": img.mean(axis=(0, 1)).tolist()}

@@ -1,0 +1,293 @@
+"""What the bundle BSDF buys on cloth, measured (issue 27): scale, and explicit fibers.
+
+Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``export``).
+
+``scale``     the first N yarn curves of the model (one loop to the whole glove): ply
+              construction, scene load and render time (320 x 240, 4 spp, the table)
+              and the process's peak memory, each N in its own process.
+``explicit``  a patch of the model (its curves within a sphere around a point on its
+              surface) rendered twice from the same camera: every fiber of every ply as
+              its own curve with the single-fiber model (the bake's arrangement scaled to
+              the ply, parallel to it, as the bake assumes) and the plies with the bundle
+              table. FLIP of the bundle against the explicit reference, mean radiance, and
+              time and peak memory *at equal noise* (the noise of each from two seeds, the
+              time scaled by the ratio of the variances: Monte Carlo variance falls as
+              1/spp), at camera distances where a ply spans 1 .. 16 pixels.
+
+Writes ``docs/cloth.json`` and ``docs/images/cloth_scale.png``, ``cloth_explicit.png``::
+
+    .venv/bin/python -m pipeline.bench.cloth [CONFIG]            # configs/glove.yaml
+    .venv/bin/python -m pipeline.bench.cloth --quick             # fewer sizes and distances
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DOCS = Path(__file__).resolve().parents[2] / "docs"
+
+
+def peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _setup(config, root):
+    import mitsuba as mi
+
+    import mitsuba_ext
+    from pipeline.config import load_config
+    from pipeline.stages.render import backend_props
+
+    cfg = load_config(config)
+    props = backend_props(cfg, root, "table")
+    mi.set_variant(cfg.cloth.variant)
+    mitsuba_ext.register()
+    return mi, cfg, props
+
+
+def _render(mi, scene_dict, spp_seeds=(0, 1)):
+    """Images of two seeds and the seconds of the second (kernels compiled)."""
+    import drjit as dr
+
+    scene = mi.load_dict(scene_dict)
+    images, seconds = [], 0.0
+    for seed in spp_seeds:
+        t0 = time.perf_counter()
+        img = mi.render(scene, seed=seed)
+        dr.eval(img)
+        dr.sync_thread()
+        seconds = time.perf_counter() - t0
+        images.append(np.array(img, np.float32)[..., :3])
+    if not all(np.all(np.isfinite(i)) for i in images):
+        raise FloatingPointError("a cloth render holds NaN or Inf")
+    return images, seconds
+
+
+# -- children: one measurement per process (its peak memory is its own) ------------------
+def child_scale(config, root, n_curves, out):
+    from pipeline import scenes
+    from pipeline.stages.cloth import build
+
+    mi, cfg, props = _setup(config, root)
+    base = peak_mb()
+    c = cfg.cloth.model_copy(update={"curves": n_curves, "width": 320, "height": 240})
+    cfg = cfg.model_copy(update={"cloth": c})
+    t0 = time.perf_counter()
+    info, g = build(cfg, Path(out))
+    built = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    scene = mi.load_dict(scenes.cloth_scene(mi, c, {"yarn": scenes.ply_shape(Path(out) / "plies.txt", props, g.radius)},
+                                            info["bbox_mm"], 4))
+    loaded = time.perf_counter() - t0
+    import drjit as dr
+    t0 = time.perf_counter()
+    img = mi.render(scene)
+    dr.eval(img)
+    dr.sync_thread()
+    rendered = time.perf_counter() - t0
+    return {"curves": n_curves, "control_points": info["control_points"], "build_s": built, "load_s": loaded,
+            "render_s": rendered, "peak_mb": peak_mb(), "base_mb": base}
+
+
+def child_explicit(config, root, which, ply_px, spp, out):
+    """One render pair (two seeds) of the patch: ``which`` = bundle or explicit."""
+    from models.cloth.fibers import explicit_fibers, patch
+    from models.cloth.yarn import PlyGeometry, build_plies, write_curves
+    from pipeline import closure, scenes
+    from pipeline.artifacts import fiber_table_path, load_bundle_table
+    from pipeline.build import build_bundle
+    from pipeline.stages.cloth import yarn_model, yarn_spec
+
+    mi, cfg, props = _setup(config, root)
+    base = peak_mb()
+    c = cfg.cloth.model_copy(update={"curves": None, "width": 192, "height": 192, "ground": False})
+    model = yarn_model(c)
+    pts = np.concatenate([cv.points for cv in model.curves])
+    centre = pts[np.argmax(pts @ np.array([0.3, 1.0, 0.5]))]   # a point on the upper surface
+    yarn = yarn_spec(c)
+    piece = patch(model, centre, 16 * yarn.radius / c.units_mm)
+    g = build_plies(piece, c.units_mm, yarn, c.tolerance)
+    lo, hi = np.concatenate(g.curves).min(0), np.concatenate(g.curves).max(0)
+    target = c.units_mm * centre
+    outward = target - c.units_mm * pts.mean(0)
+    outward = outward / np.linalg.norm(outward) + np.array([0.0, 0.6, 0.0])
+    outward /= np.linalg.norm(outward)
+    distance = yarn.r_ply * c.width / (ply_px * np.tan(np.radians(c.fov_deg / 2)))
+    view = (target + distance * outward, target)
+    out = Path(out)
+    if which == "bundle":
+        write_curves(out / "patch_plies.txt", g)
+        shapes = {"yarn": scenes.ply_shape(out / "patch_plies.txt", props, g.radius)}
+        geometry_points = g.control_points
+    else:
+        bundle = build_bundle(cfg)
+        table, _ = load_bundle_table(cfg, root)
+        fiber = closure.explicit_fiber(fiber_table_path(cfg, root), table.meta.get("exit", "uniform"), 550.0)
+        fiber.pop("wavelength")
+        fiber.pop("up")
+        curves, radii = explicit_fibers(g.curves, g.radius, bundle.centers, bundle.radii, bundle.bounding_radius,
+                                        per_segment=1)
+        # one file per fiber radius (a Poisson arrangement has one)
+        shapes = {}
+        for k, r in enumerate(np.unique(radii)):
+            sel = [cv for cv, ri in zip(curves, radii) if ri == r]
+            write_curves(out / f"patch_fibers_{k}.txt", PlyGeometry(sel, float(r), 0.0, np.inf, 0.0))
+            shapes[f"fibers_{k}"] = {"type": "bsplinecurve", "filename": str(out / f"patch_fibers_{k}.txt"),
+                                     "bsdf": {**fiber, "radius": float(r)}}
+        geometry_points = sum(len(cv) for cv in curves)
+    scene = scenes.cloth_scene(mi, c, shapes, (lo, hi), spp, view=view)
+    images, seconds = _render(mi, scene)
+    np.savez(out / f"{which}_{ply_px}.npz", a=images[0], b=images[1])
+    return {"which": which, "ply_px": ply_px, "spp": spp, "seconds": seconds, "peak_mb": peak_mb(), "base_mb": base,
+            "control_points": geometry_points, "plies": len(g.curves)}
+
+
+def _child(kind, *args):
+    cmd = [sys.executable, "-m", "pipeline.bench.cloth", "--child", json.dumps([kind, *args])]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"{kind} {args}: {r.stderr[-3000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+# -- the parent: the measurements, the figures --------------------------------------------
+def noise(images) -> float:
+    a, b = images
+    return float(np.mean((a - b) ** 2) / 2)
+
+
+def masked_flip(reference, test, exposure, mask) -> float:
+    """Mean LDR-FLIP over ``mask`` (the yarn's pixels), on the displayed sRGB images."""
+    import flip_evaluator as flip
+
+    from pipeline.stages.render import to_srgb
+
+    error_map, _, _ = flip.evaluate(to_srgb(reference, exposure), to_srgb(test, exposure), "LDR", applyMagma=False)
+    error_map = np.asarray(error_map, np.float64)
+    error_map = error_map[..., 0] if error_map.ndim == 3 else error_map
+    return float(np.mean(error_map[mask]))
+
+
+def measure(config, root, quick, tmp) -> dict:
+    from models.cloth.bcc import read_bcc
+    from pipeline.config import load_config
+    from pipeline.stages.render import exposure_of, flip_and_psnr
+
+    cfg = load_config(config)
+    total = len(read_bcc(cfg.cloth.model).curves) if cfg.cloth.model else cfg.cloth.swatch.courses
+    sizes = sorted({n for n in ((1, 10, total) if quick else (1, 2, 5, 10, 20, 40, total)) if n <= total})
+    scale = []
+    for n in sizes:
+        scale.append(_child("scale", config, root, n, tmp))
+        print(f"[scale] {n} curves: {scale[-1]}", flush=True)
+    explicit = []
+    for px in ((4,) if quick else (1, 2, 4, 8, 16)):
+        row = {"ply_px": px}
+        pair = {}
+        for which, spp in (("bundle", 64), ("explicit", 256)):
+            m = _child("explicit", config, root, which, px, spp, tmp)
+            data = np.load(Path(tmp) / f"{which}_{px}.npz")
+            pair[which] = (data["a"], data["b"])
+            row[which] = {**m, "noise": noise(pair[which]), "mean": float(np.mean(data["a"] + data["b"]) / 2)}
+            print(f"[explicit] {px} px {which}: {row[which]}", flush=True)
+        ref = 0.5 * (pair["explicit"][0] + pair["explicit"][1])
+        test = 0.5 * (pair["bundle"][0] + pair["bundle"][1])
+        exposure = exposure_of(ref)
+        # FLIP over the yarn's pixels only (the black sky would dilute it), at the reference's exposure
+        Y = (ref + test).sum(-1)
+        mask = Y > 1e-3 * Y.max()
+        row["flip_image"], row["psnr"], _ = flip_and_psnr(ref, test, exposure)
+        row["flip"] = masked_flip(ref, test, exposure, mask)
+        # the explicit reference's own noise in FLIP: its two seeds against each other
+        row["flip_explicit_noise"] = masked_flip(*pair["explicit"], exposure, mask)
+        row["yarn_pixels"] = int(mask.sum())
+        row["mean_ratio"] = row["bundle"]["mean"] / row["explicit"]["mean"]
+        var_b, var_e = row["bundle"]["noise"], row["explicit"]["noise"]
+        row["time_ratio_equal_noise"] = row["explicit"]["seconds"] * (var_e / var_b) / row["bundle"]["seconds"]
+        row["memory_ratio"] = (row["explicit"]["peak_mb"] - row["explicit"]["base_mb"]) / max(
+            1.0, row["bundle"]["peak_mb"] - row["bundle"]["base_mb"])
+        row["geometry_ratio"] = row["explicit"]["control_points"] / row["bundle"]["control_points"]
+        explicit.append(row)
+        np.save(Path(tmp) / f"pair_{px}.npy", np.stack([ref, test]))
+        print(f"[explicit] {px} px: FLIP {row['flip']:.3f} (explicit's own noise {row['flip_explicit_noise']:.3f}), "
+              f"mean x{row['mean_ratio']:.3f}, equal-noise time x{row['time_ratio_equal_noise']:.1f}, "
+              f"memory x{row['memory_ratio']:.1f}, geometry x{row['geometry_ratio']:.0f}", flush=True)
+    return {"config": str(config), "scale": scale, "explicit": explicit}
+
+
+def plot(result, tmp, path_scale, path_explicit):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipeline.stages.render import exposure_of, to_srgb
+
+    s = result["scale"]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    n = [r["curves"] for r in s]
+    ax[0].plot(n, [r["build_s"] for r in s], "o-", label="plies built")
+    ax[0].plot(n, [r["load_s"] for r in s], "s-", label="scene loaded")
+    ax[0].plot(n, [r["render_s"] for r in s], "^-", label="rendered (320 x 240 x 4 spp)")
+    ax[0].set(xscale="log", yscale="log", xlabel="yarn curves", ylabel="seconds")
+    ax[0].legend(fontsize=8)
+    ax[1].plot(n, [r["peak_mb"] - r["base_mb"] for r in s], "o-")
+    ax[1].set(xscale="log", xlabel="yarn curves", ylabel="peak memory above start (MB)")
+    fig.tight_layout()
+    fig.savefig(path_scale, dpi=110)
+    plt.close(fig)
+
+    e = result["explicit"]
+    fig, ax = plt.subplots(1, 1 + min(2, len(e)), figsize=(4 + 4 * min(2, len(e)), 3.8))
+    ax = np.atleast_1d(ax)
+    ax[0].plot([r["ply_px"] for r in e], [r["flip"] for r in e], "o-", label="bundle vs explicit fibers")
+    ax[0].plot([r["ply_px"] for r in e], [r["flip_explicit_noise"] for r in e], "x--",
+               label="explicit: seed vs seed (its noise)")
+    ax[0].axhline(0.1, color="grey", lw=0.8)
+    ax[0].set(xscale="log", xlabel="ply width (pixels)", ylabel="mean FLIP")
+    ax[0].legend(fontsize=8)
+    for a, r in zip(ax[1:], [e[len(e) // 2], e[-1]][: len(ax) - 1]):
+        ref, test = np.load(Path(tmp) / f"pair_{r['ply_px']}.npy")
+        x = exposure_of(ref)
+        a.imshow(np.concatenate([to_srgb(ref, x), to_srgb(test, x)], 1))
+        a.set_title(f"ply {r['ply_px']} px: explicit fibers | bundle", fontsize=9)
+        a.axis("off")
+    fig.tight_layout()
+    fig.savefig(path_explicit, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("config", nargs="?", default="configs/glove.yaml")
+    parser.add_argument("--artifacts", default="artifacts")
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        kind, *rest = json.loads(args.child)
+        print(json.dumps({"scale": child_scale, "explicit": child_explicit}[kind](*rest)))
+        return 0
+    import tempfile
+
+    from models.io import write_text
+
+    with tempfile.TemporaryDirectory() as tmp:
+        result = measure(args.config, args.artifacts, args.quick, tmp)
+        (DOCS / "images").mkdir(parents=True, exist_ok=True)
+        plot(result, tmp, DOCS / "images" / "cloth_scale.png", DOCS / "images" / "cloth_explicit.png")
+    write_text(DOCS / "cloth.json", json.dumps(result, indent=1))
+    print(f"wrote {DOCS / 'cloth.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
