@@ -192,7 +192,8 @@ def evaluator(mi, kind: str, path, wavelength_nm: float):
         from models.fiber.base import FiberTable
 
         fiber = FiberTable.load(path)
-        return lambda pi_, ti, po, to: float(fiber.eval(ti, pi_, to, po, wavelength_nm))
+        return lambda pi_, ti, po, to: float(fiber.eval(phi_i=pi_, theta_i=ti, phi_o=po, theta_o=to,
+                                                         wavelength=wavelength_nm))
     if kind == "table":
         from models.bundle_table import BundleTable, lookup
 

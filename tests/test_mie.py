@@ -149,8 +149,8 @@ def test_mie_fiber_energy_and_table():
     # off the cone with the half angle on a node: the table interpolates nothing but c
     t = theta_i[6]
     phi_o = table.phi[::7]
-    direct = fiber.eval(t + 0.01, 0.0, -t + 0.01, phi_o, 650.0)
-    looked_up = table.eval(t + 0.01, 0.0, -t + 0.01, phi_o, 650.0)
+    direct = fiber.eval(phi_i=0.0, theta_i=t + 0.01, phi_o=phi_o, theta_o=-t + 0.01, wavelength=650.0)
+    looked_up = table.eval(phi_i=0.0, theta_i=t + 0.01, phi_o=phi_o, theta_o=-t + 0.01, wavelength=650.0)
     assert np.allclose(looked_up, direct, rtol=1e-5)
 
 
@@ -177,8 +177,8 @@ def test_mie_fiber_is_reciprocal_off_the_cone(roughness):
     assert big.sum() > 1000
     assert np.max(np.abs(a[big] / b[big] - 1)) < 1e-3
     k = rng.choice(n, 60, replace=False)
-    d = fiber.eval(ti[k], 0.0, to[k], dphi[k], 450.0) * np.cos(ti[k])
-    e = fiber.eval(to[k], 0.0, ti[k], -dphi[k], 450.0) * np.cos(to[k])
+    d = fiber.eval(phi_i=0.0, theta_i=ti[k], phi_o=dphi[k], theta_o=to[k], wavelength=450.0) * np.cos(ti[k])
+    e = fiber.eval(phi_i=0.0, theta_i=to[k], phi_o=-dphi[k], theta_o=ti[k], wavelength=450.0) * np.cos(to[k])
     big = d > 1e-3 * a[:, 0].max()
     assert np.max(np.abs(d[big] / e[big] - 1)) < 1e-3
     # and the table keeps the energy between nodes too (grazing included)

@@ -43,7 +43,8 @@ def test_agrees_with_mitsuba_hair(mi_llvm, eta, sigma_a, beta_m, beta_n, alpha):
     theta_o = rng.uniform(-1.5, 1.5, Q)
     dphi = rng.uniform(-np.pi, np.pi, Q)
     n_h = 64
-    ours = RayFiber([550.0], eta, sigma_a, beta_m, beta_n, alpha, n_h=n_h).eval(theta_i, 0.0, theta_o, dphi, 550.0)
+    ours = RayFiber([550.0], eta, sigma_a, beta_m, beta_n, alpha, n_h=n_h).eval(
+        phi_i=0.0, theta_i=theta_i, phi_o=dphi, theta_o=theta_o, wavelength=550.0)
     theirs = mitsuba_hair_h_average(mi_llvm, eta, sigma_a, beta_m, beta_n, alpha, theta_i, theta_o, dphi, n_h)
     assert np.all(np.isfinite(ours)) and np.all(ours >= 0)
     significant = theirs > 1e-3 * theirs.max()
@@ -73,10 +74,11 @@ def test_absorption_and_spectral_dependence():
     t = np.deg2rad(30.0)
     width = 2 * np.pi / len(table.phi)
     sub = (np.arange(64) + 0.5) / 64 - 0.5
-    cell_mean = fiber.eval(t, 0.3, -t + 0.1, table.phi[:, None] + 0.3 + sub * width, 650.0).mean(1)
-    tabulated = table.eval(t, 0.3, -t + 0.1, table.phi + 0.3, 650.0)
+    cell_mean = fiber.eval(phi_i=0.3, theta_i=t, phi_o=table.phi[:, None] + 0.3 + sub * width, theta_o=-t + 0.1,
+                           wavelength=650.0).mean(1)
+    tabulated = table.eval(phi_i=0.3, theta_i=t, phi_o=table.phi + 0.3, theta_o=-t + 0.1, wavelength=650.0)
     assert np.allclose(tabulated, cell_mean, rtol=2e-5, atol=1e-7)
-    point = fiber.eval(t, 0.3, -t + 0.1, table.phi + 0.3, 650.0)
+    point = fiber.eval(phi_i=0.3, theta_i=t, phi_o=table.phi + 0.3, theta_o=-t + 0.1, wavelength=650.0)
     assert np.allclose(tabulated, point, rtol=1e-3)  # a smooth lobe: the box filter is invisible
 
 
@@ -84,7 +86,7 @@ def test_extremes_finite():
     fiber = RayFiber([500.0], 1.55, 1e4, 1e-3, 1e-3, 2.0, n_h=64)  # opaque, smallest roughness
     ti = np.array([np.pi / 2, -np.pi / 2, 0.0, 1.0])
     to = np.array([-np.pi / 2, np.pi / 2, 0.0, -1.0])
-    f = fiber.eval(ti, 0.0, to, np.array([0.0, 1.0, np.pi, -np.pi]), 500.0)
+    f = fiber.eval(phi_i=0.0, theta_i=ti, phi_o=np.array([0.0, 1.0, np.pi, -np.pi]), theta_o=to, wavelength=500.0)
     assert np.all(np.isfinite(f)) and np.all(f >= 0)
     table = fiber.tabulate(np.deg2rad([0.0, 45.0, 90.0]))
     assert np.all(np.isfinite(table.energy()))

@@ -40,7 +40,7 @@ def test_xia_frame_and_normalization(tmp_path):
         theta_o = np.linspace(-1.5, 1.5, 301)
         dphi = np.linspace(-np.pi, np.pi, 721)
         T, P = np.meshgrid(theta_o, dphi, indexing="ij")
-        f = table.eval(ti, 0.0, T, P, 550.0)
+        f = table.eval(phi_i=0.0, theta_i=ti, phi_o=P, theta_o=T, wavelength=550.0)
         i, j = np.unravel_index(np.argmax(f), f.shape)
         assert theta_o[i] == pytest.approx(-ti, abs=0.02)        # forward: theta_o = -theta_i
         assert abs(abs(dphi[j]) - np.pi) < 0.02                   # forward: dphi = pi
@@ -72,7 +72,7 @@ def test_npz_named_axes_any_order(tmp_path):
     order = ["wavelength", "phi", "theta_o", "theta_i"]
     np.savez(tmp_path / "f.npz", values=np.transpose(f, [3, 2, 1, 0]), axes=np.array(order), **axes)
     table = load_npz(tmp_path / "f.npz")
-    assert table.eval(0.3, 0.0, -0.2, 1.0, 550.0) == pytest.approx(1 / (4 * np.pi))
+    assert table.eval(phi_i=0.0, theta_i=0.3, phi_o=1.0, theta_o=-0.2, wavelength=550.0) == pytest.approx(1 / (4 * np.pi))
     assert np.allclose(table.energy(), 1.0, atol=2e-3)  # trapezoid in theta_o on 31 nodes
     np.savez(tmp_path / "bad.npz", values=f[:, :, :, :1], axes=np.array(["theta_i", "theta_o", "phi", "wavelength"]), **axes)
     with pytest.raises(ValueError, match="shape"):
@@ -85,10 +85,10 @@ def test_fiber_table_roundtrip_and_corruption(tmp_path):
     table = PatternFiber([500.0, 600.0], "grid").tabulate(np.deg2rad([0.0, 45.0, 90.0]))
     table.save(tmp_path / "t.npz")
     again = FiberTable.load(tmp_path / "t.npz")
-    args = (0.4, 0.1, np.linspace(-1.5, 1.5, 50), 1.0, 550.0)
-    assert np.array_equal(table.eval(*args), again.eval(*args))
+    args = dict(phi_i=0.1, theta_i=0.4, phi_o=1.0, theta_o=np.linspace(-1.5, 1.5, 50), wavelength=550.0)
+    assert np.array_equal(table.eval(**args), again.eval(**args))
     (tmp_path / "t.npz").write_bytes((tmp_path / "t.npz").read_bytes()[:500])
     with pytest.raises(ValueError, match="re-run"):
         FiberTable.load(tmp_path / "t.npz")
     with pytest.raises(ValueError, match="radians"):
-        table.eval(45.0, 0.0, 0.0, 0.0, 500.0)  # degrees by mistake
+        table.eval(phi_i=0.0, theta_i=45.0, phi_o=0.0, theta_o=0.0, wavelength=500.0)  # degrees by mistake

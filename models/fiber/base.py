@@ -81,7 +81,7 @@ class FiberTable:
     _energy: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     # -- evaluation --------------------------------------------------------
-    def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength) -> np.ndarray:
+    def eval(self, *, phi_i, theta_i, phi_o, theta_o, wavelength) -> np.ndarray:
         """``f`` at arbitrary arguments (broadcast), by multilinear interpolation of N.
 
         theta outside [-pi/2, pi/2] is an error; wavelengths outside the table are
@@ -266,15 +266,15 @@ class FiberModel:
     def tabulate(self, theta_i: np.ndarray) -> FiberTable:  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength) -> np.ndarray:
+    def eval(self, *, phi_i, theta_i, phi_o, theta_o, wavelength) -> np.ndarray:
         if not hasattr(self, "_table"):
             self._table = self.tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
-        return self._table.eval(theta_i, phi_i, theta_o, phi_o, wavelength)
+        return self._table.eval(phi_i=phi_i, theta_i=theta_i, phi_o=phi_o, theta_o=theta_o, wavelength=wavelength)
 
     def energy(self, theta_i: float, wavelength: float, n_theta=256, n_phi=1024) -> float:
         """``integral f d omega_o`` by quadrature over the sphere of :meth:`eval`."""
         T, P, W = sphere_quadrature(n_theta, n_phi)
-        f = self.eval(theta_i, 0.0, T, P, wavelength)
+        f = self.eval(phi_i=0.0, theta_i=theta_i, phi_o=P, theta_o=T, wavelength=wavelength)
         return float(np.sum(f * W))
 
     def extinction(self, theta_i: np.ndarray) -> np.ndarray | None:

@@ -301,7 +301,7 @@ class MieFiber(FiberModel):
             self.tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
         return self._scale
 
-    def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength):
+    def eval(self, *, phi_i, theta_i, phi_o, theta_o, wavelength):
         """Direct evaluation (no table): the series summed at each requested angle.
 
         The reciprocal form of :mod:`models.fiber.reciprocal`: the pattern at the half

@@ -37,7 +37,7 @@ class PatternFiber(FiberModel):
             return np.full(np.shape(dphi), 1 / (2 * np.pi))
         return stripes_phi(dphi, self.n_stripes_phi)
 
-    def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength):
+    def eval(self, *, phi_i, theta_i, phi_o, theta_o, wavelength):
         ti, pi_, to, po, _ = np.broadcast_arrays(theta_i, phi_i, theta_o, phi_o, wavelength)
         return self.albedo * self.M(ti, to) * self._N(po - pi_)
 

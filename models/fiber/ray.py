@@ -151,7 +151,7 @@ class RayFiber(FiberModel):
                 "mirror_symmetric": self.params["scale_tilt_deg"] == 0}
         return FiberTable(theta_i, np.zeros(1), phi, self.wavelength.copy(), lobes, meta)
 
-    def eval(self, theta_i, phi_i, theta_o, phi_o, wavelength):
+    def eval(self, *, phi_i, theta_i, phi_o, theta_o, wavelength):
         """Direct evaluation, h-averaged by quadrature (no table)."""
         ti, pi_, to, po, wl = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
                                                    for a in (theta_i, phi_i, theta_o, phi_o, wavelength)))

@@ -51,9 +51,9 @@ def main(argv=None):
     table = fiber_models.build(cfg.fiber, cfg.wavelengths.grid()).tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
     rng = np.random.default_rng(0)
     q = 1_000_000
-    args_q = (rng.uniform(-1.5, 1.5, q), 0.0, rng.uniform(-1.5, 1.5, q), rng.uniform(-np.pi, np.pi, q),
-              rng.uniform(400, 700, q))
-    times, _ = _time(lambda: table.eval(*args_q), args.repeat)
+    args_q = dict(phi_i=0.0, theta_i=rng.uniform(-1.5, 1.5, q), phi_o=rng.uniform(-np.pi, np.pi, q),
+                  theta_o=rng.uniform(-1.5, 1.5, q), wavelength=rng.uniform(400, 700, q))
+    times, _ = _time(lambda: table.eval(**args_q), args.repeat)
     print(f"{'mie table lookup, numpy, 1M queries':46s} {min(times):9.2f} {statistics.median(times):11.2f}  "
           f"{min(times) / q * 1e9:.0f} ns/query")
 

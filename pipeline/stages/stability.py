@@ -139,7 +139,7 @@ def ray_extremes() -> list[Check]:
             E = t.energy()
             c = f"ray: sigma_a {sigma_a:g}, roughness {beta:g}"
             th = np.deg2rad([-90.0, -89.0, 0.0, 89.0, 90.0])
-            values = fiber.eval(th[:, None], 0.0, th[None, :], np.pi / 3, 550.0)
+            values = fiber.eval(phi_i=0.0, theta_i=th[:, None], phi_o=np.pi / 3, theta_o=th[None, :], wavelength=550.0)
             checks += all_finite_nonneg(c, "f at theta_i, theta_o = +-90 deg", [values, E])
             checks.append(at_most(c, "albedo - 1", "energy <= 1", np.max(E) - 1, 2e-3))
             if sigma_a == 0:
