@@ -9,6 +9,8 @@
     bcsdf stability CONFIG check finiteness, energy and references on stiff and extreme cases
     bcsdf sweep CONFIG     bake every member of the config's sweep, write the family page
     bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
+    bcsdf render-scene SCENE.xml -o OUT.exr
+                           render any Mitsuba XML scene with the plugins registered
     bcsdf run CONFIG       every stage in order, skipping those that are up to date
                            (code, config sections and input artifacts unchanged, outputs
                            intact: the same notion as DVC's, from dvc.yaml; --force reruns)
@@ -64,7 +66,18 @@ def main(argv=None) -> int:
                            help="bake on a local Dask cluster of N single-threaded worker processes")
             p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                            help="bake on an existing Dask cluster (tcp://host:8786; or set BCSDF_SCHEDULER)")
+    p = sub.add_parser("render-scene", help="render a Mitsuba XML scene with this project's plugins",
+                       description="bcsdf render-scene: render any Mitsuba XML scene with fiber_bundle, fiber_table, "
+                                   "fiber_ray and bundle_path registered (Mitsuba's own command cannot load them).")
+    p.add_argument("scene", help="Mitsuba XML scene, e.g. scenes/ply.xml")
+    p.add_argument("-o", "--output", required=True, help="the image: OUT.exr (and OUT.png beside it)")
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel (default: the scene's sampler)")
+    p.add_argument("--variant", default="llvm_ad_spectral", help="Mitsuba variant (default llvm_ad_spectral)")
+    p.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
+                   help="set the scene's $NAME parameter (repeatable), as Mitsuba's -D")
     args = parser.parse_args(argv)
+    if args.command == "render-scene":
+        return _render_scene(args)
     if not sys.stderr.isatty():
         # a log file, not a terminal: one progress line per 30 s instead of per 0.1 s (a
         # default run wrote 7,000 lines); tqdm reads its defaults from TQDM_* variables
@@ -99,6 +112,20 @@ def main(argv=None) -> int:
         print(f"bcsdf {args.command}: error: cannot write {e.filename} ({e.strerror}): free some space, fix the "
               "folder's permissions or point --artifacts at another disk, then run again; earlier artifacts are "
               "intact, and a bake resumes from its last checkpoint", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _render_scene(args) -> int:
+    from .render_scene import render_scene
+
+    if args.spp is not None and args.spp < 1:
+        print(f"bcsdf render-scene: error: --spp must be at least 1 (got {args.spp})", file=sys.stderr)
+        return 2
+    try:
+        render_scene(args.scene, args.output, args.spp, args.variant, args.defines)
+    except (ValueError, FileNotFoundError, FloatingPointError) as e:
+        print(f"bcsdf render-scene: error: {e}", file=sys.stderr)
         return 2
     return 0
 
