@@ -3,7 +3,7 @@
 #   make test   set up, then run the default test suite
 CONFIG ?= configs/default.yaml
 
-.PHONY: setup run test bench bench-bake bench-neural bench-render bench-closure bench-cluster bench-exit stability clean
+.PHONY: setup run test bench bench-bake bench-neural bench-render bench-closure bench-cluster bench-exit bench-cloth cloth stability clean
 setup:
 	./scripts/setup.sh
 
@@ -30,6 +30,12 @@ bench-closure: run
 
 bench-exit: setup
 	.venv/bin/python -m pipeline.bench.exit
+
+cloth: setup
+	.venv/bin/bcsdf run configs/glove.yaml
+
+bench-cloth: cloth
+	.venv/bin/python -m pipeline.bench.cloth configs/glove.yaml
 
 bench-cluster: setup
 	.venv/bin/python -m pipeline.bench.cluster

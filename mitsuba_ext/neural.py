@@ -72,7 +72,14 @@ class OnnxMLP:
         meta = self.session.get_modelmeta().custom_metadata_map
         if "bcsdf_spec" not in meta:
             raise ValueError(f"{path}: no bcsdf metadata; not a model written by `bcsdf export`")
-        self.spec = NeuralSpec.from_dict(json.loads(meta["bcsdf_spec"]))
+        try:
+            self.spec = NeuralSpec.from_dict(json.loads(meta["bcsdf_spec"]))
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{path}: {e}; re-run `bcsdf export`") from None
+        out = self.eval(0.0, 0.3, 1.0, -0.3)  # the graph must predict what its metadata says
+        if out.shape != (len(self.spec.wavelength),) or not np.all(np.isfinite(out)):
+            raise ValueError(f"{path}: the graph returns {out.shape[-1] if out.ndim else 0} values per query, its "
+                             f"metadata names {len(self.spec.wavelength)} wavelengths; re-run `bcsdf export`")
 
     def eval(self, phi_i, theta_i, phi_o, theta_o) -> np.ndarray:
         angles = np.stack(np.broadcast_arrays(phi_i, theta_i, phi_o, theta_o), -1).astype(np.float32)

@@ -43,6 +43,9 @@ from .grid import bin_solid_angle, linear
 from .io import atomic_path, check_axis
 
 FORMAT = "bcsdf.bundle_table/1"
+MAX_VALUE = 1e20   # 1/sr: far beyond any physical lobe, far below float32's 3.4e38
+REDUCTIONS = {"theta_i": (None, "mirror"), "phi_i": (None, "rotation", "mirror_xz"),
+              "phi_o": ("relative", "absolute")}
 ARRAYS = ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost",
           "phi_i", "theta_i", "phi_o_edges", "theta_o_edges", "wavelength")
 
@@ -122,12 +125,31 @@ class BundleTable:
                  len(self.theta_o_edges) - 1, len(self.wavelength))
         if self.values.shape != shape or self.stderr.shape != shape:
             raise ValueError(f"values have shape {self.values.shape}, the axes give {shape}")
-        for name in ("values", "stderr", "passthrough", "absorbed", "lost"):
+        for name, want in (("passthrough", shape[:1]), ("passthrough_stderr", shape[:1]),
+                           ("absorbed", shape[:2] + shape[4:]), ("lost", shape[:2] + shape[4:])):
+            if np.shape(getattr(self, name)) != want:
+                raise ValueError(f"{name} has shape {np.shape(getattr(self, name))}, the axes give {want}")
+        for name in ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost"):
             a = getattr(self, name)
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"{name} holds NaN or Inf")
-            if name in ("values", "stderr") and np.any(a < 0):
-                raise ValueError(f"{name} holds negative numbers (S and its error are never negative)")
+            if np.any(a < 0):
+                raise ValueError(f"{name} holds negative numbers (S, probabilities and errors are never negative)")
+        if np.any(self.values > MAX_VALUE):
+            raise ValueError(f"values reach {float(self.values.max()):.3g} /sr (at most {MAX_VALUE:.0e}: a "
+                             "renderer's weights would overflow float32)")
+        for name in ("passthrough", "absorbed", "lost"):
+            if np.any(getattr(self, name) > 1 + 1e-6):
+                raise ValueError(f"{name} reaches {float(np.max(getattr(self, name))):.4g}; a probability is at most 1")
+        # the lookups step through the axes in equal steps: an uneven axis would be misread
+        for name in ("theta_i", "phi_o_edges", "theta_o_edges") + (("phi_i",) if len(self.phi_i) > 1 else ()):
+            step = np.diff(np.asarray(getattr(self, name), float))
+            if len(step) and np.ptp(step) > 1e-6 * max(1.0, float(np.abs(step).max())):
+                raise ValueError(f"axis {name}: steps {step.min():.6g} .. {step.max():.6g}; the lookup needs equal steps")
+        reductions = self.meta.get("reductions", {"phi_o": "relative"})
+        for key, allowed in REDUCTIONS.items():
+            if reductions.get(key) not in allowed:
+                raise ValueError(f"meta.reductions.{key}: {reductions.get(key)!r} is not one of {allowed}")
 
     # -- symmetry ------------------------------------------------------------
     def expanded(self) -> "BundleTable":

@@ -71,6 +71,18 @@ class NeuralSpec:
     format: str = FORMAT
 
     def __post_init__(self):
+        for name in ("s0", "y_max", "cone_scale"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise ValueError(f"model metadata: {name} = {v!r}; it must be a positive finite number")
+        wl = np.asarray(self.wavelength, float)
+        if wl.ndim != 1 or wl.size == 0 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
+            raise ValueError("model metadata: wavelength must be a non-empty, increasing list of finite numbers")
+        if not all(isinstance(h, int) and h > 0 for h in self.hidden):
+            raise ValueError(f"model metadata: hidden widths {self.hidden} must be positive integers")
+        p = np.asarray(self.passthrough, float)
+        if len(p) != len(self.passthrough_phi_i) or not np.all(np.isfinite(p)) or np.any((p < 0) | (p > 1)):
+            raise ValueError("model metadata: passthrough must hold one probability in [0, 1] per passthrough_phi_i")
         bad = [f for f in self.folds if f not in FOLDS]
         if bad or ("dphi" in self.folds and not self.relative_phi) or ("xz" in self.folds and self.relative_phi):
             raise ValueError(f"folds {self.folds} do not fit a {'relative' if self.relative_phi else 'absolute'}"

@@ -1,0 +1,105 @@
+"""Artifacts are checked against themselves wherever they are loaded (issue 23, class 4):
+a table or model that is inconsistent is refused, naming the file and the field, by the
+loader every stage and plugin uses; nothing is rendered from it."""
+
+import json
+
+import numpy as np
+import pytest
+
+from models.bundle_table import BundleTable
+from tests.synthetic import make_config, synthetic_table
+
+
+@pytest.fixture
+def table_path(tmp_path):
+    cfg = make_config(tmp_path)
+    path = tmp_path / "table.npz"
+    synthetic_table(cfg, path, relative=True, passthrough=0.3)
+    return path
+
+
+def rewrite(path, **changes):
+    """The table at ``path`` with some arrays (or ``meta``) replaced, written as the baker does."""
+    t = BundleTable.load(path)
+    for k, v in changes.items():
+        if k == "meta":
+            t.meta = v(t.meta)
+        else:
+            setattr(t, k, v(getattr(t, k)))
+    t.save(path)  # save does not validate: this is the careless or hostile writer
+    return path
+
+
+CASES = {
+    "passthrough above 1": (dict(passthrough=lambda p: p * 0 + 1.7), "passthrough reaches 1.7"),
+    "negative passthrough": (dict(passthrough=lambda p: p * 0 - 0.5), "passthrough holds negative"),
+    "passthrough of the wrong length": (dict(passthrough=lambda p: np.concatenate([p, p])), "passthrough has shape"),
+    "uneven theta_i": (dict(theta_i=lambda t: t ** 1.3 / t.max() ** 0.3), "axis theta_i: steps"),
+    "uneven phi_o edges": (dict(phi_o_edges=lambda e: np.pi * np.sign(e) * (np.abs(e) / np.pi) ** 1.2),
+                           "axis phi_o_edges: steps"),
+    "unknown phi_o reduction": (dict(meta=lambda m: {**m, "reductions": {**m["reductions"], "phi_o": "sideways"}}),
+                                "meta.reductions.phi_o"),
+    "values near float32's limit": (dict(values=lambda v: v * 0 + 3e38), "values reach"),
+    "NaN in absorbed": (dict(absorbed=lambda a: a * np.nan), "absorbed holds NaN"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_inconsistent_tables_are_refused_by_the_loader_and_the_plugin(mi_plugins, table_path, case):
+    changes, says = CASES[case]
+    rewrite(table_path, **changes)
+    with pytest.raises(ValueError, match=says) as e:
+        BundleTable.load(table_path)
+    assert str(table_path) in str(e.value)
+    with pytest.raises(Exception, match=says):  # the plugin reads through the same loader
+        mi_plugins.load_dict({"type": "fiber_bundle", "table": str(table_path)})
+
+
+def test_a_consistent_table_still_loads(table_path):
+    assert BundleTable.load(table_path).passthrough.max() <= 1
+
+
+@pytest.mark.parametrize("field,value,says", [
+    ("s0", float("nan"), "s0"), ("y_max", -1.0, "y_max"), ("cone_scale", 0.0, "cone_scale"),
+    ("passthrough", [1.5], "passthrough"), ("wavelength", [550.0, 450.0], "wavelength"),
+])
+def test_model_metadata_out_of_its_domain_is_refused(trained, tmp_path, field, value, says):
+    import shutil
+
+    from mitsuba_ext.neural import load_weights
+
+    cfg, root = trained
+    size = next(iter(cfg.train.models))
+    src = root / cfg.name / "export" / size / "weights.npz"
+    with np.load(src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    spec = json.loads(str(arrays["spec"]))
+    spec[field] = value
+    if field == "passthrough":
+        spec["passthrough_phi_i"] = [0.0]
+    arrays["spec"] = np.array(json.dumps(spec))
+    bad = tmp_path / "weights.npz"
+    np.savez(bad, **arrays)
+    with pytest.raises(ValueError, match=says):
+        load_weights(bad)
+    shutil.copy(src, tmp_path / "good.npz")
+    load_weights(tmp_path / "good.npz")
+
+
+def test_onnx_graph_that_disagrees_with_its_metadata_is_refused(trained, tmp_path):
+    import onnx
+
+    from mitsuba_ext.neural import OnnxMLP
+
+    cfg, root = trained
+    size = next(iter(cfg.train.models))
+    model = onnx.load(str(root / cfg.name / "export" / size / "model.onnx"))
+    for entry in model.metadata_props:
+        if entry.key == "bcsdf_spec":
+            spec = json.loads(entry.value)
+            spec["wavelength"] = spec["wavelength"] + [spec["wavelength"][-1] + 10.0]
+            entry.value = json.dumps(spec)
+    onnx.save(model, str(tmp_path / "model.onnx"))
+    with pytest.raises(ValueError, match="metadata names"):
+        OnnxMLP(tmp_path / "model.onnx")
