@@ -60,7 +60,7 @@ def bundle_frame(si, up, twist, twist_rate):
 
 
 def angles(w, frame):
-    """``(phi, theta)`` of a world direction in the bundle frame (DESIGN.md conventions).
+    """``(phi, theta)`` of a world direction in the bundle frame (docs/DESIGN.md conventions).
 
     A non-finite direction (a degenerate shading frame) gives (0, 0), never NaN: the
     angles become table indices, and a NaN index reads out of bounds.

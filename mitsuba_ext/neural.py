@@ -102,7 +102,7 @@ class DrJitMLP:
 
     Any Dr.Jit float type works (the inputs' type is used): LLVM or CUDA, scalar or AD.
     Literal weights were measured about 8x faster than ``drjit.nn`` cooperative vectors
-    inside a symbolic loop on the LLVM backend (DESIGN.md).
+    inside a symbolic loop on the LLVM backend (an environment fact: docs/BENCHMARKS.md).
     """
 
     def __init__(self, path):

@@ -27,7 +27,7 @@ import numpy as np
 
 from .io import atomic_path
 
-# Zhao et al. 2016, Table 2 (a copy of ../shared/data/zhao2016_table2.csv, kept in the
+# Zhao et al. 2016, Table 2 (data/zhao2016_table2.csv, its source in data/ATTRIBUTION.md; kept in the
 # repository so that a fresh clone needs nothing beside it)
 ZHAO_CSV = Path(__file__).resolve().parents[1] / "data" / "zhao2016_table2.csv"
 CM_TO_UM = 1e4

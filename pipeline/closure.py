@@ -1,6 +1,6 @@
 """Far-field closure: does a render reproduce the scattering function it was given?
 
-DESIGN.md's test. A long straight cylinder of radius ``R`` along the bundle frame's
+The test of docs/DESIGN.md. A long straight cylinder of radius ``R`` along the bundle frame's
 ``+y`` (world = bundle frame: ``up = [1, 0, 0]``), a directional light of irradiance
 ``E`` arriving from ``w_i`` (the direction *towards* the light, the bake's incidence),
 no environment, and an orthographic camera looking along ``-w_o`` with a box filter.
@@ -11,7 +11,7 @@ Per unit length of the cylinder the scattered intensity is
 and the render measures it as ``sum(pixels) * pixel_area / visible_length`` with the
 visible length ``film_height / cos(theta_o)`` (the axis runs up the film).
 
-Everything here is in the bundle frame of DESIGN.md: ``sin(theta) = w.y``,
+Everything here is in the bundle frame of docs/DESIGN.md: ``sin(theta) = w.y``,
 ``phi = atan2(w.z, w.x)``. :func:`direction` turns angles into vectors,
 :func:`scene` builds the Mitsuba scene for any set of shapes (one cylinder with a
 ``fiber_bundle`` or ``fiber_table`` BSDF, or every fiber of a ply as its own cylinder),
@@ -44,7 +44,7 @@ def direction(phi, theta) -> np.ndarray:
 
 
 def predicted_intensity(E, R, theta_i, S):
-    """Intensity per unit length, ``E 2R cos(theta_i) S``: the far field of DESIGN.md."""
+    """Intensity per unit length, ``E 2R cos(theta_i) S``: the far field of docs/DESIGN.md."""
     return E * 2.0 * R * np.cos(theta_i) * S
 
 

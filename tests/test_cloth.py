@@ -5,7 +5,7 @@ References are independent of the code under test: the BCC layout written here b
 byte, circles (a Catmull-Rom and a Bezier circle are within known distances of the true
 circle), Mitsuba's own curve intersection for what the renderer sees, a straight line for
 the plies' helices, the plane of a planar loop for the rotation-minimizing frame, and the
-far field of DESIGN.md for the render.
+far field of docs/DESIGN.md for the render.
 """
 
 import struct
@@ -124,10 +124,11 @@ def test_bspline_input_is_kept_exactly_and_open_curves_end_at_their_ends():
     P = np.random.default_rng(1).normal(size=(9, 3))
     C, deviation, _ = to_bspline(P, True, "bspline", 1e-3)
     assert deviation == 0 and np.array_equal(C, np.concatenate([P, P[:3]]))
-    # an open Catmull-Rom runs from its first point to its last, and so does its B-spline
+    # an open Catmull-Rom runs from its second point to its next-to-last (the BCC
+    # specification: the ends are tangents), and so does its B-spline
     C, deviation, m = to_bspline(P, False, "catmull_rom", 1e-3)
     ends = evaluate(C, False, "bspline", np.array([0.0, len(C) - 3]))
-    assert np.allclose(ends, P[[0, -1]], atol=1e-9)
+    assert np.allclose(ends, P[[1, -2]], atol=1e-9)
 
 
 def test_glove_centre_lines_stay_within_one_percent_of_the_yarn_radius():
@@ -251,7 +252,7 @@ def mono(mi_llvm):
 
 def test_cloth_ply_curve_renders_the_far_field_of_its_table(mono, tmp_path):
     """A straight one-ply yarn from a BCC file, through the cloth path (read, B-spline, ply
-    file), carrying fiber_bundle: the closure of DESIGN.md, ``E 2R cos(theta_i) S``."""
+    file), carrying fiber_bundle: the closure of docs/DESIGN.md, ``E 2R cos(theta_i) S``."""
     from pipeline import closure
     from tests.synthetic import make_config, synthetic_table
 

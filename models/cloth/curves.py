@@ -4,7 +4,8 @@ A curve's *segments* are evaluated by :func:`evaluate` at ``u`` in ``[0, n_segme
 (segment ``floor(u)``, local parameter ``u - floor(u)``):
 
 * ``catmull_rom`` (``C0``): uniform Catmull-Rom through every control point; an open curve
-  gets mirrored end points (``2 P_0 - P_1``) so that it runs from its first point to its last;
+  runs from its second point to its next-to-last (the BCC specification: the end points
+  only give the end tangents), so it needs at least 4;
 * ``bspline`` (``BS``): the points are already uniform B-spline control points (an open
   curve does not reach its end points, as in Mitsuba);
 * ``bezier`` (``BZ``): cubic Bezier segments sharing end points (``3 n + 1`` points open,
@@ -67,8 +68,8 @@ def segment_points(points: np.ndarray, closed: bool, kind: str) -> np.ndarray:
         idx = np.arange(n)
         return np.stack([P[(idx + k) % n] for k in (-1, 0, 1, 2)] if kind == "catmull_rom" else
                         [P[(idx + k) % n] for k in (0, 1, 2, 3)], 1)
-    if kind == "catmull_rom":
-        P = np.concatenate([2 * P[:1] - P[1:2], P, 2 * P[-1:] - P[-2:-1]])
+    if n < 4:
+        raise ValueError(f"an open {kind} curve needs at least 4 control points (got {n})")
     j = np.arange(len(P) - 3)
     return np.stack([P[j], P[j + 1], P[j + 2], P[j + 3]], 1)
 

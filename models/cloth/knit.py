@@ -27,7 +27,9 @@ def stockinette(courses: int = 4, wales: int = 6, r: float = 1.0, W: float = 12.
         raise ValueError(f"a swatch needs at least one course and one wale (got {courses} x {wales})")
     if per_loop < 8:
         raise ValueError(f"at least 8 control points per loop are needed (got {per_loop})")
-    t = np.linspace(0.0, 2 * np.pi * wales, wales * per_loop + 1)
+    # one control point beyond each end: an open Catmull-Rom's end points are its tangents
+    step = 2 * np.pi / per_loop
+    t = np.linspace(-step, 2 * np.pi * wales + step, wales * per_loop + 3)
     curves = []
     for j in range(courses):
         x = W / (2 * np.pi) * (t + a * np.sin(2 * t))

@@ -1,6 +1,6 @@
 """The interface shared by all single-fiber models, and their tabulated form.
 
-Frame and normalization are DESIGN.md's: +y is the fiber axis, a direction ``w``
+Frame and normalization are docs/DESIGN.md's: +y is the fiber axis, a direction ``w``
 (pointing away from the fiber, for both ``w_i`` and ``w_o``) has
 ``sin(theta) = w.y`` and ``phi = atan2(w.z, w.x)``; ``f`` includes the cosine, so
 ``integral f d omega_o`` is the albedo of the fiber per geometric hit.

@@ -265,7 +265,7 @@ def render_section(cfg, root: Path, out: Path) -> str:
         bins = e["explicit_bins"]
         within = np.mean([abs(b["ratio"] - 1) <= 0.02 + 3 * b["sigma"] for b in bins])
         body += ("<h3>Closure: does a render reproduce what it was given?</h3>"
-                 f"<p>Far field (DESIGN.md; one cylinder, directional light, orthographic camera, "
+                 f"<p>Far field (docs/DESIGN.md; one cylinder, directional light, orthographic camera, "
                  f"{e['wavelength_nm']:.0f} nm): rendered / predicted "
                  + ", ".join(f"{k} {v.min():.4f} .. {v.max():.4f}" for k, v in ff.items())
                  + f" over {len(next(iter(ff.values())))} direction pairs. The bake's own {e['fibers']} fibers, "
