@@ -101,8 +101,8 @@ class DrJitMLP:
     """The MLP as Dr.Jit arithmetic with its weights as literals, fused into the caller's kernel.
 
     Any Dr.Jit float type works (the inputs' type is used): LLVM or CUDA, scalar or AD.
-    Literal weights were measured about 8x faster than ``drjit.nn`` cooperative vectors
-    inside a symbolic loop on the LLVM backend (an environment fact: docs/BENCHMARKS.md).
+    Literal weights rather than ``drjit.nn`` cooperative vectors: they ran faster inside a
+    symbolic loop on the LLVM backend (``python -m pipeline.bench.neural`` times the backends).
     """
 
     def __init__(self, path):
