@@ -62,3 +62,10 @@ def test_bad_scene_input_is_refused_with_the_reason(mi_llvm, tmp_path, capsys, a
     err = capsys.readouterr().err
     assert rc == 2 and says in err and "Traceback" not in err, err
     assert not (tmp_path / "x.exr").exists()
+
+
+def test_plugin_reference_pages_match_the_docstrings(mi_llvm):
+    """docs/plugins/ is generated from the classes' docstrings; a stale page fails here."""
+    from pipeline import plugin_docs
+
+    assert plugin_docs.main(["--check"]) == 0, "run `python -m pipeline.plugin_docs`"
