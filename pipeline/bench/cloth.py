@@ -183,7 +183,7 @@ def measure(config, root, quick, tmp) -> dict:
 
     cfg = load_config(config)
     total = len(read_bcc(cfg.cloth.model).curves) if cfg.cloth.model else cfg.cloth.swatch.courses
-    sizes = sorted({n for n in ((1, 10, total) if quick else (1, 2, 5, 10, 20, 40, total)) if n <= total})
+    sizes = sorted({n for n in ((1, 10, total) if quick else (1, 3, 10, 30, total)) if n <= total})
     scale = []
     for n in sizes:
         scale.append(_child("scale", config, root, n, tmp))
@@ -192,7 +192,7 @@ def measure(config, root, quick, tmp) -> dict:
     for px in ((4,) if quick else (1, 2, 4, 8, 16)):
         row = {"ply_px": px}
         pair = {}
-        for which, spp in (("bundle", 64), ("explicit", 256)):
+        for which, spp in (("bundle", 16), ("explicit", 64)):
             m = _child("explicit", config, root, which, px, spp, tmp)
             data = np.load(Path(tmp) / f"{which}_{px}.npz")
             pair[which] = (data["a"], data["b"])

@@ -122,13 +122,55 @@ def build(cfg, out: Path) -> tuple[dict, object]:
     return info, geometry
 
 
-def run(cfg, out_root="artifacts") -> Path:
+def render_apart(cfg, bsdf: dict, plies_path, radius: float, bbox) -> tuple[np.ndarray, float]:
+    """One render of the plies with ``bsdf`` in a process of its own: ``(image, seconds)``.
+
+    Why a process: in Mitsuba 3.9 / Dr.Jit 1.5 (LLVM), a second scene of the glove's plies
+    rendered with another kernel in the same process (the MLP after the table) segfaults
+    reading past an array, every time at 160 x 120 (not a NaN: the process dies); each
+    alone renders cleanly. A child that dies is reported, not a lost session.
+    """
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        job = {"config": cfg.model_dump(mode="json"), "bsdf": bsdf, "plies": str(plies_path), "radius": radius,
+               "bbox": bbox, "out": str(Path(tmp) / "image.npy")}
+        (Path(tmp) / "job.json").write_text(json.dumps(job))
+        r = subprocess.run([sys.executable, "-m", "pipeline.stages.cloth", str(Path(tmp) / "job.json")],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"cloth: the {bsdf.get('backend')} render failed (exit status {r.returncode}):\n"
+                               f"{r.stderr[-2000:]}")
+        return np.load(job["out"]), float(json.loads(r.stdout.strip().splitlines()[-1])["seconds"])
+
+
+def _render_job(path) -> None:
+    """The child of :func:`render_apart`."""
     import mitsuba as mi
 
     import mitsuba_ext
 
     from .. import scenes
-    from .render import backend_props, exposure_of, flip_and_psnr, model_size, render_timed, save_images, save_png
+    from ..config import Config
+    from .render import render_timed
+
+    job = json.loads(Path(path).read_text())
+    cfg = Config.model_validate(job["config"])
+    mi.set_variant(cfg.cloth.variant)
+    mitsuba_ext.register()
+    scene = scenes.cloth_scene(mi, cfg.cloth, {"yarn": scenes.ply_shape(job["plies"], job["bsdf"], job["radius"])},
+                               job["bbox"], cfg.cloth.spp)
+    img, seconds, _ = render_timed(mi, scene, job["bsdf"].get("backend", "table"), warm=False)
+    np.save(job["out"], img)
+    print(json.dumps({"seconds": seconds}))
+
+
+def run(cfg, out_root="artifacts") -> Path:
+    import mitsuba as mi
+
+    from .render import backend_props, exposure_of, flip_and_psnr, model_size, save_images, save_png
 
     if cfg.cloth is None:
         raise ValueError("cloth: this config has no `cloth:` section (see configs/glove.yaml)")
@@ -142,16 +184,13 @@ def run(cfg, out_root="artifacts") -> Path:
     # -- phases 1 and 2: centre lines and plies
     info, geometry = build(cfg, out)
 
-    # -- phase 3: renders
+    # -- phase 3: renders, each in a process of its own (render_apart)
     mi.set_variant(c.variant)
-    mitsuba_ext.register()
     summary = {"variant": c.variant, "size": [c.width, c.height], "spp": c.spp, "geometry": info,
                "model": model_size(cfg) if set(c.backends) - {"table"} else None, "backends": {}}
     images = {}
     for backend in c.backends:
-        plies = {"yarn": scenes.ply_shape(out / "plies.txt", props[backend], geometry.radius)}
-        scene = scenes.cloth_scene(mi, c, plies, info["bbox_mm"], c.spp)
-        img, seconds, first = render_timed(mi, scene, backend, warm=False)
+        img, seconds = render_apart(cfg, props[backend], out / "plies.txt", geometry.radius, info["bbox_mm"])
         images[backend] = img
         summary["backends"][backend] = {"seconds": seconds, "mean_radiance": img.mean(axis=(0, 1)).tolist()}
         print(f"[cloth] {backend}: {c.width} x {c.height} x {c.spp} spp in {seconds:.1f} s (compilation included)")
@@ -172,3 +211,9 @@ def run(cfg, out_root="artifacts") -> Path:
                                             **{f"{b}_flip": e["flip"] for b, e in summary["backends"].items()
                                                if "flip" in e}})
     return out
+
+
+if __name__ == "__main__":
+    import sys
+
+    _render_job(sys.argv[1])
