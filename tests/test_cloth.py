@@ -327,3 +327,17 @@ def test_bad_cloth_configs_are_refused_when_loaded(sets, says):
 
     with pytest.raises(ConfigError, match=says):
         load_config(ROOT / "configs" / "glove.yaml", sets)
+
+
+def test_readme_cloth_example_runs_as_written(tmp_path, monkeypatch):
+    """The README's cloth snippet, literally, from a folder that has the repository's data/."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Cloth: a knitted glove"):]
+    code = section[section.index("```python") + len("```python"):]
+    code = code[: code.index("```")]
+    (tmp_path / "data").symlink_to(ROOT / "data")
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "README.md", "exec"), {})
+    lines = (tmp_path / "plies.txt").read_text().split("\n\n")
+    assert len(lines) == 210  # 70 loops x 3 plies, a blank line between curves
+    assert len(lines[0].splitlines()[0].split()) == 4
