@@ -111,6 +111,8 @@ class BundleTable:
                     raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
                 table = cls(**{k: z[k] for k in ARRAYS}, meta=header["meta"])
             table.validate()
+            if expand:  # expanded for a lookup
+                table.check_lookup()
         except (OSError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
             raise ValueError(f"{path}: not a readable bundle table ({e}); re-run `bcsdf bake`") from e
         return table.expanded() if expand else table
@@ -133,7 +135,8 @@ class BundleTable:
             a = getattr(self, name)
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"{name} holds NaN or Inf")
-            if np.any(a < 0):
+            # a lossless fiber's albedo is 1 within float error, so its "absorbed" may be -1e-9
+            if np.any(a < (0 if name in ("values", "stderr") else -1e-6)):
                 raise ValueError(f"{name} holds negative numbers (S, probabilities and errors are never negative)")
         if np.any(self.values > MAX_VALUE):
             raise ValueError(f"values reach {float(self.values.max()):.3g} /sr (at most {MAX_VALUE:.0e}: a "
@@ -141,15 +144,18 @@ class BundleTable:
         for name in ("passthrough", "absorbed", "lost"):
             if np.any(getattr(self, name) > 1 + 1e-6):
                 raise ValueError(f"{name} reaches {float(np.max(getattr(self, name))):.4g}; a probability is at most 1")
-        # the lookups step through the axes in equal steps: an uneven axis would be misread
-        for name in ("theta_i", "phi_o_edges", "theta_o_edges") + (("phi_i",) if len(self.phi_i) > 1 else ()):
-            step = np.diff(np.asarray(getattr(self, name), float))
-            if len(step) and np.ptp(step) > 1e-6 * max(1.0, float(np.abs(step).max())):
-                raise ValueError(f"axis {name}: steps {step.min():.6g} .. {step.max():.6g}; the lookup needs equal steps")
         reductions = self.meta.get("reductions", {"phi_o": "relative"})
         for key, allowed in REDUCTIONS.items():
             if reductions.get(key) not in allowed:
                 raise ValueError(f"meta.reductions.{key}: {reductions.get(key)!r} is not one of {allowed}")
+
+    def check_lookup(self) -> None:
+        """What the lookups (numpy and Dr.Jit) assume beyond :meth:`validate`: equal steps on
+        every axis (the baker itself takes any theta_i nodes)."""
+        for name in ("theta_i", "phi_o_edges", "theta_o_edges") + (("phi_i",) if len(self.phi_i) > 1 else ()):
+            step = np.diff(np.asarray(getattr(self, name), float))
+            if len(step) and np.ptp(step) > 1e-6 * max(1.0, float(np.abs(step).max())):
+                raise ValueError(f"axis {name}: steps {step.min():.6g} .. {step.max():.6g}; the lookup needs equal steps")
 
     # -- symmetry ------------------------------------------------------------
     def expanded(self) -> "BundleTable":
