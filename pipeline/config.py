@@ -12,10 +12,10 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Literal, Optional, Union
+from typing import Annotated, Any, Literal, Optional, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 
 # Which config sections each stage's artifact depends on (its provenance hash)
@@ -245,12 +245,22 @@ VARIANTS = ("llvm_ad_rgb", "llvm_ad_spectral", "llvm_ad_mono", "cuda_ad_rgb", "c
             "scalar_rgb", "scalar_spectral")
 
 
+def _some_backends(v: list) -> list:
+    """At least one backend, each once (in the order given)."""
+    if not v:
+        raise ValueError("at least one backend is needed, e.g. [table]")
+    return list(dict.fromkeys(v))
+
+
+Backends = Annotated[list[Literal["table", "mlp", "onnx"]], AfterValidator(_some_backends)]
+
+
 class RenderCfg(Strict):
     """Mitsuba renders of the bundle BSDF (see pipeline/stages/render.py)."""
 
     variant: Literal[VARIANTS] = Field("llvm_ad_spectral", description="Mitsuba variant of the renders")
     scenes: list[Literal["ply", "yarn"]] = Field(default_factory=lambda: ["ply", "yarn"])
-    backends: list[Literal["table", "mlp", "onnx"]] = Field(default_factory=lambda: ["table", "mlp", "onnx"])
+    backends: Backends = Field(default_factory=lambda: ["table", "mlp", "onnx"])
     model: Optional[str] = Field(None, description="trained size for the neural backends (default: the largest)")
     width: int = Field(256, ge=8, le=8192)
     height: int = Field(128, ge=8, le=8192)
@@ -263,13 +273,6 @@ class RenderCfg(Strict):
     mono_check_spp: int = Field(64, ge=1)
     explicit: bool = Field(True, description="render the ply with every fiber as its own curve (ground truth)")
     explicit_spp: int = Field(256, ge=1)
-
-    @field_validator("backends")
-    @classmethod
-    def _backends(cls, v):
-        if not v:
-            raise ValueError("at least one backend is needed, e.g. [table]")
-        return list(dict.fromkeys(v))
 
 
 class Swatch(Strict):
@@ -296,7 +299,7 @@ class ClothCfg(Strict):
     tolerance: float = Field(0.01, gt=0.0, le=0.5, description="centre-line conversion, in yarn radii")
     rotate_deg: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="about x, then y, then z")
     variant: Literal[VARIANTS] = "llvm_ad_spectral"
-    backends: list[Literal["table", "mlp", "onnx"]] = Field(default_factory=lambda: ["table", "mlp"])
+    backends: Backends = Field(default_factory=lambda: ["table", "mlp"])
     width: int = Field(640, ge=8, le=8192)
     height: int = Field(480, ge=8, le=8192)
     spp: int = Field(16, ge=1, le=1 << 16)
@@ -320,13 +323,6 @@ class ClothCfg(Strict):
             raise ValueError(f"cloth.ply_pitch_mm must be a length of 0.001 .. 1e6 mm, either sign "
                              f"(got {self.ply_pitch_mm})")
         return self
-
-    @field_validator("backends")
-    @classmethod
-    def _backends(cls, v):
-        if not v:
-            raise ValueError("at least one backend is needed, e.g. [table]")
-        return list(dict.fromkeys(v))
 
     @field_validator("yarn")
     @classmethod

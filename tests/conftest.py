@@ -3,7 +3,8 @@ import gc
 import pytest
 
 # Modules whose tests load plugins in failing or evaluated-mode-only ways
-PLUGIN_MODULES = {"test_plugin", "test_closure", "test_render", "test_bad_input", "test_neural", "test_stability"}
+PLUGIN_MODULES = {"test_plugin", "test_closure", "test_render", "test_bad_input", "test_neural", "test_stability",
+                  "test_artifact_checks", "test_cloth", "test_scenes"}
 
 
 @pytest.fixture(autouse=True)
@@ -52,3 +53,16 @@ def trained(tmp_path_factory):
     train_stage.run(cfg, tmp)
     export_stage.run(cfg, tmp)
     return cfg, tmp
+
+
+@pytest.fixture
+def mono(mi_llvm):
+    """Mitsuba's mono variant with the plugins registered (the closure tests' one wavelength)."""
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    yield mi
+    mi.set_variant("llvm_ad_rgb")

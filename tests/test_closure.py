@@ -22,19 +22,6 @@ NODES = np.deg2rad(np.arange(0, 91, 5.0))
 LAM = 550.0
 
 
-@pytest.fixture
-def mono(mi_llvm):
-    """Mitsuba's mono variant (one wavelength, ``LAM``) with the plugins registered."""
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    mi.set_variant("llvm_ad_mono")
-    mitsuba_ext.register()
-    yield mi
-    mi.set_variant("llvm_ad_rgb")
-
-
 def pairs_deg(n_min=20, offsets=(0.0, 1.5, -3.0)):
     pairs = closure.direction_pairs(cone_offsets_deg=offsets)
     assert len(pairs) >= n_min

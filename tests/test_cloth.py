@@ -238,18 +238,6 @@ def test_degenerate_centre_lines_are_refused():
 
 
 # -- the render: a ply built by the cloth path reproduces its far field ------------------
-@pytest.fixture
-def mono(mi_llvm):
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    mi.set_variant("llvm_ad_mono")
-    mitsuba_ext.register()
-    yield mi
-    mi.set_variant("llvm_ad_rgb")
-
-
 def test_cloth_ply_curve_renders_the_far_field_of_its_table(mono, tmp_path):
     """A straight one-ply yarn from a BCC file, through the cloth path (read, B-spline, ply
     file), carrying fiber_bundle: the closure of docs/DESIGN.md, ``E 2R cos(theta_i) S``."""

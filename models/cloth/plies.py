@@ -103,8 +103,8 @@ def transport_frames(p: np.ndarray, closed: bool, stride: int = 1) -> Frames:
     return Frames(p, t, n, np.cross(t, n), s, length, closed)
 
 
-def wind_plies(frames: Frames, K: int, R: float, pitch: float, samples_per_turn: int = 16,
-               phase: float = 0.0) -> tuple[list[np.ndarray], float]:
+def wind_plies(frames: Frames, K: int, R: float, pitch: float,
+               samples_per_turn: int = 16) -> tuple[list[np.ndarray], float]:
     """Centre lines of ``K`` plies about ``frames``'s curve: ``([K][m, 3], pitch used)``.
 
     ``pitch`` is signed (the twist direction). The plies are resampled at ``samples_per_turn``
@@ -135,7 +135,7 @@ def wind_plies(frames: Frames, K: int, R: float, pitch: float, samples_per_turn:
     b = np.cross(_unit(t), n)
     plies = []
     for k in range(K):
-        a = 2 * np.pi * (k / K + s / pitch) + phase
+        a = 2 * np.pi * (k / K + s / pitch)
         plies.append(c + R * (np.cos(a)[:, None] * n + np.sin(a)[:, None] * b))
     return plies, float(pitch)
 

@@ -88,8 +88,9 @@ def centre_lines(collection: CurveCollection, scale: float, tol: float):
             raise ValueError(f"curve {k} has {len(P)} control points; a yarn needs at least 4 "
                              "(3 on a closed loop)")
         step = np.linalg.norm(np.diff(np.concatenate([P, P[:1]]) if c.closed else P, axis=0), axis=1)
-        if np.any(step <= 1e-9 * max(1.0, float(np.abs(P).max()))):
-            raise ValueError(f"curve {k} has coincident control points (point {int(np.argmax(step <= 1e-9))}); "
+        tiny = step <= 1e-9 * max(1.0, float(np.abs(P).max()))
+        if np.any(tiny):
+            raise ValueError(f"curve {k} has coincident control points (point {int(np.argmax(tiny))}); "
                              "remove zero-length segments from the model")
         C, deviation, _ = to_bspline(P, c.closed, collection.kind, tol)
         out.append((C, c.closed))
@@ -116,10 +117,10 @@ def build_plies(collection: CurveCollection, scale: float, yarn: YarnSpec, tol_f
         samples = evaluate(P, c.closed, collection.kind, u)
         passes.append(samples)
         closed.append(c.closed)
-        frames = transport_frames(samples, c.closed, stride=4)
         if yarn.K == 1:  # a single ply is the yarn: its centre line as converted
             plies.append(centres[k][0])
         else:
+            frames = transport_frames(samples, c.closed, stride=4)
             wound, pitch = wind_plies(frames, yarn.K, yarn.R, yarn.pitch, samples_per_turn)
             pitches.append(pitch)
             plies += [interpolate_bspline(q, c.closed) for q in wound]
