@@ -3,15 +3,19 @@
 #   make test   set up, then run the default test suite
 CONFIG ?= configs/default.yaml
 
-.PHONY: setup run test bench bench-bake bench-neural bench-render bench-closure bench-cluster bench-exit bench-cloth cloth stability clean
+.PHONY: setup setup-run run test bench bench-bake bench-neural bench-train bench-render bench-closure bench-cluster bench-exit bench-cloth cloth stability clean
 setup:
 	./scripts/setup.sh
 
-run: setup
+# the main job needs no test tools (pytest, DVC, Chromium for the report test)
+setup-run:
+	BCSDF_EXTRAS=train,onnx,render,stability ./scripts/setup.sh
+
+run: setup-run
 	.venv/bin/bcsdf run $(CONFIG)
 
 test: setup
-	.venv/bin/python -m pytest -q --durations=15  # the slowest, for keeping the suite near 10 min
+	.venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=15  # two workers, a test file each; the slowest printed
 
 bench: setup
 	.venv/bin/python -m pipeline.bench.fiber
@@ -22,6 +26,9 @@ bench-bake: setup
 bench-neural: run
 	.venv/bin/python -m pipeline.bench.neural
 
+bench-train: run
+	.venv/bin/python -m pipeline.bench.train --config $(CONFIG)
+
 bench-render: run
 	.venv/bin/python -m pipeline.bench.render $(CONFIG)
 
@@ -31,7 +38,7 @@ bench-closure: run
 bench-exit: setup
 	.venv/bin/python -m pipeline.bench.exit
 
-cloth: setup
+cloth: setup-run
 	.venv/bin/bcsdf run configs/glove.yaml
 
 bench-cloth: cloth
@@ -40,7 +47,7 @@ bench-cloth: cloth
 bench-cluster: setup
 	.venv/bin/python -m pipeline.bench.cluster
 
-stability: setup
+stability: setup-run
 	.venv/bin/bcsdf stability $(CONFIG)
 
 clean:

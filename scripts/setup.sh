@@ -14,7 +14,7 @@ if ! ls /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1 && ! ls /usr/lib/libLLVM-19.so
         $SUDO apt-get update -q >/dev/null && $SUDO apt-get install -y -q libllvm19 >/dev/null; }
 fi
 
-extras="${BCSDF_EXTRAS:-train,onnx,render,test}"
+extras="${BCSDF_EXTRAS:-train,onnx,render,stability,test}"
 # The tests open the HTML report in headless Chromium
 if [[ "$extras" == *test* ]] && ! command -v chromium >/dev/null 2>&1; then
     echo "[setup] installing chromium (report test)"

@@ -93,6 +93,7 @@ def run(cfg, out_root="artifacts") -> Path:
                 + "".join(rows) + "</table>")
         body += "".join(img_tag(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
                         if (train / n / "loss.png").exists())
+        body += schedule_section(out)
         body += compare_slices(cfg, out_root, out)
         bench = root / "export" / "error_vs_time.json"
         if bench.exists():  # measured by the export stage
@@ -173,6 +174,33 @@ def compare_slices(cfg, out_root, out) -> str:
         save_figure(fig, out / f"compare_error_{tag}.png")
         body += "".join(f'<img src="compare_{k}_{tag}.png" alt="{k} {tag}">' for k in ("table", "model", "error"))
     return body
+
+
+TRAIN_SCHEDULES = Path(__file__).resolve().parents[2] / "docs" / "train_schedules.json"
+
+
+def schedule_section(out: Path) -> str:
+    """The training schedule against the earlier one, side by side on the default table
+    (``docs/train_schedules.json``, measured by ``python -m pipeline.bench.train``)."""
+    if not TRAIN_SCHEDULES.exists():
+        return not_run("python -m pipeline.bench.train")
+    result = json.loads(TRAIN_SCHEDULES.read_text())
+    lines = []
+    for name, by in result["rows"].items():
+        for label in ("old", "new"):
+            r = by[label]
+            sch = r["schedule"]
+            albedo = f"{r['worst_albedo_error']:.2%}" if r["worst_albedo_error"] is not None else "-"
+            lines.append(f"<tr><td>{html.escape(name)}</td><td>{label}: {sch['epochs']} epochs, lr {sch['lr']:g}, "
+                         f"{sch['calibration_steps']} calibration steps</td><td>{r['seconds']:.1f}</td>"
+                         f"<td>{r['relative_l1']:.2%}</td><td>{albedo}</td></tr>")
+    total = result["total"]
+    body = (f"<p>Training schedules side by side on {html.escape(result['config'])}'s table (one run, same split "
+            f"and seed; <code>make bench-train</code>): all sizes {total['old']:.0f} s before, {total['new']:.0f} s "
+            "now.</p><table><tr><th>model</th><th>schedule</th><th>seconds</th><th>held-out rel. L1</th>"
+            "<th>worst albedo error</th></tr>" + "".join(lines) + "</table>")
+    return body + img_tag(out, TRAIN_SCHEDULES.parent / "images" / "train_schedules.png",
+                          "held-out error against training time")
 
 
 EXIT_MODELS = Path(__file__).resolve().parents[2] / "docs" / "exit_models.json"

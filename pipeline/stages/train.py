@@ -42,6 +42,7 @@ import dataclasses
 import json
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -123,20 +124,25 @@ def held_out_bins(table, spec: NeuralSpec, cfg) -> np.ndarray:
     return np.flatnonzero(np.isin(data.bin_class, val))
 
 
-def run(cfg, out_root="artifacts") -> Path:
-    import torch
+class Problem(NamedTuple):
+    """What every model size of one config is fitted to: the spec they share but for
+    their widths, the folded table, its split and the loss weights."""
 
+    base: NeuralSpec
+    data: object  # models.neural.FoldedTable
+    train_idx: np.ndarray
+    val_idx: np.ndarray
+    w: np.ndarray
+
+
+def prepare(cfg, table, table_path) -> Problem:
+    """Fold the table, choose its symmetries, split it and weight it (one for every size)."""
     c = cfg.train
-    torch.set_num_threads(c.threads)
-    torch.use_deterministic_algorithms(True)
-    table, table_path = load_bundle_table(cfg, out_root)
     relative = table.meta["reductions"]["phi_o"] == "relative"
     positive = table.values[table.values > 0]
     s0 = float(np.mean(positive)) if positive.size else 1.0
     y_top = float(np.log1p(table.values.max() / s0))
     folds = choose_folds(table, relative)
-    out = Path(out_root) / cfg.name / "train"
-    # every size shares the spec but for its widths, hence one folded table and one split
     base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
                       wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
                       config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"],
@@ -145,30 +151,51 @@ def run(cfg, out_root="artifacts") -> Path:
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
     w = (w / w[train_idx].mean()).astype(np.float32)
+    return Problem(base, data, train_idx, val_idx, w)
+
+
+def held_out_metrics(spec: NeuralSpec, model, data, val_idx) -> dict:
+    """Relative L1 and log MAE of the model's bin averages (4 x 4 points) on the held-out bins."""
+    import torch
+
+    module = make_export_module(spec, model).eval()
+
+    def predict(*angles):
+        with torch.no_grad():
+            return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
+    S_pred = bin_average(predict, data.cell[val_idx])  # the model's bin averages
+    S_val, E_val, n_val = data.S[val_idx], data.E[val_idx], data.count[val_idx, None]
+    core = energy_bins(S_val * n_val)
+    return {
+        # over the expanded bins the held-out classes stand for
+        "relative_l1": errors.relative_l1(S_pred, S_val, n_val),
+        "log_mae": errors.log_mae(S_pred, S_val, spec.s0, n_val),
+        # rms of (model - table) / table standard error over the bins holding 90% of
+        # the held-out energy: 1 means the model is as close as the table's own noise
+        "noise_ratio": float(np.sqrt(np.mean(((S_pred - S_val).ravel()[core] / E_val.ravel()[core]) ** 2))),
+        "table_noise_l1": float(np.sqrt(2 / np.pi) * (n_val * E_val).sum() / max((n_val * S_val).sum(), 1e-300)),
+    }
+
+
+def run(cfg, out_root="artifacts") -> Path:
+    import torch
+
+    c = cfg.train
+    torch.set_num_threads(c.threads)
+    torch.use_deterministic_algorithms(True)
+    table, table_path = load_bundle_table(cfg, out_root)
+    problem = prepare(cfg, table, table_path)
+    base, data = problem.base, problem.data
+    out = Path(out_root) / cfg.name / "train"
     headline = {}
     for name, hidden in c.models.items():
         spec = dataclasses.replace(base, hidden=list(hidden))
-        model, history, best, seconds, calibration = fit(spec, data, train_idx, val_idx, w, c, name)
+        model, history, best, seconds, calibration = fit(spec, problem, c, name)
 
-        # -- held-out errors, in linear space against the table -----------------
-        module = make_export_module(spec, model).eval()
-
-        def predict(*angles):
-            with torch.no_grad():
-                return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
-        S_pred = bin_average(predict, data.cell[val_idx])  # the model's bin averages
-        S_val, E_val, n_val = data.S[val_idx], data.E[val_idx], data.count[val_idx, None]
-        core = energy_bins(S_val * n_val)
         metrics = {
             "val_weighted_loss": best,
-            # over the expanded bins the held-out classes stand for
-            "relative_l1": errors.relative_l1(S_pred, S_val, n_val),
-            "log_mae": errors.log_mae(S_pred, S_val, s0, n_val),
-            # rms of (model - table) / table standard error over the bins holding 90% of
-            # the held-out energy: 1 means the model is as close as the table's own noise
-            "noise_ratio": float(np.sqrt(np.mean(((S_pred - S_val).ravel()[core] / E_val.ravel()[core]) ** 2))),
-            "table_noise_l1": float(np.sqrt(2 / np.pi) * (n_val * E_val).sum() / max((n_val * S_val).sum(), 1e-300)),
-            "folds": folds, "fold_chi2_per_dof": data.chi2_per_dof, "samples": len(data.x),
+            **held_out_metrics(spec, model, data, problem.val_idx),
+            "folds": base.folds, "fold_chi2_per_dof": data.chi2_per_dof, "samples": len(data.x),
             "epochs": len(history), "train_seconds": seconds,
             "parameters": int(sum(p.numel() for p in model.parameters())),
             **calibration,
@@ -193,75 +220,114 @@ def run(cfg, out_root="artifacts") -> Path:
     return out
 
 
-def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
-    """Train one MLP on the folded table.
+class BinFit:
+    """The training problem of one model: its folded table, split and weights, and the
+    model's *bin averages*.
 
-    Returns the model, the loss history, the best validation loss, the seconds taken and
-    the worst albedo error over (incident direction, wavelength) before and after the
-    calibration (at its points; empty without calibration).
-
-    Phase 1 fits the bin averages by minibatch Adam with early stopping on the held-out
-    loss; phase 2 calibrates the output layer on the energy of every incident direction.
+    The table holds bin averages, so the model's bin average is fitted: its mean, in
+    linear space, over k x k stratified random points of the bin. Fitted at the centres
+    alone, a network peaked unseen between them (3-7% too much energy); with unstratified
+    points the estimate's variance biased the fit low.
     """
-    import torch
-    from tqdm import tqdm
 
-    torch.manual_seed(c.seed)
-    model = make_torch_model(spec)
-    s0 = spec.s0
-    Y, W = torch.from_numpy(data.y), torch.from_numpy(w)
-    cell = torch.from_numpy(data.cell.astype(np.float32))
-    tr, va, every = (torch.from_numpy(i) for i in (train_idx, val_idx, np.arange(len(data.x))))
+    def __init__(self, spec: NeuralSpec, data, train_idx, val_idx, w):
+        import torch
 
-    # -- the model's bin averages ------------------------------------------------------
-    # The table holds bin averages, so the model's *bin average* is fitted: its mean, in
-    # linear space, over k x k stratified random points of the bin. Fitted at the centres
-    # alone, a network peaked unseen between them (3-7% too much energy); with unstratified
-    # points the estimate's variance biased the fit low.
+        self.spec, self.data = spec, data
+        self.Y, self.W = torch.from_numpy(data.y), torch.from_numpy(w)
+        self.cell = torch.from_numpy(data.cell.astype(np.float32))
+        self.tr, self.va = torch.from_numpy(train_idx), torch.from_numpy(val_idx)
+        self.every = torch.arange(len(data.x))
+
+    @staticmethod
     def stratified(n, k, generator):
+        """``[n, k * k, 2]`` points, one uniform in each of the k x k strata of the unit square."""
+        import torch
+
         strata = torch.tensor([[i / k, j / k] for i in range(k) for j in range(k)])
         return strata + torch.rand((n, k * k, 2), generator=generator) / k
 
-    def encode(b, u):
-        K = u.shape[1]
-        return torch.stack(features(torch, spec, *points_in_bins(torch, cell[b].repeat_interleave(K, 0),
-                                                                 u.reshape(-1, 2))), -1)
+    def encode(self, b, u):
+        """Features at the points ``u [len(b), K, 2]`` of bins ``b``: ``[len(b) * K, n_inputs]``."""
+        import torch
 
-    def bin_means(b, y):
+        K = u.shape[1]
+        angles = points_in_bins(torch, self.cell[b].repeat_interleave(K, 0), u.reshape(-1, 2))
+        return torch.stack(features(torch, self.spec, *angles), -1)
+
+    def bin_means(self, b, y):
         """From the raw outputs ``y`` at the points of bins ``b``: the log-space bin average
         for the fit and the exported one, ``S``, for the energy. The exported clamp at 0 is
         leaky for the fit (an output clamped everywhere would get no gradient and stay dead;
         it did, for one wavelength); the energy is that of the exported S, what a renderer
         gets (leaky negative values would count as negative energy)."""
-        y = torch.clamp(torch.where(y < 0, 0.01 * y, y), max=spec.y_max).reshape(len(b), -1, spec.n_outputs)
-        S_leaky = s0 * torch.expm1(y).mean(1)
-        S = s0 * torch.expm1(torch.clamp(y, min=0.0)).mean(1)
+        import torch
+
+        s0 = self.spec.s0
+        y = torch.clamp(torch.where(y < 0, 0.01 * y, y), max=self.spec.y_max).reshape(len(b), -1, self.spec.n_outputs)
+        e = torch.expm1(y)  # < 0 exactly where the output is negative, so relu(e) is the clamped expm1
+        S_leaky, S = s0 * e.mean(1), s0 * torch.relu(e).mean(1)
         return torch.log1p(torch.clamp(S_leaky / s0, min=-0.5)), S
 
-    def fit_loss(b, y):
+    def loss(self, b, y):
         """Weighted log-space MSE: the weights carry the table's own noise."""
-        return (W[b] * (y - Y[b]) ** 2).mean()
+        return (self.W[b] * (y - self.Y[b]) ** 2).mean()
 
-    # -- phase 1: minibatch epochs, early stopping on the held-out loss ------------------
+
+def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
+    """Train one MLP of ``spec``'s widths on ``problem``: :func:`fit_bins`, then :func:`calibrate`.
+
+    Returns the model, the loss history, the best validation loss, the seconds taken and
+    the worst albedo error over (incident direction, wavelength) before and after the
+    calibration (at its points; empty without calibration). ``on_epoch(epoch, seconds,
+    best_state)`` is called after every epoch (the training bench records with it).
+    """
+    import torch
+
+    torch.manual_seed(c.seed)
+    model = make_torch_model(spec)
+    p = BinFit(spec, problem.data, problem.train_idx, problem.val_idx, problem.w)
+    t0 = time.perf_counter()
+    history, best = fit_bins(model, p, c, name, on_epoch, t0)
+    t1 = time.perf_counter()
+    calibration = calibrate(model, p, c, name) if c.calibration_steps else {}
+    if calibration:
+        calibration["calibration_seconds"] = time.perf_counter() - t1
+    return model, history, best, time.perf_counter() - t0, calibration
+
+
+def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
+    """Phase 1: minibatch Adam on the bin averages, cosine learning rate, early stopping on
+    the held-out loss. Leaves ``model`` at its best held-out state; returns the history
+    ``[(train, validation)]`` per epoch and the best validation loss.
+
+    The training loss of an epoch is the mean of its minibatch losses (no second pass);
+    the held-out loss is measured on the held-out bins alone at fixed stratified points.
+    """
+    import torch
+    from tqdm import tqdm
+
     opt = torch.optim.Adam(model.parameters(), lr=c.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, c.epochs)
     gen = torch.Generator().manual_seed(c.seed)
-    fixed = stratified(len(data.x), c.bin_strata, torch.Generator().manual_seed(c.seed + 1))
+    fixed = p.stratified(len(p.data.x), c.bin_strata, torch.Generator().manual_seed(c.seed + 1))
+    x_val = p.encode(p.va, fixed[p.va])  # the points of every bin drawn, so a bin's points do not depend on the split
     history, best, best_state, since = [], np.inf, None, 0
-    t0 = time.perf_counter()
+    t0 = time.perf_counter() if t0 is None else t0
     with tqdm(range(c.epochs), desc=f"train {name}", unit="epoch") as bar:
         for epoch in bar:
-            perm = tr[torch.randperm(len(tr), generator=gen)]
+            perm = p.tr[torch.randperm(len(p.tr), generator=gen)]
+            total = 0.0
             for lo in range(0, len(perm), c.batch_size):
                 b = perm[lo: lo + c.batch_size]
-                y, _ = bin_means(b, model(encode(b, stratified(len(b), c.bin_strata, gen))))
-                loss = fit_loss(b, y)
+                y, _ = p.bin_means(b, model(p.encode(b, p.stratified(len(b), c.bin_strata, gen))))
+                loss = p.loss(b, y)
                 opt.zero_grad()
                 loss.backward()
                 opt.step()
+                total += float(loss.detach()) * len(b)
             with torch.no_grad():
-                y, _ = bin_means(every, model(encode(every, fixed)))
-                train_loss, val_loss = float(fit_loss(tr, y[tr])), float(fit_loss(va, y[va]))
+                train_loss, val_loss = total / len(perm), float(p.loss(p.va, p.bin_means(p.va, model(x_val))[0]))
             if not (np.isfinite(train_loss) and np.isfinite(val_loss)):
                 raise FloatingPointError(f"training {name} diverged at epoch {epoch} (loss {train_loss}); "
                                          "lower train.lr")
@@ -273,67 +339,78 @@ def fit(spec: NeuralSpec, data, train_idx, val_idx, w, c, name):
                 best_state = {k: v.clone() for k, v in model.state_dict().items()}
             else:
                 since += 1
-                if since >= c.patience:
-                    break
+            if on_epoch is not None:
+                on_epoch(epoch, time.perf_counter() - t0, best_state)
+            if since >= c.patience:
+                break
     model.load_state_dict(best_state)
+    return history, best
 
-    # -- phase 2: energy calibration of the output layer --------------------------------
-    # Log-space errors alone bias the albedo (the small model: 2-4.6% in its worst row,
-    # grazing incidence). With the hidden layers frozen, the output layer is refitted by
-    # L-BFGS on the whole table at 4 x 4 stratified points per bin (drawn once; the
-    # features are computed once, so each iteration is one small matrix product): the fit
-    # term keeps the shape, the energy term pulls every row's albedo, the sum of S d omega
-    # over all its outgoing bins, onto the table's. The rows include the held-out bins:
-    # their values are never fitted, but the row's total is the target. Energy terms in the
-    # minibatch loss instead (over the batch's share of a row, or the whole row from a cache)
-    # made training oscillate and did no better after this phase (docs/BENCHMARKS.md).
+
+def calibrate(model, p: BinFit, c, name) -> dict:
+    """Phase 2: energy calibration of the output layer.
+
+    Log-space errors alone bias the albedo (the small model: 2-4.6% in its worst row,
+    grazing incidence). With the hidden layers frozen, the output layer is refitted by
+    L-BFGS on the whole table at 4 x 4 stratified points per bin (drawn once; the
+    features are computed once, so each iteration is one small matrix product): the fit
+    term keeps the shape, the energy term pulls every row's albedo, the sum of S d omega
+    over all its outgoing bins, onto the table's. The rows include the held-out bins:
+    their values are never fitted, but the row's total is the target. Energy terms in the
+    minibatch loss instead (over the batch's share of a row, or the whole row from a cache)
+    made training oscillate and did no better after this phase (docs/BENCHMARKS.md).
+
+    Returns the worst albedo error before and after (empty if no row scatters).
+    """
+    import torch
+    from tqdm import tqdm
+
+    data = p.data
     albedo = torch.from_numpy(data.albedo.astype(np.float32))
     seen = albedo > 0  # a row that scatters nothing has no relative error
-    if c.calibration_steps and bool(seen.any()):
-        omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
-        group = torch.from_numpy(data.group)
+    if not bool(seen.any()):
+        return {}
+    omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
+    group = torch.from_numpy(data.group)
 
-        def model_albedo(S):
-            return torch.zeros_like(albedo).index_add(0, group, S * omega)[seen]
+    def model_albedo(S):
+        return torch.zeros_like(albedo).index_add(0, group, S * omega)[seen]
 
-        def energy_loss(S):
-            """Mean squared symmetric relative difference 2 (p - a) / (p + a) of the model's
-            albedo p per (incident direction, wavelength) against the table's a: ~ the
-            relative error when small, bounded by 2 when far off (a 1e5:1 table)."""
-            p = model_albedo(S)
-            return ((2 * (p - albedo[seen]) / (p + albedo[seen])) ** 2).mean()
+    def energy_loss(S):
+        """Mean squared symmetric relative difference 2 (p - a) / (p + a) of the model's
+        albedo p per (incident direction, wavelength) against the table's a: ~ the
+        relative error when small, bounded by 2 when far off (a 1e5:1 table)."""
+        q = model_albedo(S)
+        return ((2 * (q - albedo[seen]) / (q + albedo[seen])) ** 2).mean()
 
-        def worst_albedo_error():
-            with torch.no_grad():
-                return float((model_albedo(bin_means(every, last(hidden))[1]) / albedo[seen] - 1).abs().max())
-
-        pts = stratified(len(data.x), 4, torch.Generator().manual_seed(c.seed + 2))
+    def worst_albedo_error():
         with torch.no_grad():
-            hidden = model[:-1](encode(every, pts))
-        last = model[-1]
-        before = worst_albedo_error()
-        opt = torch.optim.LBFGS(last.parameters(), max_iter=c.calibration_steps, history_size=20,
-                                line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
+            return float((model_albedo(p.bin_means(p.every, last(hidden))[1]) / albedo[seen] - 1).abs().max())
 
-        # L-BFGS evaluates at most max_eval = 1.25 max_iter times (PyTorch's default): the
-        # bar's total, so that a long calibration (a big table) shows its time left
-        bar = tqdm(total=int(1.25 * c.calibration_steps), desc=f"calibrate {name}", unit="eval")
+    pts = p.stratified(len(data.x), 4, torch.Generator().manual_seed(c.seed + 2))
+    with torch.no_grad():
+        hidden = model[:-1](p.encode(p.every, pts))
+    last = model[-1]
+    before = worst_albedo_error()
+    opt = torch.optim.LBFGS(last.parameters(), max_iter=c.calibration_steps, history_size=20,
+                            line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
 
-        def closure():
-            opt.zero_grad()
-            y, S = bin_means(every, last(hidden))
-            loss = fit_loss(tr, y[tr]) + c.albedo_weight * energy_loss(S)
-            loss.backward()
-            bar.update()
-            return loss
-        with bar:
-            opt.step(closure)
-        if not all(torch.isfinite(p).all() for p in last.parameters()):
-            raise FloatingPointError(f"the energy calibration of {name} diverged; lower train.albedo_weight")
-        calibration = {"worst_albedo_error_before": before, "worst_albedo_error_after": worst_albedo_error()}
-    else:
-        calibration = {}
-    return model, history, best, time.perf_counter() - t0, calibration
+    # L-BFGS evaluates at most max_eval = 1.25 max_iter times (PyTorch's default): the
+    # bar's total, so that a long calibration (a big table) shows its time left
+    bar = tqdm(total=int(1.25 * c.calibration_steps), desc=f"calibrate {name}", unit="eval")
+
+    def closure():
+        opt.zero_grad()
+        y, S = p.bin_means(p.every, last(hidden))
+        loss = p.loss(p.tr, y[p.tr]) + c.albedo_weight * energy_loss(S)
+        loss.backward()
+        bar.update()
+        return loss
+    with bar:
+        opt.step(closure)
+    if not all(torch.isfinite(q).all() for q in last.parameters()):
+        raise FloatingPointError(f"the energy calibration of {name} diverged; lower train.albedo_weight")
+    return {"worst_albedo_error_before": before, "worst_albedo_error_after": worst_albedo_error()}
 
 
 def plot_loss(history, path, name) -> None:
