@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from mitsuba_ext.backends import load_backend
+from mitsuba_ext.params import boolean, number, vector3
 from models.spectrum import spectrum_to_srgb
 
 
@@ -143,19 +144,6 @@ def adjoint_factor(theta_light, theta_camera):
     return dr.cos(theta_light) / dr.maximum(dr.cos(theta_camera), 1e-4)
 
 
-def number(plugin: str, name: str, value, lo=-np.inf, hi=np.inf) -> float:
-    """A finite parameter within ``[lo, hi]``, or an error naming it and its domain."""
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{plugin}: '{name}' must be a number, got {value!r}") from None
-    if not (np.isfinite(x) and lo <= x <= hi):
-        domain = f"[{lo:g}, {hi:g}]" if np.isfinite(lo) and np.isfinite(hi) else (
-            f">= {lo:g}" if np.isfinite(lo) else "finite")
-        raise ValueError(f"{plugin}: '{name}' must be {domain}, got {value!r}")
-    return x
-
-
 def resolve_path(plugin: str, name: str, value) -> str | None:
     """A file parameter resolved as Mitsuba resolves its own ``filename``s: against the
     file resolver, which holds the scene file's folder while an XML scene loads."""
@@ -184,8 +172,8 @@ def bsdf_classes() -> dict:
 
             self.twist = float(np.radians(number(self.plugin, "twist", get("twist", 0.0))))
             self.twist_rate = float(np.radians(number(self.plugin, "twist_rate", get("twist_rate", 0.0))))
-            up = np.asarray(get("up", [0.0, 0.0, 1.0]), float).ravel()
-            if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) == 0:
+            up = vector3(self.plugin, "up", get("up", [0.0, 0.0, 1.0]))
+            if np.linalg.norm(up) == 0:
                 raise ValueError(f"{self.plugin}: 'up' must be a non-zero 3-vector, got {up}")
             self.up = [float(v) for v in up / np.linalg.norm(up)]
             self.radius = number(self.plugin, "radius", get("radius", 0.0), lo=0.0)
@@ -202,7 +190,7 @@ def bsdf_classes() -> dict:
                 self.weights = None
             else:
                 kind = "rgb" if mi.is_rgb else "mono"
-                mono_nm = float(props["wavelength"]) if "wavelength" in props else None
+                mono_nm = number(self.plugin, "wavelength", props["wavelength"], 1.0) if "wavelength" in props else None
                 self.weights = spectral_weights(wl, kind, mono_nm).tolist()
 
         def _spectrum(self, S, si):
@@ -358,7 +346,7 @@ def bsdf_classes() -> dict:
                                         lookup=props.get("lookup", "linear"))
             uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
             self.grid = self.backend.sampling_grid(uniform)
-            self.use_passthrough = bool(props.get("passthrough", True))
+            self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
             self._init_curve(props, self.backend.wavelength)
             scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
                        mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide | mi.BSDFFlags.NonSymmetric)

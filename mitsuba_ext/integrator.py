@@ -10,6 +10,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_ext.params import boolean, integer
+
 
 # -- small pure functions ----------------------------------------------------------
 def mis_weight(pdf_a, pdf_b):
@@ -184,18 +186,12 @@ def integrator_class():
 
         def __init__(self, props):
             super().__init__(props)
-            max_depth = props.get("max_depth", -1)
-            if max_depth < -1:
-                raise ValueError("bundle_path: max_depth must be -1 (no limit) or >= 0")
-            self.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
-            self.rr_depth = int(props.get("rr_depth", 5))
-            if self.rr_depth <= 0:
-                raise ValueError("bundle_path: rr_depth must be > 0")
-            self.displace = bool(props.get("displaced_exit", True))
-            self.max_passes = int(props.get("max_passes", 64))
-            if self.max_passes < 1:
-                raise ValueError("bundle_path: max_passes must be >= 1")
-            if props.get("hide_emitters", False):
+            max_depth = integer("bundle_path", "max_depth", props.get("max_depth", -1), lo=-1)  # -1: no limit
+            self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth
+            self.rr_depth = integer("bundle_path", "rr_depth", props.get("rr_depth", 5), lo=1)
+            self.displace = boolean("bundle_path", "displaced_exit", props.get("displaced_exit", True))
+            self.max_passes = integer("bundle_path", "max_passes", props.get("max_passes", 64), lo=1)
+            if boolean("bundle_path", "hide_emitters", props.get("hide_emitters", False)):
                 raise ValueError("bundle_path: hide_emitters is not supported (directly visible emitters are "
                                  "always shown); leave it out")
             self._checked = {}

@@ -4,7 +4,7 @@ import pytest
 
 # Modules whose tests load plugins in failing or evaluated-mode-only ways
 PLUGIN_MODULES = {"test_plugin", "test_closure", "test_render", "test_bad_input", "test_neural", "test_stability",
-                  "test_artifact_checks", "test_cloth", "test_scenes"}
+                  "test_artifact_checks", "test_cloth", "test_scenes", "test_plugin_params"}
 
 
 @pytest.fixture(autouse=True)
