@@ -16,12 +16,13 @@ import json
 
 from .graph import stamp_path
 
-# seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone,
-# session 6 (the stages' stamps; docs/BENCHMARKS.md, "The whole default pipeline")
+# seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone
+# with a cold Dr.Jit kernel cache, session 10 (the stages' stamps; docs/BENCHMARKS.md,
+# "The whole default pipeline")
 OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "cloth": 8.0, "stability": 0.0,
             "sweep": 3.0, "report": 2.0}
-REFERENCE = {"fiber": 1.1e-3, "bake": 1.4e-6, "train": 1.7e-6, "export": 2.2, "render": 2.0e-6,
-             "cloth": 1.5e-5,             "stability": 9.0, "sweep": 1.4e-6, "report": 10.0}  # a sweep's work: its members' bakes
+REFERENCE = {"fiber": 5.5e-4, "bake": 8.4e-7, "train": 9.6e-7, "export": 12.0, "render": 1.9e-6,
+             "cloth": 1.5e-5, "stability": 8.0, "sweep": 8.4e-7, "report": 14.0}  # a sweep's work: its members' bakes
 
 
 def _fiber_work(cfg) -> float:
