@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import typing
 import os
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
@@ -32,6 +33,18 @@ class ConfigError(ValueError):
 class Strict(BaseModel):
     # NaN and infinities are refused everywhere (a NaN passes every `k >= 0` check)
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_booleans_as_numbers(cls, v, info):
+        """YAML's ``true`` is not the number 1: a boolean where a number belongs is refused
+        (pydantic's lax mode would read it as 1 or 1.0)."""
+        if isinstance(v, bool):
+            annotation = cls.model_fields[info.field_name].annotation
+            kinds = set(typing.get_args(annotation)) or {annotation}
+            if bool not in kinds and kinds & {int, float}:
+                raise ValueError("must be a number, not a boolean (true/false)")
+        return v
 
 
 class Wavelengths(Strict):
@@ -73,6 +86,9 @@ class IOR(Strict):
         if not isinstance(v, (int, float)):
             if any(not 200 <= nm <= 2000 for nm, _ in v):
                 raise ValueError("wavelengths of k must lie in 200..2000 nm")
+            if any(b[0] <= a[0] for a, b in zip(v, v[1:])):  # an unsorted table was read as k = 0
+                raise ValueError(f"the [[nm, k], ...] rows of k must be in increasing nm, got "
+                                 f"{[nm for nm, _ in v]}; sort them")
         return v
 
 
@@ -137,12 +153,12 @@ class BundleCfg(Strict):
     arrangement: Literal["poisson", "file", "zhao2016"] = "poisson"
     shape: Literal["circle", "ellipse"] = "circle"
     radius_um: Optional[float] = Field(None, gt=0.0, le=1e5, description="circle radius")
-    semi_axes_um: Optional[tuple[float, float]] = Field(None, description="ellipse (major on x, minor on z)")
+    semi_axes_um: Optional[tuple[Annotated[float, Field(le=1e5)], Annotated[float, Field(le=1e5)]]] = Field(None, description="ellipse (major on x, minor on z)")
     gap_um: float = Field(0.0, ge=0.0, le=1e4)
     packing: Optional[float] = Field(None, gt=0.0, lt=0.91)
     file: Optional[str] = None
     yarn: Optional[str] = None
-    seed: int = Field(1, ge=0)
+    seed: int = Field(1, ge=0, le=2**32 - 1)
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -190,7 +206,7 @@ class BakeCfg(Strict):
     exit: Literal["auto", "uniform", "entry", "lobe"] = Field(
         "auto", description="where scattered light leaves a fiber (models/baker.py); auto: lobe for ray fibers, "
                             "else uniform")
-    seed: int = Field(1, ge=0)
+    seed: int = Field(1, ge=0, le=2**32 - 1)
     variant: str = "llvm_ad_mono"
     checkpoint_every_s: float = Field(20.0, gt=0.0)
 
@@ -219,7 +235,7 @@ class TrainCfg(Strict):
     epochs: int = Field(500, ge=1, le=100_000)
     batch_size: int = Field(1024, ge=16, le=1 << 20)
     lr: float = Field(1e-2, gt=0.0, le=1.0)
-    patience: int = Field(100, ge=1, description="epochs without a better held-out loss before stopping")
+    patience: int = Field(100, ge=1, le=100_000, description="epochs without a better held-out loss before stopping")
     val_fraction: float = Field(0.1, gt=0.0, lt=0.9)
     sigma_floor: float = Field(0.02, gt=0.0, le=1.0, description="log-space noise floor of the loss weights")
     bin_strata: int = Field(2, ge=1, le=8,
@@ -227,7 +243,7 @@ class TrainCfg(Strict):
     albedo_weight: float = Field(3.0, ge=0.0, le=1000.0, description="weight of the energy term of the calibration")
     calibration_steps: int = Field(150, ge=0, le=100_000,
                                    description="L-BFGS iterations of the output layer's energy calibration (0: none)")
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, le=2**32 - 1)
     threads: int = Field(2, ge=1, le=256)
 
     @field_validator("models")
@@ -268,13 +284,14 @@ class RenderCfg(Strict):
     height: int = Field(128, ge=8, le=8192)
     spp: int = Field(64, ge=1, le=1 << 16)
     max_depth: int = Field(64, ge=1, le=100_000)
-    twist_turns: float = Field(2.0, description="turns of the cross-section along the ply (ellipses)")
+    twist_turns: float = Field(2.0, ge=-1000.0, le=1000.0, description="turns of the cross-section along the ply (ellipses)")
     yarn: str = Field("Polyester 1", description="row of zhao2016_table2.csv for the yarn scene")
     mono_check: bool = Field(True, description="spectral variant against mono renders per wavelength + CIE")
-    mono_check_size: list[int] = Field(default_factory=lambda: [96, 48])
-    mono_check_spp: int = Field(64, ge=1)
+    mono_check_size: list[Annotated[int, Field(ge=4, le=4096)]] = Field(default_factory=lambda: [96, 48],
+                                                                    min_length=2, max_length=2)
+    mono_check_spp: int = Field(64, ge=1, le=1 << 16)
     explicit: bool = Field(True, description="render the ply with every fiber as its own curve (ground truth)")
-    explicit_spp: int = Field(256, ge=1)
+    explicit_spp: int = Field(256, ge=1, le=1 << 16)
 
 
 class Swatch(Strict):
@@ -299,7 +316,8 @@ class ClothCfg(Strict):
     plies: Optional[int] = Field(None, ge=1, le=16, description="ply count (default: the Zhao yarn's)")
     ply_pitch_mm: Optional[float] = Field(None, description="one turn of the plies, signed (default: Zhao's, scaled)")
     tolerance: float = Field(0.01, gt=0.0, le=0.5, description="centre-line conversion, in yarn radii")
-    rotate_deg: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="about x, then y, then z")
+    rotate_deg: tuple[Annotated[float, Field(ge=-360, le=360)], Annotated[float, Field(ge=-360, le=360)],
+                      Annotated[float, Field(ge=-360, le=360)]] = Field((0.0, 0.0, 0.0), description="about x, then y, then z")
     variant: Literal[VARIANTS] = "llvm_ad_spectral"
     backends: Backends = Field(default_factory=lambda: ["table", "mlp"])
     width: int = Field(640, ge=8, le=8192)
@@ -551,11 +569,17 @@ def sweep_members(cfg: Config) -> list[tuple[dict, Config]]:
 
 
 def _label(value, values) -> str:
-    """A value as it reads in a member's folder name (its index where it has no short form)."""
-    text = f"{value:g}" if isinstance(value, float) else str(value)
-    if isinstance(value, (dict, list)) or not text or any(not (c.isalnum() or c in "_.-") for c in text):
+    """A value as it reads in a member's folder name: its short form, or its index where it
+    has none or where another value of the axis prints alike (0.1 and 0.1000001 would
+    otherwise share one member folder)."""
+    def text(v):
+        t = f"{v:g}" if isinstance(v, float) else str(v)
+        ok = not isinstance(v, (dict, list)) and t and all(c.isalnum() or c in "_.-" for c in t)
+        return t if ok else None
+    mine = text(value)
+    if mine is None or sum(text(v) == mine for v in values) > 1:
         return f"v{values.index(value)}"
-    return text
+    return mine
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
