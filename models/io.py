@@ -108,7 +108,12 @@ def atomic_path(path, journaled: bool = True):
 
 
 # what a full or read-only disk raises: said plainly by `bcsdf` (exit 2), not as a traceback
-WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
+# errors of the disk or its limits (a full or read-only disk, a file-size limit, a name too long)
+WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG,
+                errno.ENAMETOOLONG)
+# something in the artifacts tree in the way: a folder where a file belongs, a file where a
+# folder belongs, a link loop
+OBSTACLES = (errno.EISDIR, errno.ENOTDIR, errno.ELOOP, errno.EEXIST, errno.ENOTEMPTY)
 
 
 def clear_torn(path) -> None:

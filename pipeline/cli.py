@@ -84,11 +84,13 @@ def main(argv=None) -> int:
         os.environ.setdefault("TQDM_MININTERVAL", "30")
         os.environ.setdefault("TQDM_MAXINTERVAL", "60")
 
-    from .config import ConfigError, load_config
+    from .config import ConfigError, check_variants, load_config
 
     try:
         with contextlib.ExitStack() as hold:
+            _check_environment()
             cfg = load_config(args.config, args.overrides)
+            check_variants(cfg)  # a cuda_* variant on a machine without a GPU: before any work
             from models.io import confined, exclusive, writable_folder
             hold.enter_context(confined(args.artifacts))  # no write leaves the artifacts root
             folder = writable_folder(Path(args.artifacts) / cfg.name)  # before any long work, not after it
@@ -106,7 +108,12 @@ def main(argv=None) -> int:
         print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
         return 130
     except OSError as e:
-        from models.io import WRITE_ERRORS
+        from models.io import OBSTACLES, WRITE_ERRORS
+        if e.errno in OBSTACLES:
+            print(f"bcsdf {args.command}: error: cannot write {e.filename} ({e.strerror}): something in the "
+                  "artifacts folder is in the way (a folder where a file belongs, a file where a folder belongs, "
+                  "a link loop); move it aside and run again; earlier artifacts are intact", file=sys.stderr)
+            return 2
         if e.errno not in WRITE_ERRORS:
             raise
         print(f"bcsdf {args.command}: error: cannot write {e.filename} ({e.strerror}): free some space, fix the "
@@ -114,6 +121,34 @@ def main(argv=None) -> int:
               "intact, and a bake resumes from its last checkpoint", file=sys.stderr)
         return 2
     return 0
+
+
+def _address(value: str) -> str:
+    """A Dask scheduler address: ``protocol://host[:port]``."""
+    protocol, _, where = value.partition("://")
+    if not protocol.isalpha() or not where:
+        raise ValueError(value)
+    return value
+
+
+ENVIRONMENT = {  # variables bcsdf reads, and what each must hold
+    "TQDM_MININTERVAL": ("a number of seconds", float), "TQDM_MAXINTERVAL": ("a number of seconds", float),
+    "BCSDF_SCHEDULER": ("a Dask scheduler address, e.g. tcp://host:8786", _address),
+}
+
+
+def _check_environment() -> None:
+    """Environment variables with garbage in them are named, not a traceback later."""
+    from .config import ConfigError
+
+    for name, (what, parse) in ENVIRONMENT.items():
+        value = os.environ.get(name)
+        if value is None or (name == "BCSDF_SCHEDULER" and not value):
+            continue
+        try:
+            parse(value)
+        except ValueError:
+            raise ConfigError(f"the environment variable {name}={value!r} must be {what}; fix or unset it") from None
 
 
 def _render_scene(args) -> int:

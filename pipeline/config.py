@@ -191,6 +191,13 @@ class BundleCfg(Strict):
         return float(max(self.semi_axes()))
 
 
+# The variants each stage can run: the baker traces every wavelength at once in a mono
+# variant; renders need a colour variant (a mono one failed every render, the scalar ones
+# cannot run the vectorized plugins). cuda_* need a GPU: `bcsdf` checks for one before work.
+BAKE_VARIANTS = ("llvm_ad_mono", "cuda_ad_mono")
+RENDER_VARIANTS = ("llvm_ad_rgb", "llvm_ad_spectral", "cuda_ad_rgb", "cuda_ad_spectral")
+
+
 class BakeCfg(Strict):
     """The ground-truth path tracer (see models/baker.py)."""
 
@@ -207,7 +214,7 @@ class BakeCfg(Strict):
         "auto", description="where scattered light leaves a fiber (models/baker.py); auto: lobe for ray fibers, "
                             "else uniform")
     seed: int = Field(1, ge=0, le=2**32 - 1)
-    variant: str = "llvm_ad_mono"
+    variant: Literal[BAKE_VARIANTS] = "llvm_ad_mono"
     checkpoint_every_s: float = Field(20.0, gt=0.0)
 
     @field_validator("theta_i_step_deg", "phi_i_step_deg")
@@ -259,8 +266,6 @@ class TrainCfg(Strict):
         return v
 
 
-VARIANTS = ("llvm_ad_rgb", "llvm_ad_spectral", "llvm_ad_mono", "cuda_ad_rgb", "cuda_ad_spectral", "cuda_ad_mono",
-            "scalar_rgb", "scalar_spectral")
 
 
 def _some_backends(v: list) -> list:
@@ -276,7 +281,7 @@ Backends = Annotated[list[Literal["table", "mlp", "onnx"]], AfterValidator(_some
 class RenderCfg(Strict):
     """Mitsuba renders of the bundle BSDF (see pipeline/stages/render.py)."""
 
-    variant: Literal[VARIANTS] = Field("llvm_ad_spectral", description="Mitsuba variant of the renders")
+    variant: Literal[RENDER_VARIANTS] = Field("llvm_ad_spectral", description="Mitsuba variant of the renders")
     scenes: list[Literal["ply", "yarn"]] = Field(default_factory=lambda: ["ply", "yarn"])
     backends: Backends = Field(default_factory=lambda: ["table", "mlp", "onnx"])
     model: Optional[str] = Field(None, description="trained size for the neural backends (default: the largest)")
@@ -318,7 +323,7 @@ class ClothCfg(Strict):
     tolerance: float = Field(0.01, gt=0.0, le=0.5, description="centre-line conversion, in yarn radii")
     rotate_deg: tuple[Annotated[float, Field(ge=-360, le=360)], Annotated[float, Field(ge=-360, le=360)],
                       Annotated[float, Field(ge=-360, le=360)]] = Field((0.0, 0.0, 0.0), description="about x, then y, then z")
-    variant: Literal[VARIANTS] = "llvm_ad_spectral"
+    variant: Literal[RENDER_VARIANTS] = "llvm_ad_spectral"
     backends: Backends = Field(default_factory=lambda: ["table", "mlp"])
     width: int = Field(640, ge=8, le=8192)
     height: int = Field(480, ge=8, le=8192)
@@ -365,6 +370,7 @@ class ReportCfg(Strict):
     queries: int = Field(200_000, ge=1000, le=10_000_000, description="batch size of the timings")
 
 
+MAX_FIBERS = 100_000  # in one bundle (the thesis plies hold about 1,200)
 MAX_MEMBERS = 1000
 
 
@@ -455,6 +461,17 @@ class Config(Strict):
                              f"{b.n_phi_o} x {b.n_theta_o} bins x {self.wavelengths.count} wavelengths), more than "
                              f"half of this machine's {have / 2**30:.0f} GiB: use fewer bins (bake.n_theta_o, "
                              "bake.n_phi_o), a coarser bake.theta_i_step_deg or fewer wavelengths")
+        if self.bundle.arrangement == "poisson":
+            # the fibers it would place: the bundle's area over a fiber's, times the packing
+            # (a Poisson disk of minimum distance 2 r fills about 0.55); said here, not after
+            # minutes of placement
+            a, c = self.bundle.semi_axes()
+            r = self.fiber.radius_um + 0.5 * self.bundle.gap_um
+            fibers = (self.bundle.packing or 0.55) * a * c / r**2
+            if fibers > MAX_FIBERS:
+                raise ValueError(f"the bundle would hold about {fibers:,.0f} fibers (its semi-axes {a:g} x {c:g} um "
+                                 f"over fibers of {self.fiber.radius_um:g} um), at most {MAX_FIBERS:,}: a smaller "
+                                 "bundle.radius_um or larger fibers")
         batches = -(-b.paths_per_phi_i // b.batch_paths) * n_phi_i
         if batches > 1_000_000:
             raise ValueError(f"bake.paths_per_phi_i / bake.batch_paths makes {batches:,} batches (at most "
@@ -468,6 +485,26 @@ class Config(Strict):
             data = {k: data[k] for k in sections}
         text = json.dumps(data, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def check_variants(cfg) -> None:
+    """Every Mitsuba variant the config names can run on this machine (a ``cuda_*`` one
+    needs an NVIDIA GPU and its driver): a :class:`ConfigError` naming the key otherwise.
+    Machine-dependent, so called by ``bcsdf`` before any work, not by the validation."""
+    keys = {"bake.variant": cfg.bake.variant}
+    if cfg.bundle is not None:
+        keys["render.variant"] = cfg.render.variant
+    if cfg.cloth is not None:
+        keys["cloth.variant"] = cfg.cloth.variant
+    wanted = {k: v for k, v in keys.items() if v.startswith("cuda")}
+    if not wanted:
+        return
+    import drjit as dr
+
+    if not dr.has_backend(dr.JitBackend.CUDA):
+        k, v = next(iter(wanted.items()))
+        raise ConfigError(f"{k}: {v} needs an NVIDIA GPU and its CUDA driver, and this machine has none; "
+                          f"use {v.replace('cuda', 'llvm')}")
 
 
 def _memory_bytes() -> int:
@@ -583,11 +620,23 @@ def _label(value, values) -> str:
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """YAML's safe loader, refusing a key given twice in one mapping (the last would win)."""
+    """YAML's safe loader for configs: refuses a key given twice in one mapping (the last
+    would win), a key that is not a plain name or number, and aliases (``*name``: a config
+    needs none, and nested aliases expand a 1 kB file to 10^9 values)."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.events.AliasEvent):
+            mark = self.peek_event().start_mark
+            raise ConfigError(f"line {mark.line + 1}: YAML aliases (*name) are not accepted in a config; "
+                              "write the value out where it is used")
+        return super().compose_node(parent, index)
 
     def construct_mapping(self, node, deep=False):
         seen = set()
         for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode):
+                raise ConfigError(f"line {key_node.start_mark.line + 1}: a key must be a plain name or number, "
+                                  "not a list or mapping")
             key = self.construct_object(key_node, deep=deep)
             if key in seen:
                 raise ConfigError(f"line {key_node.start_mark.line + 1}: the key {key!r} is given twice; "
@@ -616,6 +665,9 @@ def load_config(path, overrides=()) -> Config:
         raise ConfigError(f"{path}: not valid YAML ({e})") from None
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: nested too deeply to be a config (lists or mappings inside each other "
+                          "hundreds of levels down)") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of keys at the top level")
     data = apply_overrides(data, overrides)

@@ -47,3 +47,94 @@ def test_sweep_values_that_print_alike_get_folders_of_their_own():
 def test_values_that_had_no_bounds_have_them(override, says):
     with pytest.raises(ConfigError, match=says.replace(".", r"\.")):
         load_config(DEFAULT, [override])
+
+
+# -- issue 23, class 7: a message where a traceback was --------------------------------
+@pytest.mark.parametrize("text, says", [
+    ("a: &x [1, 2]\nb: *x\n", "YAML aliases"),
+    ("? [1, 2]\n: 3\n", "a key must be a plain name or number"),
+    ("name: " + "[" * 3000 + "]" * 3000 + "\n", "nested too deeply|not valid YAML"),
+])
+def test_yaml_that_is_no_config_gets_a_message(tmp_path, text, says):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=says):
+        load_config(path)
+
+
+def test_a_billion_laughs_is_refused_at_once(tmp_path):
+    """947 bytes that expand to 10^9 values ran out of memory after 92 s."""
+    import time
+
+    lines = ["a: &a [x, x, x, x, x, x, x, x, x, x]"]
+    for k in range(1, 9):
+        lines.append(f"{chr(97 + k)}: &{chr(97 + k)} [{', '.join(['*' + chr(96 + k)] * 10)}]")
+    (tmp_path / "lol.yaml").write_text("\n".join(lines) + "\n")
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match="YAML aliases"):
+        load_config(tmp_path / "lol.yaml")
+    assert time.perf_counter() - t0 < 5
+
+
+@pytest.mark.parametrize("key, value", [("bake.variant", "llvm_ad_rgb"), ("bake.variant", "whatever"),
+                                        ("render.variant", "llvm_ad_mono"), ("render.variant", "scalar_rgb")])
+def test_variants_a_stage_cannot_run_are_refused(key, value):
+    with pytest.raises(ConfigError, match=key):
+        load_config(DEFAULT, [f"{key}={value}"])
+
+
+def test_a_cuda_variant_without_a_gpu_is_refused_before_work(tmp_path, capsys):
+    import drjit as dr
+
+    from pipeline import cli
+
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("this machine has a GPU: a cuda variant runs here")  # the CI machines have none
+    code = cli.main(["fiber", DEFAULT, "--artifacts", str(tmp_path), "--set", "render.variant=cuda_ad_spectral"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "render.variant: cuda_ad_spectral needs an NVIDIA GPU" in err and "llvm_ad_spectral" in err
+    assert not (tmp_path / "default" / "fiber").exists()
+
+
+@pytest.mark.parametrize("name, value", [("TQDM_MININTERVAL", "soon"), ("BCSDF_SCHEDULER", "localhost")])
+def test_garbage_in_an_environment_variable_is_named(tmp_path, capsys, monkeypatch, name, value):
+    from pipeline import cli
+
+    monkeypatch.setenv(name, value)
+    assert cli.main(["fiber", DEFAULT, "--artifacts", str(tmp_path)]) == 2
+    assert f"the environment variable {name}={value!r}" in capsys.readouterr().err
+
+
+def test_an_obstacle_in_the_artifacts_tree_is_named(tmp_path, capsys):
+    """A file where the stage's folder belongs: a message, not a NotADirectoryError traceback."""
+    from pipeline import cli
+
+    (tmp_path / "default").mkdir()
+    (tmp_path / "default" / "fiber").write_text("in the way")
+    assert cli.main(["fiber", DEFAULT, "--artifacts", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "in the way" in err and "Traceback" not in err
+    assert (tmp_path / "default" / "fiber").read_text() == "in the way"
+
+
+# -- issue 23, class 8: the bound before the work ----------------------------------------
+def test_a_bundle_of_millions_of_fibers_is_refused_at_once():
+    import time
+
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match="would hold about 10,000,000 fibers"):
+        load_config(DEFAULT, ["bundle.radius_um=100000", "fiber.radius_um=10", "bundle.packing=0.1"])
+    assert time.perf_counter() - t0 < 5
+
+
+def test_a_sweep_of_millions_of_members_is_refused_before_expanding():
+    import time
+
+    t0 = time.perf_counter()
+    axes = ", ".join(f"bundle.{k}: [{', '.join(str(v) for v in values)}]"
+                     for k, values in (("seed", range(1, 101)), ("packing", [0.1 + 0.001 * i for i in range(100)]),
+                                       ("gap_um", [0.01 * i for i in range(100)])))
+    with pytest.raises(ConfigError, match="1,000,000 members"):
+        load_config(DEFAULT, [f"sweep={{{axes}}}"])
+    assert time.perf_counter() - t0 < 5
