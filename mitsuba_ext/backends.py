@@ -22,6 +22,7 @@ import numpy as np
 from mitsuba_ext.sampling import DirectionGrid
 from mitsuba_ext.table import axis_corners
 from models.grid import bin_solid_angle
+from models.jit import to_drjit
 
 BACKENDS = ("table", "mlp", "onnx")
 
@@ -149,7 +150,7 @@ class OnnxBackend(_NeuralBackend):
         args = [a if dr.width(a) == n else a + dr.zeros(self.Float, n) for a in (phi_i, theta_i, phi_o, theta_o)]
         dr.eval(*args)
         out = self.model.eval(*(np.asarray(a, np.float32) for a in args))  # [n, n_lambda]
-        return [self.Float(np.ascontiguousarray(out[:, k])) for k in range(out.shape[1])]
+        return [to_drjit(self.Float, out[:, k]) for k in range(out.shape[1])]
 
 
 def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "linear"):

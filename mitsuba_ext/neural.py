@@ -21,6 +21,7 @@ import zipfile
 import numpy as np
 
 from models.neural import NeuralSpec, features, stable_expm1
+from models.jit import to_drjit
 
 
 def load_weights(path):
@@ -124,7 +125,7 @@ class DrJitMLP:
         if not any(dr.is_array_v(a) for a in args):
             Float = _default_float()
             shape = np.broadcast_shapes(*(np.shape(a) for a in args))
-            flat = [Float(np.broadcast_to(np.asarray(a, np.float32), shape).ravel()) for a in args]
+            flat = [to_drjit(Float, np.broadcast_to(np.asarray(a, np.float32), shape)) for a in args]
             return np.stack([np.asarray(s) for s in self.eval(*flat)], -1).reshape(shape + (-1,))
         x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o)
         for k, (W, b) in enumerate(self._layers):

@@ -50,6 +50,7 @@ import numpy as np
 from .bundle import Bundle
 from .fiber import lobes
 from .grid import bin_solid_angle
+from .jit import to_drjit
 from .fiber.base import FiberTable
 from .fiber.sampling import FiberSampler
 
@@ -274,16 +275,16 @@ class Baker:
             # the path (lobe) and direction at the ray's own offset h; the mixture over the
             # theta_i nodes as below, each node's pdf its own lobe probabilities and azimuths
             lob = self._lobes()
-            h_d = mi.Float(h1.astype(np.float32))
-            p1_d, theta1_d, dphi1_d, _ = lob.sample(mi.Float(theta_nodes[j].astype(np.float32)), h_d,
-                                                    [mi.Float(a) for a in u[:4]])
+            h_d = to_drjit(mi.Float, h1)
+            p1_d, theta1_d, dphi1_d, _ = lob.sample(to_drjit(mi.Float, theta_nodes[j]), h_d,
+                                                    [to_drjit(mi.Float, a) for a in u[:4]])
             lobe_state = (h_d, p1_d)
 
             def pdf_at(t):
                 return lob.pdf(dr.full(mi.Float, t, n), h_d, p1_d, theta1_d, dphi1_d)
             loss = self._first_loss(h1)
         else:
-            theta1_d, dphi1_d = twin.sample(mi.Float(theta_nodes[j].astype(np.float32)), [mi.Float(a) for a in u])
+            theta1_d, dphi1_d = twin.sample(to_drjit(mi.Float, theta_nodes[j]), [to_drjit(mi.Float, a) for a in u])
 
             def pdf_at(t):
                 return twin.pdf(dr.full(mi.Float, t, n), theta1_d, dphi1_d)
@@ -411,11 +412,12 @@ class Baker:
 
         # a lane that has ended keeps its state in the loop (inactive lanes are not updated),
         # so the final state is the per-path result: no scatters inside the loop
-        state = [Float(origin[:, 0].astype(np.float32)), Float(origin[:, 1].astype(np.float32)),
-                 Float(np.mod(phi_t, 2 * np.pi).astype(np.float32)), Float(theta.astype(np.float32)),
+        state = [to_drjit(Float, origin[:, 0]), to_drjit(Float, origin[:, 1]),
+                 to_drjit(Float, np.mod(phi_t, 2 * np.pi)), to_drjit(Float, theta),
                  [dr.full(Float, 1.0, n) for _ in range(L)], [dr.zeros(Float, n) for _ in range(L)],
                  dr.full(UInt, 1, n), dr.zeros(UInt, n), dr.zeros(UInt, n), dr.full(mi.Bool, True, n),
-                 dr.arange(UInt, n), Float(np.asarray(phi_i, np.float32)), dr.zeros(UInt, n)]
+                 dr.arange(UInt, n), to_drjit(Float, phi_i) if np.ndim(phi_i) else Float(np.asarray(phi_i, np.float32)),
+                 dr.zeros(UInt, n)]
         limit = [None]  # iterations per round, an opaque kernel parameter (one compiled kernel)
 
         def cond(ox, oz, phi, th, B, R, depth, status, bins, active, pid, phi_i_path, steps):

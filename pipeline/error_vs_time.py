@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from models.errors import albedo_error, log_mae, relative_l1
+from models.jit import to_drjit
 from models.io import write_text
 
 
@@ -38,24 +39,6 @@ def _best_of(fn, repeat=3):
         fn()
         best = min(best, time.perf_counter() - t0)
     return best
-
-
-def in_chunks(run, n: int):
-    """``run(q) -> [m, n_lambda]`` applied to any number of queries in calls of exactly ``n``
-    (the last one padded): Dr.Jit's LLVM backend compiles a kernel variant per array size it
-    meets, and the large MLP's literal-weight kernel takes a minute to compile on a cold
-    cache, so the error queries reuse the timed call's size and its kernel."""
-    def chunked(q):
-        m = len(q[0])
-        out = []
-        for lo in range(0, m, n):
-            part = [a[lo: lo + n] for a in q]
-            k = len(part[0])
-            if k < n:
-                part = [np.concatenate([a, np.full(n - k, a[0], a.dtype)]) for a in part]
-            out.append(run(part)[:k])
-        return np.concatenate(out)
-    return chunked
 
 
 def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
@@ -127,17 +110,17 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
 
     def drjit_table(mode):
         def run(q):
-            out = dt.eval(*(mi.Float(a) for a in q), mode=mode)
+            out = dt.eval(*(to_drjit(mi.Float, a) for a in q), mode=mode)
             dr.eval(out)
             return np.stack([o.numpy() for o in out], -1)
-        qs = [mi.Float(a) for a in rand32]
+        qs = [to_drjit(mi.Float, a) for a in rand32]
         dr.eval(qs)
 
         def timed():
             out = dt.eval(*qs, mode=mode)
             dr.eval(out)
             dr.sync_thread()
-        return in_chunks(run, n), timed
+        return run, timed
 
     for mode in ("nearest", "linear"):
         report(f"table {mode}", "numpy", dt.nbytes, lambda q, m=mode: lookup(table, *q, mode=m),
@@ -168,11 +151,11 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
         report(f"mlp {name}", "onnxruntime", nbytes, lambda q, m=onnx: m.eval(*q), lambda m=onnx: m.eval(*rand32))
 
         jit = DrJitMLP(export_root / name / "weights.npz")
-        qs = [mi.Float(a) for a in rand32]
+        qs = [to_drjit(mi.Float, a) for a in rand32]
         dr.eval(qs)
 
         def jit_run(q, jit=jit):
-            out = jit.eval(*(mi.Float(a) for a in q))
+            out = jit.eval(*(to_drjit(mi.Float, a) for a in q))
             dr.eval(out)
             return np.stack([o.numpy() for o in out], -1)
 
@@ -181,7 +164,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
             dr.eval(out)
             dr.sync_thread()
         jit_timed()  # compile once; the kernel cache serves the timed runs
-        report(f"mlp {name}", "drjit", nbytes, in_chunks(jit_run, n), jit_timed)
+        report(f"mlp {name}", "drjit", nbytes, jit_run, jit_timed)
 
     out = Path(artifacts) / cfg.name / "export"
     noise_l1 = float(np.sqrt(2 / np.pi) * table.stderr.reshape(-1, n_l)[val].sum() / truth[val].sum())

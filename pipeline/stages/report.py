@@ -20,6 +20,7 @@ import numpy as np
 import yaml
 
 from models.io import atomic_path, write_text
+from models.jit import to_drjit
 
 from ..plots import save_figure, spectral_image
 
@@ -149,7 +150,7 @@ def compare_slices(cfg, out_root, out) -> str:
             "points per bin) as a table value is an average over its bin.</p>")
 
     def predict(*angles):
-        S = mlp.eval(*(mi.Float(np.asarray(a, np.float32)) for a in angles))
+        S = mlp.eval(*(to_drjit(mi.Float, a) for a in angles))
         dr.eval(S)
         return np.stack([s.numpy() for s in S], -1).astype(np.float64)
     cells = table_cells(table).reshape(table.values.shape[:4] + (6,))
