@@ -136,6 +136,23 @@ def check_bundles(scene) -> list[str]:
     return problems
 
 
+def check_integrator(scene) -> str | None:
+    """Why ``scene``'s integrator cannot render its bundles, or ``None``.
+
+    ``fiber_bundle`` is a far-field model with passthrough and displaced exits that only
+    ``bundle_path`` carries out; under Mitsuba's ``path`` (or any other) integrator it
+    renders without an error but wrong. A Python BSDF cannot see its integrator, so the
+    entry points (``bcsdf render-scene``) ask here after loading.
+    """
+    uses = any(getattr(shape.bsdf(), "plugin", None) == "fiber_bundle" for shape in scene.shapes())
+    integrator = scene.integrator()
+    if uses and type(integrator).__name__ != "BundlePathIntegrator":
+        return (f"the scene's fiber_bundle BSDFs need the bundle_path integrator (passthrough, displaced exits), "
+                f"but its integrator is {integrator.class_().name() if hasattr(integrator, 'class_') else type(integrator).__name__}: "
+                "use <integrator type=\"bundle_path\"> (it takes path's max_depth and rr_depth)")
+    return None
+
+
 def integrator_class():
     """The ``bundle_path`` plugin class for the active Mitsuba variant."""
     class BundlePathIntegrator(mi.SamplingIntegrator):

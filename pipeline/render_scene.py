@@ -46,6 +46,11 @@ def render_scene(scene_path, out, spp=None, variant="llvm_ad_spectral", defines=
             where, _, rest = text.partition("Traceback")
             text = where.strip().rstrip(":") + ": " + rest.strip().splitlines()[-1]
         raise ValueError(f"{scene_path}: {text}") from None
+    from mitsuba_ext.integrator import check_integrator
+
+    problem = check_integrator(scene)
+    if problem:
+        raise ValueError(f"{scene_path}: {problem}")
     t0 = time.perf_counter()
     img = mi.render(scene, spp=int(spp) if spp else 0)
     dr.eval(img)

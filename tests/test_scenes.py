@@ -35,6 +35,23 @@ def test_ply_scene_renders_with_a_table(mi_llvm, tmp_path, capsys):
     assert out.with_suffix(".png").stat().st_size > 0
 
 
+def test_a_bundle_under_another_integrator_is_refused(mi_llvm, tmp_path, capsys):
+    """Under Mitsuba's ``path`` a fiber_bundle renders without an error but wrong (no
+    passthrough, no displaced exits): render-scene says so instead of rendering."""
+    from tests.synthetic import make_config, synthetic_table
+
+    synthetic_table(make_config(tmp_path), tmp_path / "table.npz", passthrough=0.2)
+    text = (ROOT / "scenes" / "ply.xml").read_text()
+    assert '<integrator type="bundle_path">' in text
+    scene = tmp_path / "ply_path.xml"
+    scene.write_text(text.replace('<integrator type="bundle_path">', '<integrator type="path">'))
+    rc = cli.main(["render-scene", str(scene), "-o", str(tmp_path / "x.exr"), "--spp", "1",
+                   "-D", f"table={tmp_path / 'table.npz'}", "-D", "width=8", "-D", "height=4"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "need the bundle_path integrator" in err and "Traceback" not in err, err
+    assert not (tmp_path / "x.exr").exists()
+
+
 def test_glove_scene_renders_plies_with_an_mlp(mi_llvm, tmp_path, trained, capsys):
     from models.cloth.knit import stockinette
     from models.cloth.yarn import YarnSpec, build_plies, write_curves
