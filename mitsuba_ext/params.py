@@ -25,9 +25,9 @@ def number(plugin: str, name: str, value, lo=-np.inf, hi=np.inf) -> float:
         _refuse(plugin, name, value, "a number")
     x = float(value)
     if not (np.isfinite(x) and lo <= x <= hi):
-        domain = f"in [{lo:g}, {hi:g}]" if np.isfinite(lo) and np.isfinite(hi) else (
+        domain = f"[{lo:g}, {hi:g}]" if np.isfinite(lo) and np.isfinite(hi) else (
             f">= {lo:g}" if np.isfinite(lo) else "finite")
-        _refuse(plugin, name, value, f"a number {domain}")
+        _refuse(plugin, name, value, domain)
     return x
 
 

@@ -18,8 +18,8 @@ BSDF_CASES = {  # key: (wrong value, what the message says)
     "up": ("0 0 1", "'up' must be a 3-vector"),
     "twist": ("30", "'twist' must be a number"),
     "twist_rate": (True, "'twist_rate' must be a number"),
-    "radius": (-1.0, "'radius' must be a number >= 0"),
-    "sampling_uniform": (1.5, "'sampling_uniform' must be a number in \\[0, 1\\]"),
+    "radius": (-1.0, "'radius' must be >= 0"),
+    "sampling_uniform": (1.5, "'sampling_uniform' must be \\[0, 1\\]"),
 }
 
 
