@@ -86,7 +86,9 @@ def scene(mi, shapes: dict, w_i, w_o, half_size, *, irradiance=1.0, resolution=6
                    "far_clip": 1e4 * half_size,
                    "film": {"type": "hdrfilm", "width": resolution, "height": resolution,
                             "rfilter": {"type": "box"}, "pixel_format": "luminance"},
-                   "sampler": {"type": "stratified", "sample_count": spp, "seed": seed}},
+                   # Mitsuba's stratified sampler takes a square count and warns on any other
+                   # (192 warnings per render stage): rounded here as it would round
+                   "sampler": {"type": "stratified", "sample_count": max(1, round(spp ** 0.5)) ** 2, "seed": seed}},
         "sun": {"type": "directional", "direction": (-w_i).tolist(),
                 "irradiance": {"type": "spectrum", "value": float(irradiance)}},
         **shapes,

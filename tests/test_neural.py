@@ -284,3 +284,14 @@ def test_a_table_that_scatters_nothing_trains_without_nan(tmp_path):
     _, run = reference(tmp_path, "tiny")
     S = run(query_set(1000))
     assert np.all(np.isfinite(S)) and np.all(S >= 0)
+
+
+def test_a_model_not_worth_rendering_is_said(tmp_path, capsys):
+    """One epoch leaves the model far off (131% after one epoch, above): the log says it is
+    not worth rendering, with what to change; the well-trained ones of the fixture are not
+    flagged (their L1 is under 20%, test above)."""
+    cfg = make_config(tmp_path, name="poor", models={"tiny": [4]}, epochs=1, calibration_steps=0)
+    synthetic_table(cfg, tmp_path / "poor" / "bake" / "bundle_table.npz")
+    train_stage.run(cfg, tmp_path)
+    out = capsys.readouterr().out
+    assert "[train] warning: tiny is" in out and "not worth rendering" in out and "train.epochs" in out

@@ -58,6 +58,9 @@ from ..metrics import write_curve, write_metrics
 from ..plots import save_figure
 
 
+POOR_L1 = 0.25  # a model further off than this (and than 3x the table's noise) is said to be poor
+
+
 def load_checkpoint(path) -> dict:
     """A ``model.pt`` written by this stage, or a ``ValueError`` that names it."""
     import torch
@@ -216,6 +219,10 @@ def run(cfg, out_root="artifacts") -> Path:
             line += (f"; worst albedo error {calibration['worst_albedo_error_before']:.2%} -> "
                      f"{calibration['worst_albedo_error_after']:.2%} by the calibration")
         print(line)
+        if metrics["relative_l1"] > max(POOR_L1, 3 * metrics["table_noise_l1"]):
+            print(f"[train] warning: {name} is {metrics['relative_l1']:.0%} off on the held-out bins (the table's own "
+                  f"noise: {metrics['table_noise_l1']:.0%}): not worth rendering; train longer (train.epochs), "
+                  "a wider model, or bake more paths (bake.paths_per_phi_i)")
     write_metrics(cfg, out_root, "train", headline)
     return out
 
