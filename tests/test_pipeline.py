@@ -54,6 +54,11 @@ def test_run_writes_every_stage_and_a_complete_report(tiny_run):
     for name in images:
         assert (root / "report" / name).stat().st_size > 300, name  # tiny renders make small PNGs
     assert "missing picture" not in page and "Not run yet" not in page
+    # the summary on top: a model named, with its error, and every stage's time
+    top = page[page.index("<h2>Summary</h2>"): page.index("<h2>Single-fiber model</h2>")]
+    assert "Model to render with" in top and "held-out relative L1" in top
+    assert all(f"<td>{stage}</td>" in top for stage in ("fiber", "bake", "train", "export", "render"))
+    assert "-0.0000" not in page
     for word in ("Single-fiber model", "Bundle and baked table", "Neural compression", "Versions and config",
                  "mitsuba"):
         assert word in page

@@ -55,7 +55,7 @@ def run(cfg, out_root="artifacts") -> Path:
         body = (f"<p>{s['n_fibers']} fibers, packing {s['packing_fraction']:.3f}; {s['paths']:,} paths, "
                 f"{s['vertices']:,} vertices in {s['bake_seconds']:.1f} s. Energy (mean over incidence and "
                 f"wavelength): scattered {s['scattered']:.4f}, passthrough {np.mean(s['passthrough']):.4f}, "
-                f"absorbed {s['absorbed']:.4f}, lost {s['lost']:.4f}, total {s['total']:.4f} (largest "
+                f"absorbed {_f4(s['absorbed'])}, lost {_f4(s['lost'])}, total {s['total']:.4f} (largest "
                 f"deviation from 1 of any incidence and wavelength: {s['max_abs_energy_error']:.4f}).</p>")
         if "reductions" in s:
             r = s["reductions"]
@@ -123,10 +123,63 @@ def run(cfg, out_root="artifacts") -> Path:
                      f"<p>code {code_version()}, config hash {cfg.hash()}</p><table>{versions}</table>"
                      f"<pre>{html.escape(yaml.safe_dump(cfg.model_dump(mode='json'), sort_keys=False))}</pre>"))
 
+    sections.insert(0, ("Summary", summary_section(cfg, root, out_root)))
     page = html_page(cfg.name, sections)
     write_text(out / "index.html", page)
     print(f"[report] wrote {out / 'index.html'}")
     return out
+
+
+def _f4(x: float) -> str:
+    """Four decimals, without the ``-0.0000`` of a float error below them."""
+    return f"{0.0 if abs(x) < 5e-5 else x:.4f}"
+
+
+def summary_section(cfg, root: Path, out_root) -> str:
+    """What to use, at what error and cost, and how long each stage took: the page in short.
+
+    The model to render with is the smallest whose held-out error is within 1.2x of the
+    best one's and whose albedo error is below 2% (the one the renders use is named too);
+    its cost is the Dr.Jit evaluator's against the table's multilinear lookup, from the
+    export stage's measurement.
+    """
+    from ..graph import stamp_path
+
+    lines = []
+    summaries = {n: json.loads((root / "train" / n / "summary.json").read_text()) for n in cfg.train.models
+                 if (root / "train" / n / "summary.json").exists()}
+    if cfg.bundle is not None and summaries:
+        best = min(m["relative_l1"] for m in summaries.values())
+        fits = [n for n, m in summaries.items() if m["relative_l1"] <= 1.2 * best
+                and m.get("worst_albedo_error_after", 0.0) < 0.02]
+        pick = min(fits or summaries, key=lambda n: summaries[n]["parameters"])
+        m = summaries[pick]
+        cost = ""
+        evt = root / "export" / "error_vs_time.json"
+        if evt.exists():
+            rows = json.loads(evt.read_text())["rows"]
+            jit = next((r for r in rows if r["method"] == f"mlp {pick}" and r["backend"] == "drjit"), None)
+            lin = next((r for r in rows if r["method"] == "table linear" and r["backend"] == "drjit"), None)
+            if jit and lin:
+                cost = (f", {jit['ns_per_query']:.0f} ns per query in Dr.Jit ({jit['ns_per_query'] / lin['ns_per_query']:.2f}x "
+                        f"the table's lookup), {lin['bytes'] / jit['bytes']:.0f}x smaller than the table")
+        albedo = m.get("worst_albedo_error_after")
+        lines.append(f"<p><b>Model to render with: {html.escape(pick)}</b> {cfg.train.models[pick]} "
+                     f"({m['parameters']:,} parameters): held-out relative L1 {m['relative_l1']:.1%} (the table's own "
+                     f"noise {m['table_noise_l1']:.1%})" + (f", worst albedo error {albedo:.2%}" if albedo is not None
+                                                            else "") + f"{cost}.")
+        used = cfg.render.model or max(cfg.train.models, key=lambda s: sum(cfg.train.models[s]))
+        lines.append(f" The renders below use <b>{html.escape(used)}</b> (<code>render.model</code>).</p>"
+                     if used != pick else " The renders below use it (<code>render.model</code>).</p>")
+    times = []
+    for stage in ("fiber", "bake", "train", "export", "render", "cloth", "stability", "sweep"):
+        p = stamp_path(stage, cfg, out_root)
+        if p.exists():
+            times.append(f"<td>{stage}</td><td>{json.loads(p.read_text()).get('seconds', float('nan')):.1f}</td>")
+    if times:
+        lines.append("<p>Seconds per stage (the last run of each):</p><table><tr><th>stage</th><th>seconds</th></tr>"
+                     + "".join(f"<tr>{t}</tr>" for t in times) + "</table>")
+    return "".join(lines) or "<p>Nothing has run yet: <code>bcsdf run CONFIG</code>.</p>"
 
 
 def compare_slices(cfg, out_root, out) -> str:
