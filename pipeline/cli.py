@@ -103,10 +103,17 @@ def main(argv=None) -> int:
         print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
         return 130
     except RuntimeError as e:
-        if not _interrupted(e):
+        if _interrupted(e):
+            print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
+            return 130
+        reason = _write_error_in(e)
+        if reason is None:
             raise
-        print(f"bcsdf {args.command}: interrupted; earlier artifacts are intact", file=sys.stderr)
-        return 130
+        # torch and Mitsuba raise a full disk as a RuntimeError whose text holds the OS's words
+        print(f"bcsdf {args.command}: error: a write failed ({reason}): free some space, fix the folder's "
+              "permissions or point --artifacts at another disk, then run again; earlier artifacts are intact, "
+              "and a bake resumes from its last checkpoint", file=sys.stderr)
+        return 2
     except OSError as e:
         from models.io import OBSTACLES, WRITE_ERRORS
         if e.errno in OBSTACLES:
@@ -121,6 +128,15 @@ def main(argv=None) -> int:
               "intact, and a bake resumes from its last checkpoint", file=sys.stderr)
         return 2
     return 0
+
+
+def _write_error_in(e: Exception) -> str | None:
+    """The OS's words for a write error (a full disk, a quota, a read-only disk, a file-size
+    limit) if ``e``'s message holds them: how torch and Mitsuba report ENOSPC."""
+    from models.io import WRITE_ERRORS
+
+    text = str(e)
+    return next((os.strerror(code) for code in WRITE_ERRORS if os.strerror(code) in text), None)
 
 
 def _address(value: str) -> str:

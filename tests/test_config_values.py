@@ -138,3 +138,19 @@ def test_a_sweep_of_millions_of_members_is_refused_before_expanding():
     with pytest.raises(ConfigError, match="1,000,000 members"):
         load_config(DEFAULT, [f"sweep={{{axes}}}"])
     assert time.perf_counter() - t0 < 5
+
+
+def test_a_full_disk_inside_torch_or_mitsuba_is_said(tmp_path, capsys, monkeypatch):
+    """torch and Mitsuba raise ENOSPC as a RuntimeError with the OS's words in it."""
+    import errno
+    import os
+
+    from pipeline import cli
+    from pipeline.stages import fiber
+
+    def full(cfg, out_root="artifacts"):
+        raise RuntimeError(f"[Bitmap] write(): {os.strerror(errno.ENOSPC)}")
+    monkeypatch.setattr(fiber, "run", full)
+    assert cli.main(["fiber", DEFAULT, "--artifacts", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "a write failed (No space left on device): free some space" in err and "Traceback" not in err
