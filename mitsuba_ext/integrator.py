@@ -148,7 +148,7 @@ def check_integrator(scene) -> str | None:
     integrator = scene.integrator()
     if uses and type(integrator).__name__ != "BundlePathIntegrator":
         return (f"the scene's fiber_bundle BSDFs need the bundle_path integrator (passthrough, displaced exits), "
-                f"but its integrator is {integrator.class_().name() if hasattr(integrator, 'class_') else type(integrator).__name__}: "
+                f"but its integrator is {type(integrator).__name__}: "
                 "use <integrator type=\"bundle_path\"> (it takes path's max_depth and rr_depth)")
     return None
 

@@ -19,15 +19,20 @@ def _refuse(plugin: str, name: str, value, expected: str):
     raise ValueError(f"{plugin}: '{name}' must be {expected}, got {value!r} ({type(value).__name__})")
 
 
+def _domain(lo, hi) -> str:
+    """``[lo, hi]``, ``>= lo`` or ``<= hi``; empty when both ends are open."""
+    if np.isfinite(lo) and np.isfinite(hi):
+        return f"[{lo:g}, {hi:g}]"
+    return f">= {lo:g}" if np.isfinite(lo) else (f"<= {hi:g}" if np.isfinite(hi) else "")
+
+
 def number(plugin: str, name: str, value, lo=-np.inf, hi=np.inf) -> float:
     """A finite real number within ``[lo, hi]`` (not a boolean, not a string)."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         _refuse(plugin, name, value, "a number")
     x = float(value)
     if not (np.isfinite(x) and lo <= x <= hi):
-        domain = f"[{lo:g}, {hi:g}]" if np.isfinite(lo) and np.isfinite(hi) else (
-            f">= {lo:g}" if np.isfinite(lo) else "finite")
-        _refuse(plugin, name, value, domain)
+        _refuse(plugin, name, value, _domain(lo, hi) or "finite")
     return x
 
 
@@ -40,9 +45,8 @@ def integer(plugin: str, name: str, value, lo=-np.inf, hi=np.inf) -> int:
         _refuse(plugin, name, value, "an integer (no fraction)")
     k = int(value)
     if not lo <= k <= hi:
-        domain = f"in [{lo:g}, {hi:g}]" if np.isfinite(lo) and np.isfinite(hi) else (
-            f">= {lo:g}" if np.isfinite(lo) else f"<= {hi:g}")
-        _refuse(plugin, name, value, f"an integer {domain}")
+        domain = _domain(lo, hi)
+        _refuse(plugin, name, value, f"an integer {'in ' if domain.startswith('[') else ''}{domain}")
     return k
 
 
@@ -52,13 +56,6 @@ def boolean(plugin: str, name: str, value) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         _refuse(plugin, name, value, "a boolean (XML <boolean name=... value=\"true\"/>, Python True/False)")
     return bool(value)
-
-
-def choice(plugin: str, name: str, value, options) -> str:
-    """One of the strings ``options``."""
-    if not isinstance(value, str) or value not in options:
-        _refuse(plugin, name, value, "one of " + ", ".join(repr(o) for o in options))
-    return value
 
 
 def vector3(plugin: str, name: str, value) -> np.ndarray:

@@ -107,8 +107,8 @@ def atomic_path(path, journaled: bool = True):
             os.remove(tmp)
 
 
-# what a full or read-only disk raises: said plainly by `bcsdf` (exit 2), not as a traceback
-# errors of the disk or its limits (a full or read-only disk, a file-size limit, a name too long)
+# what the disk or its limits raise (full, over quota, read-only, a file-size limit, a name
+# too long): said plainly by `bcsdf` (exit 2), not as a traceback
 WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG,
                 errno.ENAMETOOLONG)
 # something in the artifacts tree in the way: a folder where a file belongs, a file where a

@@ -66,6 +66,8 @@ class Wavelengths(Strict):
 
 
 SpectralValue = Union[float, list[tuple[float, float]]]
+Micrometres = Annotated[float, Field(le=1e5)]  # a length in the cross-section
+Degrees = Annotated[float, Field(ge=-360, le=360)]
 
 
 class IOR(Strict):
@@ -153,7 +155,7 @@ class BundleCfg(Strict):
     arrangement: Literal["poisson", "file", "zhao2016"] = "poisson"
     shape: Literal["circle", "ellipse"] = "circle"
     radius_um: Optional[float] = Field(None, gt=0.0, le=1e5, description="circle radius")
-    semi_axes_um: Optional[tuple[Annotated[float, Field(le=1e5)], Annotated[float, Field(le=1e5)]]] = Field(None, description="ellipse (major on x, minor on z)")
+    semi_axes_um: Optional[tuple[Micrometres, Micrometres]] = Field(None, description="ellipse (major on x, minor on z)")
     gap_um: float = Field(0.0, ge=0.0, le=1e4)
     packing: Optional[float] = Field(None, gt=0.0, lt=0.91)
     file: Optional[str] = None
@@ -321,8 +323,7 @@ class ClothCfg(Strict):
     plies: Optional[int] = Field(None, ge=1, le=16, description="ply count (default: the Zhao yarn's)")
     ply_pitch_mm: Optional[float] = Field(None, description="one turn of the plies, signed (default: Zhao's, scaled)")
     tolerance: float = Field(0.01, gt=0.0, le=0.5, description="centre-line conversion, in yarn radii")
-    rotate_deg: tuple[Annotated[float, Field(ge=-360, le=360)], Annotated[float, Field(ge=-360, le=360)],
-                      Annotated[float, Field(ge=-360, le=360)]] = Field((0.0, 0.0, 0.0), description="about x, then y, then z")
+    rotate_deg: tuple[Degrees, Degrees, Degrees] = Field((0.0, 0.0, 0.0), description="about x, then y, then z")
     variant: Literal[RENDER_VARIANTS] = "llvm_ad_spectral"
     backends: Backends = Field(default_factory=lambda: ["table", "mlp"])
     width: int = Field(640, ge=8, le=8192)
@@ -585,10 +586,11 @@ def sweep_members(cfg: Config) -> list[tuple[dict, Config]]:
     if len(set(short.values())) < len(short):  # bundle.seed and bake.seed: keep the whole key
         short = {k: k for k in axes}
     base = cfg.model_dump(mode="json", exclude={"sweep"})
+    labels = {k: _labels(values) for k, values in axes.items()}
     members = []
-    for n, combo in enumerate(itertools.product(*axes.values())):
-        point = dict(zip(axes, combo))
-        name = "_".join(f"{short[k]}-{_label(v, axes[k])}" for k, v in point.items())
+    for n, picks in enumerate(itertools.product(*(range(len(values)) for values in axes.values()))):
+        point = {k: axes[k][i] for k, i in zip(axes, picks)}
+        name = "_".join(f"{short[k]}-{labels[k][i]}" for k, i in zip(axes, picks))
         if len(name) > 100:
             name = f"member-{n:03d}"
         data = json.loads(json.dumps(base))
@@ -605,18 +607,16 @@ def sweep_members(cfg: Config) -> list[tuple[dict, Config]]:
     return members
 
 
-def _label(value, values) -> str:
-    """A value as it reads in a member's folder name: its short form, or its index where it
-    has none or where another value of the axis prints alike (0.1 and 0.1000001 would
-    otherwise share one member folder)."""
+def _labels(values) -> list[str]:
+    """Each value of an axis as it reads in a member's folder name: its short form, or its
+    index where it has none or where another value of the axis prints alike (0.1 and
+    0.1000001 would otherwise share one member folder)."""
     def text(v):
         t = f"{v:g}" if isinstance(v, float) else str(v)
         ok = not isinstance(v, (dict, list)) and t and all(c.isalnum() or c in "_.-" for c in t)
         return t if ok else None
-    mine = text(value)
-    if mine is None or sum(text(v) == mine for v in values) > 1:
-        return f"v{values.index(value)}"
-    return mine
+    texts = [text(v) for v in values]
+    return [t if t is not None and texts.count(t) == 1 else f"v{k}" for k, t in enumerate(texts)]
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):

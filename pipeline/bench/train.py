@@ -80,7 +80,7 @@ def profile_steps(cfg, problem, name, hidden, steps=30) -> dict:
 
     c = cfg.train
     spec = dataclasses.replace(problem.base, hidden=list(hidden))
-    p = BinFit(spec, problem.data, problem.train_idx, problem.val_idx, problem.w)
+    p = BinFit(spec, problem)
     model = make_torch_model(spec)
     opt = torch.optim.Adam(model.parameters(), lr=c.lr)
     gen = torch.Generator().manual_seed(0)

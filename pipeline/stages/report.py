@@ -144,6 +144,7 @@ def summary_section(cfg, root: Path, out_root) -> str:
     export stage's measurement.
     """
     from ..graph import stamp_path
+    from .render import model_size
 
     lines = []
     summaries = {n: json.loads((root / "train" / n / "summary.json").read_text()) for n in cfg.train.models
@@ -168,7 +169,7 @@ def summary_section(cfg, root: Path, out_root) -> str:
                      f"({m['parameters']:,} parameters): held-out relative L1 {m['relative_l1']:.1%} (the table's own "
                      f"noise {m['table_noise_l1']:.1%})" + (f", worst albedo error {albedo:.2%}" if albedo is not None
                                                             else "") + f"{cost}.")
-        used = cfg.render.model or max(cfg.train.models, key=lambda s: sum(cfg.train.models[s]))
+        used = model_size(cfg)
         lines.append(f" The renders below use <b>{html.escape(used)}</b> (<code>render.model</code>).</p>"
                      if used != pick else " The renders below use it (<code>render.model</code>).</p>")
     times = []

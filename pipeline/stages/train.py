@@ -237,13 +237,14 @@ class BinFit:
     points the estimate's variance biased the fit low.
     """
 
-    def __init__(self, spec: NeuralSpec, data, train_idx, val_idx, w):
+    def __init__(self, spec: NeuralSpec, problem: Problem):
         import torch
 
+        data = problem.data
         self.spec, self.data = spec, data
-        self.Y, self.W = torch.from_numpy(data.y), torch.from_numpy(w)
+        self.Y, self.W = torch.from_numpy(data.y), torch.from_numpy(problem.w)
         self.cell = torch.from_numpy(data.cell.astype(np.float32))
-        self.tr, self.va = torch.from_numpy(train_idx), torch.from_numpy(val_idx)
+        self.tr, self.va = torch.from_numpy(problem.train_idx), torch.from_numpy(problem.val_idx)
         self.every = torch.arange(len(data.x))
 
     @staticmethod
@@ -293,7 +294,7 @@ def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
 
     torch.manual_seed(c.seed)
     model = make_torch_model(spec)
-    p = BinFit(spec, problem.data, problem.train_idx, problem.val_idx, problem.w)
+    p = BinFit(spec, problem)
     t0 = time.perf_counter()
     history, best = fit_bins(model, p, c, name, on_epoch, t0)
     t1 = time.perf_counter()
