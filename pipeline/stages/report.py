@@ -144,12 +144,13 @@ def summary_section(cfg, root: Path, out_root) -> str:
     export stage's measurement.
     """
     from ..graph import stamp_path
-    from .render import model_size
 
     lines = []
     summaries = {n: json.loads((root / "train" / n / "summary.json").read_text()) for n in cfg.train.models
                  if (root / "train" / n / "summary.json").exists()}
     if cfg.bundle is not None and summaries:
+        from .render import model_size
+
         best = min(m["relative_l1"] for m in summaries.values())
         fits = [n for n, m in summaries.items() if m["relative_l1"] <= 1.2 * best
                 and m.get("worst_albedo_error_after", 0.0) < 0.02]
