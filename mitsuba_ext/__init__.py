@@ -1,4 +1,5 @@
-"""Mitsuba 3 plugins for fiber bundles: BSDFs ``fiber_bundle`` and ``fiber_table``, integrator ``bundle_path``.
+"""Mitsuba 3 plugins for fiber bundles: BSDFs ``fiber_bundle``, ``fiber_table`` and
+``fiber_ray``, integrator ``bundle_path``.
 
 Usage, after choosing a variant at your entry point::
 
@@ -8,20 +9,46 @@ Usage, after choosing a variant at your entry point::
     mitsuba_ext.register()          # now {'type': 'fiber_bundle'} and 'bundle_path' load
 
 Python plugins derive from the active variant's classes, so call :func:`register`
-again after switching variants.
+again after switching variants. The modules:
+
+=================  =================================================================
+``bsdf``           the BSDF plugin classes (need a variant at import)
+``integrator``     the ``bundle_path`` class (needs a variant at import)
+``frame``          the bundle frame along a curve, angles, spectra to colours
+``crossing``       displaced exits, the far side, checks of a scene's bundles
+``backends``       how ``fiber_bundle`` evaluates S: table, ONNX, jitted MLP
+``table``          the bundle table's lookup in Dr.Jit
+``neural``         the exported MLP in onnxruntime and as Dr.Jit arithmetic
+``sampling``       importance sampling of outgoing directions from cells
+``params``         typed readers of plugin parameters
+=================  =================================================================
 """
 
+import importlib
 
-def register() -> None:
-    """Register ``fiber_bundle``, ``fiber_table`` and ``bundle_path`` for the active Mitsuba variant."""
+
+def plugin_modules() -> list:
+    """The plugin modules, imported for the active variant (reloaded after a switch)."""
     import mitsuba as mi
 
     if mi.variant() is None:
         raise RuntimeError("mitsuba_ext.register(): choose a variant first, e.g. mi.set_variant('llvm_ad_rgb')")
-    from mitsuba_ext.bsdf import bsdf_classes
-    from mitsuba_ext.integrator import integrator_class
+    modules = []
+    for name in ("mitsuba_ext.bsdf", "mitsuba_ext.integrator"):
+        module = importlib.import_module(name)
+        if module.VARIANT != mi.variant():  # its classes derive from another variant's
+            module = importlib.reload(module)
+        modules.append(module)
+    return modules
 
-    for name, cls in bsdf_classes().items():
+
+def register() -> None:
+    """Register ``fiber_bundle``, ``fiber_table``, ``fiber_ray`` and ``bundle_path`` for the
+    active Mitsuba variant."""
+    import mitsuba as mi
+
+    bsdf, integrator = plugin_modules()
+    for name, cls in bsdf.PLUGINS.items():
         mi.register_bsdf(name, lambda props, cls=cls: cls(props))
-    integrator = integrator_class()
-    mi.register_integrator("bundle_path", lambda props: integrator(props))
+    for name, cls in integrator.PLUGINS.items():
+        mi.register_integrator(name, lambda props, cls=cls: cls(props))

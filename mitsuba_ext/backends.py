@@ -20,8 +20,7 @@ import os
 import numpy as np
 
 from mitsuba_ext.sampling import DirectionGrid
-from mitsuba_ext.table import axis_corners
-from models.grid import bin_solid_angle
+from models.grid import bin_solid_angle, linear
 from models.jit import to_drjit
 
 BACKENDS = ("table", "mlp", "onnx")
@@ -31,7 +30,7 @@ def _periodic_linear(Float, values, nodes, phi):
     """Periodic linear interpolation of ``values`` at uniform ``nodes`` (radians)."""
     import drjit as dr
 
-    i0, i1, w = axis_corners(Float, phi, np.asarray(nodes, float), periodic=True)
+    i0, i1, w = linear(np.asarray(nodes, float), phi, periodic=True, xp=dr)
     arr = Float(np.asarray(values, np.float32))
     return dr.lerp(dr.gather(Float, arr, i0), dr.gather(Float, arr, i1), w)
 

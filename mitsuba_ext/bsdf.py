@@ -1,669 +1,528 @@
-"""BSDFs on curves: ``fiber_bundle`` (a baked or neural bundle) and ``fiber_table``
-(one fiber's tabulated model, for explicit-fiber ground truth renders).
+"""BSDFs on curves: ``fiber_bundle`` (a baked or neural bundle), ``fiber_table`` (one
+fiber's tabulated model) and ``fiber_ray`` (one ray-optics fiber, path by path), for
+explicit-fiber ground-truth renders.
 
-Call :func:`mitsuba_ext.register` after ``mi.set_variant`` to make them available;
-the classes are built for the active variant (Mitsuba's Python plugins derive from
-the variant's ``mi.BSDF``).
+Mitsuba's Python plugins derive from the active variant's ``mi.BSDF``, so this module
+is imported once a variant is chosen, as Mitsuba's own Python plugins are:
+:func:`mitsuba_ext.register` imports it (and reloads it after a variant switch) and
+registers :data:`PLUGINS`. The geometry they share is in ``mitsuba_ext.frame``.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from mitsuba_ext.backends import load_backend
+from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, resolve_path,
+                               spectral_weights, split_uniform)
 from mitsuba_ext.params import boolean, number, vector3
-from models.spectrum import spectrum_to_srgb
+from models.fiber import lobes
+from models.fiber.base import FiberTable
+from models.fiber.lobes import LobeSampler
+from models.fiber.sampling import FiberSampler
+from models.fiber.sampling_drjit import DrJitFiber
+
+if mi.variant() is None:
+    raise ImportError("mitsuba_ext.bsdf: choose a Mitsuba variant first (mi.set_variant), then "
+                      "mitsuba_ext.register()")
+VARIANT = mi.variant()  # the variant these classes derive from
 
 
-# -- small pure functions: the geometry of the bundle frame -----------------------
-def arc_length(si):
-    """Distance along the shape from its start, ``v |dp/dv|``.
+class CurveBSDF(mi.BSDF):
+    """What both plugins share: the curve frame, spectra, inside hits, attributes."""
 
-    On ``cylinder`` and ``bsplinecurve``, ``v = si.uv.y`` runs from 0 to 1 along the
-    shape (on a curve file, along all its curves in turn), so ``v |dp/dv|`` is the arc
-    length exactly on a cylinder and on curves of constant parametric speed (evenly
-    spaced control points); elsewhere it is the local estimate. Zero where the shape
-    gives no derivative.
+    def _init_curve(self, props, wavelength):
+        def get(name, default):
+            return props.get(name, default)
+
+        self.twist = float(np.radians(number(self.plugin, "twist", get("twist", 0.0))))
+        self.twist_rate = float(np.radians(number(self.plugin, "twist_rate", get("twist_rate", 0.0))))
+        up = vector3(self.plugin, "up", get("up", [0.0, 0.0, 1.0]))
+        if np.linalg.norm(up) == 0:
+            raise ValueError(f"{self.plugin}: 'up' must be a non-zero 3-vector, got {up}")
+        self.up = [float(v) for v in up / np.linalg.norm(up)]
+        self.radius = number(self.plugin, "radius", get("radius", 0.0), lo=0.0)
+
+        # how the table's wavelengths become this variant's Spectrum
+        self.wavelength = wl = np.asarray(wavelength, float)
+        if mi.is_spectral:
+            if len(wl) < 2:
+                raise ValueError(f"{self.plugin}: the table holds one wavelength ({wl[0]:.0f} nm); a spectral "
+                                 "variant needs a spectrum: re-bake with more wavelengths or render in a mono variant")
+            step = np.diff(wl)
+            if not np.allclose(step, step[0], rtol=1e-4):
+                raise ValueError(f"{self.plugin}: spectral variants need evenly spaced table wavelengths")
+            self.weights = None
+        else:
+            kind = "rgb" if mi.is_rgb else "mono"
+            mono_nm = number(self.plugin, "wavelength", props["wavelength"], 1.0) if "wavelength" in props else None
+            self.weights = spectral_weights(wl, kind, mono_nm).tolist()
+
+    def _spectrum(self, S, si):
+        """Table spectrum (list over lambda) -> this variant's unpolarized Spectrum."""
+        if self.weights is not None:
+            chans = []
+            for row in self.weights:
+                acc = mi.Float(0.0)
+                for w, s in zip(row, S):
+                    if w != 0.0:
+                        acc = dr.fma(s, w, acc)
+                chans.append(acc)
+            return mi.UnpolarizedSpectrum(*chans) if len(chans) > 1 else mi.UnpolarizedSpectrum(chans[0])
+        wl = self.wavelength
+        lam0, step, n = float(wl[0]), float(wl[1] - wl[0]), len(wl)
+        # hat functions of linear interpolation, held constant beyond the ends
+        t = dr.clip((si.wavelengths - lam0) / step, 0.0, float(n - 1))
+        out = dr.zeros(mi.UnpolarizedSpectrum, dr.width(t))
+        for k, s in enumerate(S):
+            out += s * dr.maximum(0.0, 1.0 - dr.abs(t - k))
+        return dr.select(dr.isfinite(out), dr.maximum(out, 0.0), 0.0)
+
+    def _setup(self, si):
+        """Curve frame, incident angles and whether the ray arrived from inside."""
+        frame = bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
+        wi = si.to_world(si.wi)
+        phi_i, theta_i = angles(wi, frame)
+        # a hit from inside passes; so does one whose frame is degenerate (no direction)
+        inside = (mi.Frame3f.cos_theta(si.wi) < 0.0) | ~dr.isfinite(dr.sum(wi))
+        return frame, phi_i, theta_i, inside
+
+    def _passthrough(self, si, phi_i, inside):
+        return dr.select(inside, 1.0, 0.0)
+
+    def _load_fiber(self, props, what: str):
+        """The single-fiber table named by ``filename`` (``what``: the words for the error)."""
+        if "filename" not in props:
+            raise ValueError(f"{self.plugin}: needs 'filename' ({what})")
+        return FiberTable.load(resolve_path(self.plugin, "filename", props["filename"]))
+
+    def _fiber_components(self, n_scatter: int = 1):
+        """A single fiber's components: ``n_scatter`` glossy ones (one per path where the
+        model has paths), then passing, for hits from inside the shape only."""
+        scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
+                   mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
+        passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
+        self.m_components = [scatter] * n_scatter + [passing]
+        self.m_flags = scatter | passing
+
+    def eval_attribute_1(self, name, si, active=True):
+        if name == "passthrough":
+            _, phi_i, _, inside = self._setup(si)
+            return self._passthrough(si, phi_i, inside)
+        if name == "radius":
+            return dr.zeros(mi.Float, dr.width(si.t)) + self.radius
+        return dr.zeros(mi.Float, dr.width(si.t))
+
+    def has_attribute(self, name, active=True):
+        return name in ("passthrough", "radius")
+
+class FiberBundleBSDF(CurveBSDF):
+    r"""Fiber bundle BSDF (``fiber_bundle``)
+    -------------------------------------
+
+    The far-field scattering function of a bundle of parallel fibers (a yarn ply),
+    baked by ``bcsdf bake`` or compressed by ``bcsdf train``/``export``, on a
+    ``cylinder`` or ``bsplinecurve`` whose radius is the bundle's bounding radius.
+
+    .. list-table::
+       :header-rows: 1
+
+       * - Parameter
+         - Description
+       * - backend
+         - ``table`` (default), ``mlp`` (jitted Dr.Jit MLP) or ``onnx`` (onnxruntime).
+       * - table
+         - ``bundle_table.npz`` (backend ``table``).
+       * - model
+         - ``weights.npz`` (``mlp``) or ``model.onnx`` (``onnx``) from ``bcsdf export``.
+       * - lookup
+         - ``linear`` (default: each bin its value plus limited slopes, so that it
+           averages to its value; theta_i nodes read along their own specular cone
+           and blended) or ``nearest`` (the nearest node's bin value).
+       * - passthrough
+         - Let rays cross the bundle with the baked probability (default ``true``).
+       * - twist, twist_rate
+         - Orientation of an elliptical cross-section about the tangent, in degrees,
+           and its change in degrees per scene unit of length along the shape
+           (default 0, 0; the length is ``v |dp/dv|``, exact on cylinders and on
+           curves with evenly spaced control points).
+       * - up
+         - Reference vector for the cross-section's major axis (default ``[0, 0, 1]``).
+       * - wavelength
+         - Mono variants: the wavelength (nm) to render; default CIE luminance.
+       * - radius
+         - Optional: the bundle radius in scene units. ``bundle_path`` reads it from
+           the shape (``|dp/du| = 2 pi r`` per hit on ``cylinder`` and
+           ``bsplinecurve``) and warns once if this one disagrees. Must be >= 0.
+       * - sampling_uniform
+         - Fraction of direction samples drawn uniformly on the sphere, in [0, 1]
+           (default 0.1).
+
+    File parameters (``table``, ``model``) resolve like Mitsuba's own ``filename``:
+    relative to the XML scene's folder, else to the current one. Every parameter
+    is checked at load (a value outside its domain is refused, naming it).
+
+    **Supported**: ``cylinder`` and ``bsplinecurve`` shapes whose radius is the
+    bundle's bounding radius (``bundle_path`` warns once about any other shape:
+    the frame follows a tangent only these two have); every Mitsuba variant (the
+    ``onnx`` backend in evaluated mode only); ``path`` and ``bundle_path``
+    integrators (only ``bundle_path`` crosses bundles with their passthrough in
+    shadow rays and leaves them from the displaced exit point).
+    **Which direction is incident.** The table's ``S(w_i -> w_o)`` has ``w_i`` on the
+    light's side (the bake's incidence). In ``eval(ctx, si, wo)`` of a path tracer
+    (``TransportMode.Radiance``) the light side is ``wo`` and the camera side
+    ``si.wi``, so ``eval = S(w_i = wo -> w_o = si.wi) cos(theta_wo) / cos(theta_si.wi)``:
+    then a cylinder of radius ``R`` under a directional light ``E`` from ``w_i`` and
+    seen from ``w_o`` sends ``I = E 2R cos(theta_i) S(w_i -> w_o)`` per unit length,
+    the far field the table describes (``pipeline.closure`` tests it in every
+    backend). For a reciprocal ``S`` this is ``S(si.wi -> wo)``; a baked table is
+    reciprocal only within its noise and an MLP within its error, so the order is
+    kept exactly. In ``TransportMode.Importance`` (light tracing) ``si.wi`` is the
+    light side and ``eval = S(si.wi -> wo)``. ``sample`` proposes ``wo`` from the
+    table (or the model's own tabulation) conditioned on ``si.wi``, mixed with a
+    uniform share; ``pdf`` is that proposal's density (Mitsuba's chi-square test),
+    and the weight ``eval / pdf`` is exact whatever the proposal.
+
+    The passthrough is a null lobe
+    (``sample`` returns ``w_o = -w_i`` with probability ``P_pass(phi_i)``); a hit from
+    the inside of the shape always passes, so the far wall of a cylinder is not a
+    second interaction. Spectral variants interpolate the table's wavelengths
+    linearly (held constant outside), rgb variants see the spectrum under D65.
+
+    .. code-block:: python
+
+        import mitsuba as mi
+        mi.set_variant("llvm_ad_spectral")
+        import mitsuba_ext
+        mitsuba_ext.register()
+        bsdf = mi.load_dict({"type": "fiber_bundle", "backend": "mlp",
+                             "model": "artifacts/default/export/medium/weights.npz"})
     """
-    import drjit as dr
 
-    s = si.uv.y * dr.norm(si.dp_dv)
-    return dr.select(dr.isfinite(s), s, 0.0)
+    plugin = "fiber_bundle"
 
+    def __init__(self, props):
+        super().__init__(props)
+        self.backend = load_backend(props.get("backend", "table"), mi.Float,
+                                    table=resolve_path(self.plugin, "table", props.get("table", None)),
+                                    model=resolve_path(self.plugin, "model", props.get("model", None)),
+                                    lookup=props.get("lookup", "linear"))
+        uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
+        self.grid = self.backend.sampling_grid(uniform)
+        self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
+        self._init_curve(props, self.backend.wavelength)
+        scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
+                   mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide | mi.BSDFFlags.NonSymmetric)
+        passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
+        self.m_components = [scatter, passing]
+        self.m_flags = scatter | passing
 
-def bundle_frame(si, up, twist, twist_rate):
-    """World axes ``(x, t, z)`` of the bundle frame at ``si``.
-
-    ``t`` is the curve tangent (the shading frame's second axis on ``cylinder`` and
-    ``bsplinecurve``); ``x`` is ``up`` projected perpendicular to ``t`` and turned about
-    ``t`` by ``twist + twist_rate * s`` (radians, and radians per scene unit of the
-    :func:`arc_length` ``s``), so an elliptical bundle's major axis winds along the
-    curve at the same pitch whatever the curve's length. Degenerate tangents or an
-    ``up`` parallel to the tangent fall back to a frame built from the normal.
-    """
-    import drjit as dr
-    import mitsuba as mi
-
-    t = si.sh_frame.t
-    bad_t = ~dr.isfinite(dr.sum(t)) | (dr.squared_norm(t) < 0.25)
-    n_ok = dr.isfinite(dr.sum(si.n)) & (dr.squared_norm(si.n) > 0.25)
-    t_alt, _ = mi.coordinate_system(dr.select(n_ok, dr.normalize(si.n), mi.Vector3f(0, 0, 1)))
-    t = dr.normalize(dr.select(bad_t, t_alt, t))
-    x0 = up - dr.dot(up, t) * t
-    x_alt, _ = mi.coordinate_system(t)
-    x0 = dr.select(dr.squared_norm(x0) < 1e-6, x_alt, dr.normalize(x0))
-    s, c = dr.sincos(twist + twist_rate * arc_length(si))
-    x = c * x0 + s * dr.cross(t, x0)
-    z = dr.cross(x, t)
-    return x, t, z
-
-
-def angles(w, frame):
-    """``(phi, theta)`` of a world direction in the bundle frame (docs/DESIGN.md conventions).
-
-    A non-finite direction (a degenerate shading frame) gives (0, 0), never NaN: the
-    angles become table indices, and a NaN index reads out of bounds.
-    """
-    import drjit as dr
-
-    x, t, z = frame
-    theta = dr.safe_asin(dr.clip(dr.dot(w, t), -1.0, 1.0))
-    phi = dr.atan2(dr.dot(w, z), dr.dot(w, x))
-    ok = dr.isfinite(theta) & dr.isfinite(phi)
-    return dr.select(ok, phi, 0.0), dr.select(ok, theta, 0.0)
-
-
-def direction(phi, theta, frame):
-    """World direction of bundle-frame angles."""
-    import drjit as dr
-
-    x, t, z = frame
-    sp, cp = dr.sincos(phi)
-    st, ct = dr.sincos(theta)
-    return ct * (cp * x + sp * z) + st * t
-
-
-def spectral_weights(wavelength_nm, variant_kind: str, mono_nm=None) -> np.ndarray:
-    """Weights ``[channels, n_lambda]`` from the table's spectrum to a non-spectral variant.
-
-    rgb: linear sRGB of the spectrum seen under D65 (``models.spectrum``); mono: the
-    value at ``mono_nm`` (linear interpolation), or the CIE luminance Y if none is given.
-    """
-    wl = np.asarray(wavelength_nm, float)
-    eye = np.eye(len(wl))
-    if variant_kind == "rgb":
-        return spectrum_to_srgb(eye, wl).T
-    if mono_nm is not None:
-        if not wl[0] <= mono_nm <= wl[-1]:
-            raise ValueError(f"fiber_bundle: wavelength {mono_nm} nm is outside the table's "
-                             f"{wl[0]:.0f}..{wl[-1]:.0f} nm")
-        return np.array([[np.interp(mono_nm, wl, eye[k]) for k in range(len(wl))]])
-    import colour
-
-    rgb = spectrum_to_srgb(eye, wl)  # Y is the second row of XYZ
-    Y = colour.sRGB_to_XYZ(rgb, apply_cctf_decoding=False)[:, 1]
-    return Y[None, :]
-
-
-def split_uniform(u, bits: int = 12):
-    """Two uniforms from one: its top ``bits`` bits and the remaining fraction."""
-    import drjit as dr
-
-    scaled = u * float(1 << bits)
-    hi = dr.floor(scaled)
-    return hi * (1.0 / (1 << bits)), scaled - hi
-
-
-def light_and_camera(ctx, si, wo):
-    """Which of Mitsuba's two directions is the table's ``w_i`` (the light side).
-
-    In Mitsuba's ``eval(ctx, si, wo)`` of a path tracer (``TransportMode.Radiance``)
-    ``wo`` points towards the light and ``si.wi`` towards the camera; a light tracer
-    (``Importance``) swaps them. Returns local ``(w_light, w_camera, radiance)``.
-    """
-    import mitsuba as mi
-
-    if ctx.mode == mi.TransportMode.Radiance:
-        return wo, si.wi, True
-    return si.wi, wo, False
-
-
-def adjoint_factor(theta_light, theta_camera):
-    """``cos(theta_light) / cos(theta_camera)``: the radiance-mode value from the table's.
-
-    The far field of a cylinder seen along ``w_o`` is ``I = E 2R cos(theta_i) S(w_i -> w_o)``,
-    while a render collects ``2R cos(theta_o) E eval``; so in radiance mode
-    ``eval = S(w_i -> w_o) cos(theta_i) / cos(theta_o)`` with ``w_i`` the light side.
-    For a reciprocal ``S`` this equals ``S(w_o -> w_i)``. The camera's cosine is kept
-    from zero (a view along the axis sees no projected width anyway).
-    """
-    import drjit as dr
-
-    return dr.cos(theta_light) / dr.maximum(dr.cos(theta_camera), 1e-4)
-
-
-def resolve_path(plugin: str, name: str, value) -> str | None:
-    """A file parameter resolved as Mitsuba resolves its own ``filename``s: against the
-    file resolver, which holds the scene file's folder while an XML scene loads."""
-    import mitsuba as mi
-
-    if value is None:
-        return None
-    found = str(mi.Thread.thread().file_resolver().resolve(str(value)))
-    if not Path(found).exists():
-        raise ValueError(f"{plugin}: '{name}' file {value} not found (looked in the current folder and in the "
-                         "scene file's folder); give a path relative to the scene file or an absolute one")
-    return found
-
-
-def bsdf_classes() -> dict:
-    """``{"fiber_bundle": ..., "fiber_table": ...}`` plugin classes for the active variant."""
-    import drjit as dr
-    import mitsuba as mi
-
-    class CurveBSDF(mi.BSDF):
-        """What both plugins share: the curve frame, spectra, inside hits, attributes."""
-
-        def _init_curve(self, props, wavelength):
-            def get(name, default):
-                return props.get(name, default)
-
-            self.twist = float(np.radians(number(self.plugin, "twist", get("twist", 0.0))))
-            self.twist_rate = float(np.radians(number(self.plugin, "twist_rate", get("twist_rate", 0.0))))
-            up = vector3(self.plugin, "up", get("up", [0.0, 0.0, 1.0]))
-            if np.linalg.norm(up) == 0:
-                raise ValueError(f"{self.plugin}: 'up' must be a non-zero 3-vector, got {up}")
-            self.up = [float(v) for v in up / np.linalg.norm(up)]
-            self.radius = number(self.plugin, "radius", get("radius", 0.0), lo=0.0)
-
-            # how the table's wavelengths become this variant's Spectrum
-            self.wavelength = wl = np.asarray(wavelength, float)
-            if mi.is_spectral:
-                if len(wl) < 2:
-                    raise ValueError(f"{self.plugin}: the table holds one wavelength ({wl[0]:.0f} nm); a spectral "
-                                     "variant needs a spectrum: re-bake with more wavelengths or render in a mono variant")
-                step = np.diff(wl)
-                if not np.allclose(step, step[0], rtol=1e-4):
-                    raise ValueError(f"{self.plugin}: spectral variants need evenly spaced table wavelengths")
-                self.weights = None
-            else:
-                kind = "rgb" if mi.is_rgb else "mono"
-                mono_nm = number(self.plugin, "wavelength", props["wavelength"], 1.0) if "wavelength" in props else None
-                self.weights = spectral_weights(wl, kind, mono_nm).tolist()
-
-        def _spectrum(self, S, si):
-            """Table spectrum (list over lambda) -> this variant's unpolarized Spectrum."""
-            if self.weights is not None:
-                chans = []
-                for row in self.weights:
-                    acc = mi.Float(0.0)
-                    for w, s in zip(row, S):
-                        if w != 0.0:
-                            acc = dr.fma(s, w, acc)
-                    chans.append(acc)
-                return mi.UnpolarizedSpectrum(*chans) if len(chans) > 1 else mi.UnpolarizedSpectrum(chans[0])
-            wl = self.wavelength
-            lam0, step, n = float(wl[0]), float(wl[1] - wl[0]), len(wl)
-            # hat functions of linear interpolation, held constant beyond the ends
-            t = dr.clip((si.wavelengths - lam0) / step, 0.0, float(n - 1))
-            out = dr.zeros(mi.UnpolarizedSpectrum, dr.width(t))
-            for k, s in enumerate(S):
-                out += s * dr.maximum(0.0, 1.0 - dr.abs(t - k))
-            return dr.select(dr.isfinite(out), dr.maximum(out, 0.0), 0.0)
-
-        def _setup(self, si):
-            """Curve frame, incident angles and whether the ray arrived from inside."""
-            frame = bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
-            wi = si.to_world(si.wi)
-            phi_i, theta_i = angles(wi, frame)
-            # a hit from inside passes; so does one whose frame is degenerate (no direction)
-            inside = (mi.Frame3f.cos_theta(si.wi) < 0.0) | ~dr.isfinite(dr.sum(wi))
-            return frame, phi_i, theta_i, inside
-
-        def _passthrough(self, si, phi_i, inside):
+    def _passthrough(self, si, phi_i, inside):
+        if not self.use_passthrough:
             return dr.select(inside, 1.0, 0.0)
-
-        def _load_fiber(self, props, what: str):
-            """The single-fiber table named by ``filename`` (``what``: the words for the error)."""
-            from models.fiber.base import FiberTable
-
-            if "filename" not in props:
-                raise ValueError(f"{self.plugin}: needs 'filename' ({what})")
-            return FiberTable.load(resolve_path(self.plugin, "filename", props["filename"]))
-
-        def _fiber_components(self, n_scatter: int = 1):
-            """A single fiber's components: ``n_scatter`` glossy ones (one per path where the
-            model has paths), then passing, for hits from inside the shape only."""
-            scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
-                       mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
-            passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
-            self.m_components = [scatter] * n_scatter + [passing]
-            self.m_flags = scatter | passing
-
-        def eval_attribute_1(self, name, si, active=True):
-            if name == "passthrough":
-                _, phi_i, _, inside = self._setup(si)
-                return self._passthrough(si, phi_i, inside)
-            if name == "radius":
-                return dr.zeros(mi.Float, dr.width(si.t)) + self.radius
-            return dr.zeros(mi.Float, dr.width(si.t))
-
-        def has_attribute(self, name, active=True):
-            return name in ("passthrough", "radius")
-
-    class FiberBundleBSDF(CurveBSDF):
-        r"""Fiber bundle BSDF (``fiber_bundle``)
-        -------------------------------------
-
-        The far-field scattering function of a bundle of parallel fibers (a yarn ply),
-        baked by ``bcsdf bake`` or compressed by ``bcsdf train``/``export``, on a
-        ``cylinder`` or ``bsplinecurve`` whose radius is the bundle's bounding radius.
-
-        .. list-table::
-           :header-rows: 1
-
-           * - Parameter
-             - Description
-           * - backend
-             - ``table`` (default), ``mlp`` (jitted Dr.Jit MLP) or ``onnx`` (onnxruntime).
-           * - table
-             - ``bundle_table.npz`` (backend ``table``).
-           * - model
-             - ``weights.npz`` (``mlp``) or ``model.onnx`` (``onnx``) from ``bcsdf export``.
-           * - lookup
-             - ``linear`` (default: each bin its value plus limited slopes, so that it
-               averages to its value; theta_i nodes read along their own specular cone
-               and blended) or ``nearest`` (the nearest node's bin value).
-           * - passthrough
-             - Let rays cross the bundle with the baked probability (default ``true``).
-           * - twist, twist_rate
-             - Orientation of an elliptical cross-section about the tangent, in degrees,
-               and its change in degrees per scene unit of length along the shape
-               (default 0, 0; the length is ``v |dp/dv|``, exact on cylinders and on
-               curves with evenly spaced control points).
-           * - up
-             - Reference vector for the cross-section's major axis (default ``[0, 0, 1]``).
-           * - wavelength
-             - Mono variants: the wavelength (nm) to render; default CIE luminance.
-           * - radius
-             - Optional: the bundle radius in scene units. ``bundle_path`` reads it from
-               the shape (``|dp/du| = 2 pi r`` per hit on ``cylinder`` and
-               ``bsplinecurve``) and warns once if this one disagrees. Must be >= 0.
-           * - sampling_uniform
-             - Fraction of direction samples drawn uniformly on the sphere, in [0, 1]
-               (default 0.1).
-
-        File parameters (``table``, ``model``) resolve like Mitsuba's own ``filename``:
-        relative to the XML scene's folder, else to the current one. Every parameter
-        is checked at load (a value outside its domain is refused, naming it).
-
-        **Supported**: ``cylinder`` and ``bsplinecurve`` shapes whose radius is the
-        bundle's bounding radius (``bundle_path`` warns once about any other shape:
-        the frame follows a tangent only these two have); every Mitsuba variant (the
-        ``onnx`` backend in evaluated mode only); ``path`` and ``bundle_path``
-        integrators (only ``bundle_path`` crosses bundles with their passthrough in
-        shadow rays and leaves them from the displaced exit point).
-        **Which direction is incident.** The table's ``S(w_i -> w_o)`` has ``w_i`` on the
-        light's side (the bake's incidence). In ``eval(ctx, si, wo)`` of a path tracer
-        (``TransportMode.Radiance``) the light side is ``wo`` and the camera side
-        ``si.wi``, so ``eval = S(w_i = wo -> w_o = si.wi) cos(theta_wo) / cos(theta_si.wi)``:
-        then a cylinder of radius ``R`` under a directional light ``E`` from ``w_i`` and
-        seen from ``w_o`` sends ``I = E 2R cos(theta_i) S(w_i -> w_o)`` per unit length,
-        the far field the table describes (``pipeline.closure`` tests it in every
-        backend). For a reciprocal ``S`` this is ``S(si.wi -> wo)``; a baked table is
-        reciprocal only within its noise and an MLP within its error, so the order is
-        kept exactly. In ``TransportMode.Importance`` (light tracing) ``si.wi`` is the
-        light side and ``eval = S(si.wi -> wo)``. ``sample`` proposes ``wo`` from the
-        table (or the model's own tabulation) conditioned on ``si.wi``, mixed with a
-        uniform share; ``pdf`` is that proposal's density (Mitsuba's chi-square test),
-        and the weight ``eval / pdf`` is exact whatever the proposal.
-
-        The passthrough is a null lobe
-        (``sample`` returns ``w_o = -w_i`` with probability ``P_pass(phi_i)``); a hit from
-        the inside of the shape always passes, so the far wall of a cylinder is not a
-        second interaction. Spectral variants interpolate the table's wavelengths
-        linearly (held constant outside), rgb variants see the spectrum under D65.
-
-        .. code-block:: python
-
-            import mitsuba as mi
-            mi.set_variant("llvm_ad_spectral")
-            import mitsuba_ext
-            mitsuba_ext.register()
-            bsdf = mi.load_dict({"type": "fiber_bundle", "backend": "mlp",
-                                 "model": "artifacts/default/export/medium/weights.npz"})
-        """
-
-        plugin = "fiber_bundle"
-
-        def __init__(self, props):
-            super().__init__(props)
-            self.backend = load_backend(props.get("backend", "table"), mi.Float,
-                                        table=resolve_path(self.plugin, "table", props.get("table", None)),
-                                        model=resolve_path(self.plugin, "model", props.get("model", None)),
-                                        lookup=props.get("lookup", "linear"))
-            uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
-            self.grid = self.backend.sampling_grid(uniform)
-            self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
-            self._init_curve(props, self.backend.wavelength)
-            scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
-                       mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide | mi.BSDFFlags.NonSymmetric)
-            passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
-            self.m_components = [scatter, passing]
-            self.m_flags = scatter | passing
-
-        def _passthrough(self, si, phi_i, inside):
-            if not self.use_passthrough:
-                return dr.select(inside, 1.0, 0.0)
-            return dr.select(inside, 1.0, dr.clip(self.backend.passthrough(phi_i), 0.0, 1.0))
-
-        def _value(self, ctx, si, frame, wo):
-            """The BSDF value for local ``wo``: the table's ``S(w_i -> w_o)`` with ``w_i``
-            the light side, times the adjoint factor in radiance mode."""
-            w_light, w_camera, radiance = light_and_camera(ctx, si, wo)
-            phi_l, theta_l = angles(si.to_world(w_light), frame)
-            phi_c, theta_c = angles(si.to_world(w_camera), frame)
-            value = self._spectrum(self.backend.eval(phi_l, theta_l, phi_c, theta_c), si)
-            return value * adjoint_factor(theta_l, theta_c) if radiance else value
-
-        # -- the BSDF interface ---------------------------------------------
-        def eval(self, ctx, si, wo, active=True):
-            frame, _, _, inside = self._setup(si)
-            value = self._value(ctx, si, frame, wo)
-            return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), value, 0.0)
-
-        def pdf(self, ctx, si, wo, active=True):
-            frame, phi_i, theta_i, inside = self._setup(si)
-            phi_o, theta_o = angles(si.to_world(wo), frame)
-            P = self._passthrough(si, phi_i, inside)
-            pdf = (1.0 - P) * self.grid.pdf(phi_i, theta_i, phi_o, theta_o)
-            return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), pdf, 0.0)
-
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            frame, phi_i, theta_i, inside = self._setup(si)
-            P = self._passthrough(si, phi_i, inside)
-            if not ctx.is_enabled(mi.BSDFFlags.Null, 1):
-                P = dr.zeros(mi.Float, dr.width(P))
-            elif not ctx.is_enabled(mi.BSDFFlags.Glossy, 0):
-                P = dr.select(P > 0, 1.0, 0.0)
-            passes = sample1 < P
-
-            # scattering: the remainder of sample1 picks uniform or tabulated sampling
-            u_mix = (sample1 - P) / dr.maximum(1.0 - P, 1e-12)
-            phi_o, theta_o, pdf_dir = self.grid.sample(phi_i, theta_i, u_mix, sample2)
-            wo_local = si.to_local(direction(phi_o, theta_o, frame))
-            value = self._value(ctx, si, frame, wo_local)
-
-            bs = dr.zeros(mi.BSDFSample3f)
-            bs.wo = dr.select(passes, -si.wi, wo_local)
-            bs.pdf = dr.select(passes, P, (1.0 - P) * pdf_dir)
-            bs.eta = 1.0
-            bs.sampled_type = dr.select(passes, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
-                                        mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
-            bs.sampled_component = dr.select(passes, mi.UInt32(1), mi.UInt32(0))
-            weight = dr.select(passes, 1.0, value / dr.maximum(bs.pdf, 1e-20))
-            ok = active & (bs.pdf > 0)
-            return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
-
-        def to_string(self):
-            return (f"FiberBundleBSDF[backend={self.backend.name}, wavelengths={len(self.wavelength)}, "
-                    f"passthrough={self.use_passthrough}]")
-
-    class FiberTableBSDF(CurveBSDF):
-        r"""Single fiber BSDF (``fiber_table``)
-        ------------------------------------
-
-        One fiber's tabulated scattering model (a ``fiber_table.npz`` from ``bcsdf fiber``)
-        on a ``cylinder`` or ``bsplinecurve`` of the fiber's radius: the ground truth that a
-        bundle BSDF is compared with, with every fiber of a ply as its own shape. ``eval``
-        is the far-field (offset-averaged) fiber function ``f(w_i -> w_o)``, cosine
-        included, with ``w_i`` the light side, read as ``fiber_bundle`` reads its table
-        (``f(wo -> si.wi) cos(theta_wo) / cos(theta_si.wi)`` in radiance mode); sampling
-        follows the fiber's own importance sampler (the baker's) from ``si.wi``.
-        With ``bundle_path`` the light leaves the fiber from the displaced exit point,
-        as in the baker.
-
-        .. list-table::
-           :header-rows: 1
-
-           * - Parameter
-             - Description
-           * - filename
-             - ``fiber_table.npz`` written by ``bcsdf fiber`` (resolved like Mitsuba's own
-               ``filename``: relative to the XML scene's folder).
-           * - radius
-             - Optional fiber radius in scene units (>= 0); ``bundle_path`` reads it from
-               the shape and warns once if this one disagrees.
-           * - up, twist, twist_rate
-             - As ``fiber_bundle`` (a fiber table is rotation invariant: they only set
-               the frame's azimuth origin).
-           * - wavelength
-             - Mono variants: the wavelength (nm) to render; default CIE luminance.
-
-        Defined on ``cylinder`` and ``bsplinecurve`` shapes, like ``fiber_bundle``.
-
-        .. code-block:: python
-
-            fiber = {"type": "fiber_table", "filename": "artifacts/default/fiber/fiber_table.npz"}
-            scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
-                                "bsdf": fiber}
-        """
-
-        plugin = "fiber_table"
-
-        def __init__(self, props):
-            super().__init__(props)
-            from models.fiber.sampling import FiberSampler
-            from models.fiber.sampling_drjit import DrJitFiber
-
-            table = self._load_fiber(props, "a fiber_table.npz written by `bcsdf fiber`")
-            self.fiber = DrJitFiber(table, FiberSampler(table), mi.Float)
-            self._init_curve(props, table.wavelength)
-            self._fiber_components()
-
-        def _angles(self, si, wo_world):
-            """Longitudes of ``si.wi`` and ``wo`` and their azimuth difference (wrapped)."""
-            frame, phi_i, theta_i, inside = self._setup(si)
-            phi_o, theta_o = angles(wo_world, frame)
-            dphi = phi_o - phi_i
-            return theta_i, theta_o, dphi - 2 * np.pi * dr.floor((dphi + np.pi) / (2 * np.pi)), inside
-
-        def _value(self, ctx, theta_si, theta_wo, dphi, si):
-            """``f(w_i -> w_o)`` with ``w_i`` the light side (``wo`` in radiance mode),
-            times the adjoint factor; ``dphi`` is ``phi(wo) - phi(si.wi)``."""
-            if ctx.mode == mi.TransportMode.Radiance:
-                f = self.fiber.eval_spectrum(theta_wo, theta_si, -dphi)
-                return self._spectrum(f, si) * adjoint_factor(theta_wo, theta_si)
-            return self._spectrum(self.fiber.eval_spectrum(theta_si, theta_wo, dphi), si)
-
-        def eval(self, ctx, si, wo, active=True):
-            theta_i, theta_o, dphi, inside = self._angles(si, si.to_world(wo))
-            value = self._value(ctx, theta_i, theta_o, dphi, si)
-            return dr.select(active & ~inside, value, 0.0)
-
-        def _pdf(self, theta_i, theta_o, dphi):
-            """Per steradian: the fiber sampler's density is per d(theta_o) d(phi)."""
-            return self.fiber.pdf(theta_i, theta_o, dphi) / dr.maximum(dr.cos(theta_o), 1e-6)
-
-        def pdf(self, ctx, si, wo, active=True):
-            theta_i, theta_o, dphi, inside = self._angles(si, si.to_world(wo))
-            return dr.select(active & ~inside, self._pdf(theta_i, theta_o, dphi), 0.0)
-
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            frame, phi_i, theta_i, inside = self._setup(si)
-            u0, u1 = split_uniform(sample1)
-            u3, u4 = split_uniform(sample2.y)
-            theta_o, dphi = self.fiber.sample(theta_i, [u0, u1, sample2.x, u3, u4])
-            wo_world = direction(phi_i + dphi, theta_o, frame)
-            pdf = self._pdf(theta_i, theta_o, dphi)
-            value = self._value(ctx, theta_i, theta_o, dphi, si)
-            # a ray that meets the fiber's wall from inside crosses it (the light of this
-            # fiber left through its displaced exit point already)
-            bs = dr.zeros(mi.BSDFSample3f)
-            bs.wo = dr.select(inside, -si.wi, si.to_local(wo_world))
-            bs.pdf = dr.select(inside, 1.0, pdf)
-            bs.eta = 1.0
-            bs.sampled_type = dr.select(inside, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
-                                        mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
-            bs.sampled_component = dr.select(inside, mi.UInt32(1), mi.UInt32(0))
-            weight = dr.select(inside, 1.0, value / dr.maximum(pdf, 1e-20))
-            ok = active & (inside | (pdf > 0))
-            return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
-
-        def to_string(self):
-            return f"FiberTableBSDF[wavelengths={len(self.wavelength)}]"
-
-    class FiberRayBSDF(CurveBSDF):
-        r"""Ray-optics fiber, resolved in the entry offset (``fiber_ray``)
-        -----------------------------------------------------------------
-
-        One smooth-walled ray-optics fiber (d'Eon / Chiang, ``fiber.model: ray``) on a
-        ``cylinder`` or ``bsplinecurve`` of the fiber's radius, evaluated at the hit's own
-        offset ``h`` across the fiber instead of averaged over it (``fiber_table``). Each
-        path ``p`` (R, TT, TRT, ..., the residual) is a BSDF component: ``bundle_path``
-        starts the light of path ``p`` from where that path leaves the fiber (the
-        attribute ``exit_<p>``, the outward normal there), for the sampled direction and
-        for every path of the emitter sample, as the baker's ``lobe`` exit does. This is
-        the explicit-fiber reference for bakes with ``bake.exit: lobe``. Under other
-        integrators it is Mitsuba's ``hair`` on tubes: every path leaves at the hit.
-
-        The paths are those of the ray that reached the hit (``si.wi``'s offset ``h``): a
-        smooth fiber's ray paths are reversible, so the camera ray's path ``p`` is the
-        light's path ``p`` run backwards. Its value is the light-side model, as
-        ``fiber_table`` reads it (longitudes, Bravais' index and attenuation of the light
-        side, times ``cos(theta_light) / cos(theta_camera)`` in radiance mode), so that
-        averaged over the fiber's width it is exactly ``fiber_table``'s.
-
-        .. list-table::
-           :header-rows: 1
-
-           * - Parameter
-             - Description
-           * - filename
-             - ``fiber_table.npz`` of a ray fiber (``bcsdf fiber`` with ``fiber.model: ray``):
-               its parameters (index and absorption per wavelength, roughness, tilt, paths).
-           * - radius, up, twist, twist_rate, wavelength
-             - As ``fiber_table``.
-
-        .. code-block:: python
-
-            fiber = {"type": "fiber_ray", "filename": "artifacts/ray_ply/fiber/fiber_table.npz"}
-            scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
-                                "bsdf": fiber}
-        """
-
-        plugin = "fiber_ray"
-
-        def __init__(self, props):
-            super().__init__(props)
-            from models.fiber.lobes import LobeSampler
-
-            table = self._load_fiber(props, "a fiber_table.npz of a ray fiber, from `bcsdf fiber`")
-            if table.meta.get("model") != "ray":
-                raise ValueError(f"fiber_ray: {props['filename']} holds a {table.meta.get('model')!r} fiber; "
-                                 "fiber_ray needs a ray fiber (use fiber_table for other models)")
-            self.lobes = LobeSampler(table.meta, table.wavelength, mi.Float)
-            self.n_paths = self.lobes.p_max + 1
-            self._init_curve(props, table.wavelength)
-            self._fiber_components(self.n_paths)
-
-        def _local(self, si, wo_world):
-            """Frame, ``theta`` of ``si.wi`` and ``wo``, ``dphi`` (wrapped), the offset ``h``
-            of ``si``'s ray and whether it arrived from inside."""
-            from models.fiber import lobes
-
-            frame, phi_i, theta_i, inside = self._setup(si)
-            phi_o, theta_o = angles(wo_world, frame)
-            dphi = lobes.wrap(phi_o - phi_i, dr)
-            return frame, theta_i, theta_o, dphi, self._offset(si, frame), inside
-
-        @staticmethod
-        def _offset(si, frame):
-            """``h`` of the ray that reached ``si``, in the bundle frame's cross-section."""
-            x, _, z = frame
-            n = dr.normalize(mi.Vector2f(dr.dot(si.n, x), dr.dot(si.n, z)))
-            d = -si.to_world(si.wi)
-            u = dr.normalize(mi.Vector2f(dr.dot(d, x), dr.dot(d, z)))
-            # the entry normal is -sqrt(1 - h^2) u + h u_perp, u_perp = (-u_z, u_x)
-            h = dr.clip(-n.x * u.y + n.y * u.x, -1.0, 1.0)
-            return dr.select(dr.isfinite(h), h, 0.0), n, u
-
-        def _components(self, ctx):
-            """The paths ``ctx`` asks for (all, one, or none: the passing component)."""
-            c = ctx.component
-            if c == 0xFFFFFFFF:
-                return range(self.n_paths)
-            return [c] if c < self.n_paths else []
-
-        def _path_value(self, ctx, h, p, theta_si, theta_wo, dphi):
-            """Path ``p``'s value at every wavelength: the light side is the incident one
-            (``wo`` in radiance mode), the offset and azimuth those of ``si``'s ray."""
-            if ctx.mode == mi.TransportMode.Radiance:
-                f, _ = self.lobes.eval_spectrum(theta_wo, h, p, theta_si, dphi)
-                scale = adjoint_factor(theta_wo, theta_si)
-                return [v * scale for v in f]
-            f, _ = self.lobes.eval_spectrum(theta_si, h, p, theta_wo, dphi)
-            return f
-
-        def eval(self, ctx, si, wo, active=True):
-            _, theta_i, theta_o, dphi, (h, _, _), inside = self._local(si, si.to_world(wo))
-            total = [dr.zeros(mi.Float, dr.width(h)) for _ in range(self.lobes.L)]
-            for p in self._components(ctx):
-                f = self._path_value(ctx, h, dr.zeros(mi.UInt32, dr.width(h)) + p, theta_i, theta_o, dphi)
-                total = [a + b for a, b in zip(total, f)]
-            return dr.select(active & ~inside, self._spectrum(total, si), 0.0)
-
-        def pdf(self, ctx, si, wo, active=True):
-            _, theta_i, theta_o, dphi, (h, _, _), inside = self._local(si, si.to_world(wo))
-            pdf = dr.zeros(mi.Float, dr.width(h))
-            for p in self._components(ctx):
-                pdf += self.lobes.pdf(theta_i, h, dr.zeros(mi.UInt32, dr.width(h)) + p, theta_o, dphi)
-            return dr.select(active & ~inside, pdf / dr.maximum(dr.cos(theta_o), 1e-6), 0.0)
-
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            frame, phi_i, theta_i, inside = self._setup(si)
-            h, _, _ = self._offset(si, frame)
-            u0, u1 = split_uniform(sample1)
-            p, theta_o, dphi, pdf = self.lobes.sample(theta_i, h, [u0, u1, sample2.x, sample2.y])
-            wo_world = direction(phi_i + dphi, theta_o, frame)
-            f = self._path_value(ctx, h, p, theta_i, theta_o, dphi)
-            pdf = pdf / dr.maximum(dr.cos(theta_o), 1e-6)
-            bs = dr.zeros(mi.BSDFSample3f)
-            bs.wo = dr.select(inside, -si.wi, si.to_local(wo_world))
-            bs.pdf = dr.select(inside, 1.0, pdf)
-            bs.eta = 1.0
-            bs.sampled_type = dr.select(inside, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
-                                        mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
-            bs.sampled_component = dr.select(inside, mi.UInt32(self.n_paths), p)
-            weight = dr.select(inside, 1.0, self._spectrum(f, si) / dr.maximum(pdf, 1e-20))
-            ok = active & (inside | (pdf > 0))
-            return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
-
-        def eval_attribute_3(self, name, si, active=True):
-            """``exit_<p>``: the world outward normal where path ``p`` leaves (zero for the
-            residual, which has no single exit, and for other names)."""
-            zero = dr.zeros(mi.Color3f, dr.width(si.t))
-            if not name.startswith("exit_") or not name[5:].isdigit() or int(name[5:]) >= self.lobes.p_max:
-                return zero
-            p = int(name[5:])
-            frame, _, theta_i, _ = self._setup(si)
-            h, n, _ = self._offset(si, frame)
-            nx, nz = self.lobes.exit_normal(n.x, n.y, dr.zeros(mi.UInt32, dr.width(h)) + p, h, theta_i, dr)
-            x, _, z = frame
-            w = nx * x + nz * z
-            return mi.Color3f(w.x, w.y, w.z)
-
-        def eval_attribute_1(self, name, si, active=True):
-            if name == "paths":
-                return dr.zeros(mi.Float, dr.width(si.t)) + self.n_paths
-            return super().eval_attribute_1(name, si, active)
-
-        def has_attribute(self, name, active=True):
-            return name in ("passthrough", "radius", "paths") or name.startswith("exit_")
-
-        def to_string(self):
-            return f"FiberRayBSDF[paths={self.n_paths}, wavelengths={len(self.wavelength)}]"
-
-    return {"fiber_bundle": FiberBundleBSDF, "fiber_table": FiberTableBSDF, "fiber_ray": FiberRayBSDF}
+        return dr.select(inside, 1.0, dr.clip(self.backend.passthrough(phi_i), 0.0, 1.0))
+
+    def _value(self, ctx, si, frame, wo):
+        """The BSDF value for local ``wo``: the table's ``S(w_i -> w_o)`` with ``w_i``
+        the light side, times the adjoint factor in radiance mode."""
+        w_light, w_camera, radiance = light_and_camera(ctx, si, wo)
+        phi_l, theta_l = angles(si.to_world(w_light), frame)
+        phi_c, theta_c = angles(si.to_world(w_camera), frame)
+        value = self._spectrum(self.backend.eval(phi_l, theta_l, phi_c, theta_c), si)
+        return value * adjoint_factor(theta_l, theta_c) if radiance else value
+
+    # -- the BSDF interface ---------------------------------------------
+    def eval(self, ctx, si, wo, active=True):
+        frame, _, _, inside = self._setup(si)
+        value = self._value(ctx, si, frame, wo)
+        return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), value, 0.0)
+
+    def pdf(self, ctx, si, wo, active=True):
+        frame, phi_i, theta_i, inside = self._setup(si)
+        phi_o, theta_o = angles(si.to_world(wo), frame)
+        P = self._passthrough(si, phi_i, inside)
+        pdf = (1.0 - P) * self.grid.pdf(phi_i, theta_i, phi_o, theta_o)
+        return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), pdf, 0.0)
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        frame, phi_i, theta_i, inside = self._setup(si)
+        P = self._passthrough(si, phi_i, inside)
+        if not ctx.is_enabled(mi.BSDFFlags.Null, 1):
+            P = dr.zeros(mi.Float, dr.width(P))
+        elif not ctx.is_enabled(mi.BSDFFlags.Glossy, 0):
+            P = dr.select(P > 0, 1.0, 0.0)
+        passes = sample1 < P
+
+        # scattering: the remainder of sample1 picks uniform or tabulated sampling
+        u_mix = (sample1 - P) / dr.maximum(1.0 - P, 1e-12)
+        phi_o, theta_o, pdf_dir = self.grid.sample(phi_i, theta_i, u_mix, sample2)
+        wo_local = si.to_local(direction(phi_o, theta_o, frame))
+        value = self._value(ctx, si, frame, wo_local)
+
+        bs = dr.zeros(mi.BSDFSample3f)
+        bs.wo = dr.select(passes, -si.wi, wo_local)
+        bs.pdf = dr.select(passes, P, (1.0 - P) * pdf_dir)
+        bs.eta = 1.0
+        bs.sampled_type = dr.select(passes, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
+                                    mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
+        bs.sampled_component = dr.select(passes, mi.UInt32(1), mi.UInt32(0))
+        weight = dr.select(passes, 1.0, value / dr.maximum(bs.pdf, 1e-20))
+        ok = active & (bs.pdf > 0)
+        return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
+
+    def to_string(self):
+        return (f"FiberBundleBSDF[backend={self.backend.name}, wavelengths={len(self.wavelength)}, "
+                f"passthrough={self.use_passthrough}]")
+
+class FiberTableBSDF(CurveBSDF):
+    r"""Single fiber BSDF (``fiber_table``)
+    ------------------------------------
+
+    One fiber's tabulated scattering model (a ``fiber_table.npz`` from ``bcsdf fiber``)
+    on a ``cylinder`` or ``bsplinecurve`` of the fiber's radius: the ground truth that a
+    bundle BSDF is compared with, with every fiber of a ply as its own shape. ``eval``
+    is the far-field (offset-averaged) fiber function ``f(w_i -> w_o)``, cosine
+    included, with ``w_i`` the light side, read as ``fiber_bundle`` reads its table
+    (``f(wo -> si.wi) cos(theta_wo) / cos(theta_si.wi)`` in radiance mode); sampling
+    follows the fiber's own importance sampler (the baker's) from ``si.wi``.
+    With ``bundle_path`` the light leaves the fiber from the displaced exit point,
+    as in the baker.
+
+    .. list-table::
+       :header-rows: 1
+
+       * - Parameter
+         - Description
+       * - filename
+         - ``fiber_table.npz`` written by ``bcsdf fiber`` (resolved like Mitsuba's own
+           ``filename``: relative to the XML scene's folder).
+       * - radius
+         - Optional fiber radius in scene units (>= 0); ``bundle_path`` reads it from
+           the shape and warns once if this one disagrees.
+       * - up, twist, twist_rate
+         - As ``fiber_bundle`` (a fiber table is rotation invariant: they only set
+           the frame's azimuth origin).
+       * - wavelength
+         - Mono variants: the wavelength (nm) to render; default CIE luminance.
+
+    Defined on ``cylinder`` and ``bsplinecurve`` shapes, like ``fiber_bundle``.
+
+    .. code-block:: python
+
+        fiber = {"type": "fiber_table", "filename": "artifacts/default/fiber/fiber_table.npz"}
+        scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
+                            "bsdf": fiber}
+    """
+
+    plugin = "fiber_table"
+
+    def __init__(self, props):
+        super().__init__(props)
+        table = self._load_fiber(props, "a fiber_table.npz written by `bcsdf fiber`")
+        self.fiber = DrJitFiber(table, FiberSampler(table), mi.Float)
+        self._init_curve(props, table.wavelength)
+        self._fiber_components()
+
+    def _angles(self, si, wo_world):
+        """Longitudes of ``si.wi`` and ``wo`` and their azimuth difference (wrapped)."""
+        frame, phi_i, theta_i, inside = self._setup(si)
+        phi_o, theta_o = angles(wo_world, frame)
+        dphi = phi_o - phi_i
+        return theta_i, theta_o, dphi - 2 * np.pi * dr.floor((dphi + np.pi) / (2 * np.pi)), inside
+
+    def _value(self, ctx, theta_si, theta_wo, dphi, si):
+        """``f(w_i -> w_o)`` with ``w_i`` the light side (``wo`` in radiance mode),
+        times the adjoint factor; ``dphi`` is ``phi(wo) - phi(si.wi)``."""
+        if ctx.mode == mi.TransportMode.Radiance:
+            f = self.fiber.eval_spectrum(theta_wo, theta_si, -dphi)
+            return self._spectrum(f, si) * adjoint_factor(theta_wo, theta_si)
+        return self._spectrum(self.fiber.eval_spectrum(theta_si, theta_wo, dphi), si)
+
+    def eval(self, ctx, si, wo, active=True):
+        theta_i, theta_o, dphi, inside = self._angles(si, si.to_world(wo))
+        value = self._value(ctx, theta_i, theta_o, dphi, si)
+        return dr.select(active & ~inside, value, 0.0)
+
+    def _pdf(self, theta_i, theta_o, dphi):
+        """Per steradian: the fiber sampler's density is per d(theta_o) d(phi)."""
+        return self.fiber.pdf(theta_i, theta_o, dphi) / dr.maximum(dr.cos(theta_o), 1e-6)
+
+    def pdf(self, ctx, si, wo, active=True):
+        theta_i, theta_o, dphi, inside = self._angles(si, si.to_world(wo))
+        return dr.select(active & ~inside, self._pdf(theta_i, theta_o, dphi), 0.0)
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        frame, phi_i, theta_i, inside = self._setup(si)
+        u0, u1 = split_uniform(sample1)
+        u3, u4 = split_uniform(sample2.y)
+        theta_o, dphi = self.fiber.sample(theta_i, [u0, u1, sample2.x, u3, u4])
+        wo_world = direction(phi_i + dphi, theta_o, frame)
+        pdf = self._pdf(theta_i, theta_o, dphi)
+        value = self._value(ctx, theta_i, theta_o, dphi, si)
+        # a ray that meets the fiber's wall from inside crosses it (the light of this
+        # fiber left through its displaced exit point already)
+        bs = dr.zeros(mi.BSDFSample3f)
+        bs.wo = dr.select(inside, -si.wi, si.to_local(wo_world))
+        bs.pdf = dr.select(inside, 1.0, pdf)
+        bs.eta = 1.0
+        bs.sampled_type = dr.select(inside, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
+                                    mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
+        bs.sampled_component = dr.select(inside, mi.UInt32(1), mi.UInt32(0))
+        weight = dr.select(inside, 1.0, value / dr.maximum(pdf, 1e-20))
+        ok = active & (inside | (pdf > 0))
+        return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
+
+    def to_string(self):
+        return f"FiberTableBSDF[wavelengths={len(self.wavelength)}]"
+
+class FiberRayBSDF(CurveBSDF):
+    r"""Ray-optics fiber, resolved in the entry offset (``fiber_ray``)
+    -----------------------------------------------------------------
+
+    One smooth-walled ray-optics fiber (d'Eon / Chiang, ``fiber.model: ray``) on a
+    ``cylinder`` or ``bsplinecurve`` of the fiber's radius, evaluated at the hit's own
+    offset ``h`` across the fiber instead of averaged over it (``fiber_table``). Each
+    path ``p`` (R, TT, TRT, ..., the residual) is a BSDF component: ``bundle_path``
+    starts the light of path ``p`` from where that path leaves the fiber (the
+    attribute ``exit_<p>``, the outward normal there), for the sampled direction and
+    for every path of the emitter sample, as the baker's ``lobe`` exit does. This is
+    the explicit-fiber reference for bakes with ``bake.exit: lobe``. Under other
+    integrators it is Mitsuba's ``hair`` on tubes: every path leaves at the hit.
+
+    The paths are those of the ray that reached the hit (``si.wi``'s offset ``h``): a
+    smooth fiber's ray paths are reversible, so the camera ray's path ``p`` is the
+    light's path ``p`` run backwards. Its value is the light-side model, as
+    ``fiber_table`` reads it (longitudes, Bravais' index and attenuation of the light
+    side, times ``cos(theta_light) / cos(theta_camera)`` in radiance mode), so that
+    averaged over the fiber's width it is exactly ``fiber_table``'s.
+
+    .. list-table::
+       :header-rows: 1
+
+       * - Parameter
+         - Description
+       * - filename
+         - ``fiber_table.npz`` of a ray fiber (``bcsdf fiber`` with ``fiber.model: ray``):
+           its parameters (index and absorption per wavelength, roughness, tilt, paths).
+       * - radius, up, twist, twist_rate, wavelength
+         - As ``fiber_table``.
+
+    .. code-block:: python
+
+        fiber = {"type": "fiber_ray", "filename": "artifacts/ray_ply/fiber/fiber_table.npz"}
+        scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
+                            "bsdf": fiber}
+    """
+
+    plugin = "fiber_ray"
+
+    def __init__(self, props):
+        super().__init__(props)
+        table = self._load_fiber(props, "a fiber_table.npz of a ray fiber, from `bcsdf fiber`")
+        if table.meta.get("model") != "ray":
+            raise ValueError(f"fiber_ray: {props['filename']} holds a {table.meta.get('model')!r} fiber; "
+                             "fiber_ray needs a ray fiber (use fiber_table for other models)")
+        self.lobes = LobeSampler(table.meta, table.wavelength, mi.Float)
+        self.n_paths = self.lobes.p_max + 1
+        self._init_curve(props, table.wavelength)
+        self._fiber_components(self.n_paths)
+
+    def _local(self, si, wo_world):
+        """Frame, ``theta`` of ``si.wi`` and ``wo``, ``dphi`` (wrapped), the offset ``h``
+        of ``si``'s ray and whether it arrived from inside."""
+        frame, phi_i, theta_i, inside = self._setup(si)
+        phi_o, theta_o = angles(wo_world, frame)
+        dphi = lobes.wrap(phi_o - phi_i, dr)
+        return frame, theta_i, theta_o, dphi, self._offset(si, frame), inside
+
+    @staticmethod
+    def _offset(si, frame):
+        """``h`` of the ray that reached ``si``, in the bundle frame's cross-section."""
+        x, _, z = frame
+        n = dr.normalize(mi.Vector2f(dr.dot(si.n, x), dr.dot(si.n, z)))
+        d = -si.to_world(si.wi)
+        u = dr.normalize(mi.Vector2f(dr.dot(d, x), dr.dot(d, z)))
+        # the entry normal is -sqrt(1 - h^2) u + h u_perp, u_perp = (-u_z, u_x)
+        h = dr.clip(-n.x * u.y + n.y * u.x, -1.0, 1.0)
+        return dr.select(dr.isfinite(h), h, 0.0), n, u
+
+    def _components(self, ctx):
+        """The paths ``ctx`` asks for (all, one, or none: the passing component)."""
+        c = ctx.component
+        if c == 0xFFFFFFFF:
+            return range(self.n_paths)
+        return [c] if c < self.n_paths else []
+
+    def _path_value(self, ctx, h, p, theta_si, theta_wo, dphi):
+        """Path ``p``'s value at every wavelength: the light side is the incident one
+        (``wo`` in radiance mode), the offset and azimuth those of ``si``'s ray."""
+        if ctx.mode == mi.TransportMode.Radiance:
+            f, _ = self.lobes.eval_spectrum(theta_wo, h, p, theta_si, dphi)
+            scale = adjoint_factor(theta_wo, theta_si)
+            return [v * scale for v in f]
+        f, _ = self.lobes.eval_spectrum(theta_si, h, p, theta_wo, dphi)
+        return f
+
+    def eval(self, ctx, si, wo, active=True):
+        _, theta_i, theta_o, dphi, (h, _, _), inside = self._local(si, si.to_world(wo))
+        total = [dr.zeros(mi.Float, dr.width(h)) for _ in range(self.lobes.L)]
+        for p in self._components(ctx):
+            f = self._path_value(ctx, h, dr.zeros(mi.UInt32, dr.width(h)) + p, theta_i, theta_o, dphi)
+            total = [a + b for a, b in zip(total, f)]
+        return dr.select(active & ~inside, self._spectrum(total, si), 0.0)
+
+    def pdf(self, ctx, si, wo, active=True):
+        _, theta_i, theta_o, dphi, (h, _, _), inside = self._local(si, si.to_world(wo))
+        pdf = dr.zeros(mi.Float, dr.width(h))
+        for p in self._components(ctx):
+            pdf += self.lobes.pdf(theta_i, h, dr.zeros(mi.UInt32, dr.width(h)) + p, theta_o, dphi)
+        return dr.select(active & ~inside, pdf / dr.maximum(dr.cos(theta_o), 1e-6), 0.0)
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        frame, phi_i, theta_i, inside = self._setup(si)
+        h, _, _ = self._offset(si, frame)
+        u0, u1 = split_uniform(sample1)
+        p, theta_o, dphi, pdf = self.lobes.sample(theta_i, h, [u0, u1, sample2.x, sample2.y])
+        wo_world = direction(phi_i + dphi, theta_o, frame)
+        f = self._path_value(ctx, h, p, theta_i, theta_o, dphi)
+        pdf = pdf / dr.maximum(dr.cos(theta_o), 1e-6)
+        bs = dr.zeros(mi.BSDFSample3f)
+        bs.wo = dr.select(inside, -si.wi, si.to_local(wo_world))
+        bs.pdf = dr.select(inside, 1.0, pdf)
+        bs.eta = 1.0
+        bs.sampled_type = dr.select(inside, mi.UInt32(+(mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission)),
+                                    mi.UInt32(+mi.BSDFFlags.GlossyTransmission))
+        bs.sampled_component = dr.select(inside, mi.UInt32(self.n_paths), p)
+        weight = dr.select(inside, 1.0, self._spectrum(f, si) / dr.maximum(pdf, 1e-20))
+        ok = active & (inside | (pdf > 0))
+        return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
+
+    def eval_attribute_3(self, name, si, active=True):
+        """``exit_<p>``: the world outward normal where path ``p`` leaves (zero for the
+        residual, which has no single exit, and for other names)."""
+        zero = dr.zeros(mi.Color3f, dr.width(si.t))
+        if not name.startswith("exit_") or not name[5:].isdigit() or int(name[5:]) >= self.lobes.p_max:
+            return zero
+        p = int(name[5:])
+        frame, _, theta_i, _ = self._setup(si)
+        h, n, _ = self._offset(si, frame)
+        nx, nz = self.lobes.exit_normal(n.x, n.y, dr.zeros(mi.UInt32, dr.width(h)) + p, h, theta_i, dr)
+        x, _, z = frame
+        w = nx * x + nz * z
+        return mi.Color3f(w.x, w.y, w.z)
+
+    def eval_attribute_1(self, name, si, active=True):
+        if name == "paths":
+            return dr.zeros(mi.Float, dr.width(si.t)) + self.n_paths
+        return super().eval_attribute_1(name, si, active)
+
+    def has_attribute(self, name, active=True):
+        return name in ("passthrough", "radius", "paths") or name.startswith("exit_")
+
+    def to_string(self):
+        return f"FiberRayBSDF[paths={self.n_paths}, wavelengths={len(self.wavelength)}]"
+
+
+PLUGINS = {"fiber_bundle": FiberBundleBSDF, "fiber_table": FiberTableBSDF, "fiber_ray": FiberRayBSDF}

@@ -1,439 +1,305 @@
 """The ``bundle_path`` integrator: Mitsuba's ``path`` plus what fiber bundles need.
 
-Call :func:`mitsuba_ext.register` after ``mi.set_variant`` to make it available.
+Mitsuba's Python plugins derive from the active variant's classes, so this module is
+imported once a variant is chosen: :func:`mitsuba_ext.register` imports it (and reloads
+it after a variant switch). Its ``@dr.syntax`` methods are recompiled from their source
+and see this module's globals. The geometry it uses is in ``mitsuba_ext.crossing``.
 """
 
 from __future__ import annotations
 
-# At module level (no variant is chosen here): the @dr.syntax methods below are
-# recompiled from their source, and see this module's globals, not a closure's.
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_ext.crossing import bundle_axis, check_bundles, displaced_exit, far_side, mis_weight, offset_ray
 from mitsuba_ext.params import boolean, integer
 
-
-# -- small pure functions ----------------------------------------------------------
-def mis_weight(pdf_a, pdf_b):
-    """Power heuristic, as Mitsuba's ``path`` (zero where undefined)."""
-    a, b = dr.square(pdf_a), dr.square(pdf_b)
-    w = a / (a + b)
-    return dr.detach(dr.select(dr.isfinite(w), w, 0.0))
+if mi.variant() is None:
+    raise ImportError("mitsuba_ext.integrator: choose a Mitsuba variant first (mi.set_variant), then "
+                      "mitsuba_ext.register()")
+VARIANT = mi.variant()  # the variant this class derives from
 
 
-def bundle_axis(si):
-    """Unit tangent and in-plane outward normal of a bundle hit (``None``-safe: finite)."""
-    t = si.sh_frame.t
-    ok = dr.isfinite(dr.sum(t)) & (dr.squared_norm(t) > 0.25) & dr.isfinite(dr.sum(si.n))
-    t = dr.select(ok, dr.normalize(t), mi.Vector3f(0, 1, 0))
-    n_perp = si.n - dr.dot(si.n, t) * t
-    ok &= dr.squared_norm(n_perp) > 1e-8
-    return t, dr.select(ok, dr.normalize(n_perp), mi.Vector3f(0, 0, 1)), ok
+class BundlePathIntegrator(mi.SamplingIntegrator):
+    r"""Bundle path tracer (``bundle_path``)
+    -------------------------------------
 
+    Mitsuba's ``path`` integrator (next-event estimation, multiple importance
+    sampling, Russian roulette) with the two special cases of ``fiber_bundle``
+    surfaces (any BSDF with a ``passthrough`` attribute):
 
-def displaced_exit(si, r, h, w):
-    """Where light scattered into ``w`` leaves a bundle of radius ``r`` (thesis 3.3).
+    * **passthrough**: the BSDF's null lobe continues the ray in the same direction;
+      the far wall of the bundle is crossed as a null interface. Passthrough events
+      do not count as bounces and leave the MIS state of the last real vertex alone.
+      Shadow rays cross bundles with transmittance ``P_pass`` (``path`` would treat
+      them as opaque and find those paths by BSDF sampling only).
+    * **displaced exit**: scattered light, and the shadow ray of next-event
+      estimation, leave from :func:`displaced_exit`, with ``h`` uniform in [-1, 1].
+      The radius comes from the shape (``|dp/du| = 2 pi r`` per hit on
+      ``cylinder`` and ``bsplinecurve``), else the BSDF's ``radius``, else a probe
+      ray across the shape.
 
-    A ray in direction ``w``, shifted sideways from the bundle's axis by ``h r`` along
-    the side vector ``t x w``, leaves the bounding cylinder at
-    ``c + r (h s + sqrt(1 - h^2) o)`` in the cross-section of the hit (``c`` the axis
-    point, ``o`` the direction of ``w`` in that plane). Fibers are parallel and the
-    table knows no axial displacement, so the exit stays in the hit's cross-section.
-    Returns the exit point and its outward radial direction (for the ray offset).
+    On scenes without bundles it is ``path``, sample for sample.
+
+    .. list-table::
+       :header-rows: 1
+
+       * - Parameter
+         - Description
+       * - max_depth
+         - Longest path (bounces; passthrough events excluded). Default -1: no limit.
+       * - rr_depth
+         - Depth at which Russian roulette starts (default 5).
+       * - displaced_exit
+         - Leave bundles from the displaced exit point (default ``true``).
+       * - max_passes
+         - Most bundle crossings of one path or shadow ray (default 64).
+
+    Not supported: ``hide_emitters`` (refused at load). Bundles belong on
+    ``cylinder`` and ``bsplinecurve`` shapes; the first render of a scene warns
+    once about a bundle BSDF on any other shape, or a BSDF ``radius`` that
+    disagrees with its shape's (:func:`check_bundles`).
+
+    .. code-block:: python
+
+        mi.set_variant("llvm_ad_rgb"); mitsuba_ext.register()
+        scene = mi.load_dict({..., "integrator": {"type": "bundle_path", "max_depth": 32}})
     """
-    t, n_perp, ok = bundle_axis(si)
-    c = si.p - r * n_perp
-    w_perp = w - dr.dot(w, t) * t
-    ok &= dr.squared_norm(w_perp) > 1e-10
-    o = dr.normalize(w_perp)
-    s = dr.cross(t, o)
-    radial = h * s + dr.safe_sqrt(1.0 - dr.square(h)) * o
-    p = c + r * radial
-    ok &= r > 0
-    return dr.select(ok, p, si.p), dr.select(ok, radial, si.n)
 
+    def __init__(self, props):
+        super().__init__(props)
+        max_depth = integer("bundle_path", "max_depth", props.get("max_depth", -1), lo=-1)  # -1: no limit
+        self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth
+        self.rr_depth = integer("bundle_path", "rr_depth", props.get("rr_depth", 5), lo=1)
+        self.displace = boolean("bundle_path", "displaced_exit", props.get("displaced_exit", True))
+        self.max_passes = integer("bundle_path", "max_passes", props.get("max_passes", 64), lo=1)
+        if boolean("bundle_path", "hide_emitters", props.get("hide_emitters", False)):
+            raise ValueError("bundle_path: hide_emitters is not supported (directly visible emitters are "
+                             "always shown); leave it out")
+        self._checked = {}
+        self._paths = 0
 
-def far_side(si, r, d):
-    """Where a ray entering a bundle of radius ``r`` at ``si`` along ``d`` leaves it.
+    def _check(self, scene):
+        """Warn once per scene about bundles on shapes they are not defined on; count the
+        paths of the scene's h-resolved fibers (``fiber_ray``: one emitter sample per path)."""
+        if id(scene) not in self._checked:
+            for line in check_bundles(scene):
+                mi.Log(mi.LogLevel.Warn, "bundle_path: " + line)
+            self._checked[id(scene)] = max([int(getattr(s.bsdf(), "n_paths", 0)) for s in scene.shapes()] + [0])
+        self._paths = self._checked[id(scene)]
 
-    The far end of the chord in the hit's cross-section, and the outward radial
-    direction there (for the ray offset). Spawning the continuing ray there, rather
-    than just inside the entry point, crosses the bundle as one null event: a ray
-    spawned a float epsilon inside a long thin cylinder was seen to hit the same
-    entry wall again (from outside: a second scattering event for the same light).
-    """
-    t, n_perp, ok = bundle_axis(si)
-    d_perp = d - dr.dot(d, t) * t
-    dd = dr.squared_norm(d_perp)
-    ok &= (dd > 1e-10) & (r > 0)
-    s = dr.maximum(-2.0 * r * dr.dot(n_perp, d_perp) / dr.maximum(dd, 1e-10), 0.0)
-    p = si.p + s * d
-    c = si.p - r * n_perp
-    radial = (p - c) - dr.dot(p - c, t) * t
-    radial = dr.normalize(dr.select(dr.squared_norm(radial) > 0, radial, n_perp))
-    return dr.select(ok, p, si.p), dr.select(ok, radial, si.n), ok
+    # -- h-resolved fibers: each path leaves from its own exit point --------------
+    def _path_exit(self, si, bsdf, radius, p, w, active):
+        """Start and outward normal of light leaving along ``w`` on path ``p`` (a Python
+        int) of an h-resolved fiber, and whether the path has a single exit (not the
+        residual). A direction into the fiber crosses it to the chord's far end."""
+        n = mi.Vector3f(bsdf.eval_attribute_3(f"exit_{p}", si, active))
+        ok = active & (dr.squared_norm(n) > 0.25)
+        t, n_perp, _ = bundle_axis(si)
+        w_perp = dr.normalize(w - dr.dot(w, t) * t)
+        nd = dr.dot(n, w_perp)
+        n = dr.select(nd < 0, n - 2 * nd * w_perp, n)
+        return si.p - radius * n_perp + radius * n, n, ok
 
+    def _sampled_exit(self, si, bsdf, radius, path, w, active):
+        """:meth:`_path_exit` of the sampled path (``bs.sampled_component`` per lane)."""
+        p_out, n_out, ok = si.p, si.n, mi.Bool(False)
+        for p in range(self._paths - 1):  # the last index is at most a residual
+            mine = active & (path == p)
+            q, n, good = self._path_exit(si, bsdf, radius, p, w, mine)
+            p_out, n_out, ok = dr.select(mine, q, p_out), dr.select(mine, n, n_out), ok | (mine & good)
+        return p_out, n_out, ok
 
-def offset_ray(p, n, d, wavelengths, maxt=None):
-    """A ray from ``p`` pushed off its surface along ``n`` (Mitsuba's spawn offset).
+    def _emitter_paths(self, scene, si, bsdf, ds, radius, h, active):
+        """The emitter sample's contribution through every path of an h-resolved fiber,
+        each with its shadow ray from that path's exit and its own MIS weight."""
+        wo = si.to_local(ds.d)
+        total = mi.Spectrum(0.0)
+        p_res, r_res = displaced_exit(si, radius, h, ds.d)  # where the residual leaves
+        for p in range(self._paths):
+            ctx = mi.BSDFContext()
+            ctx.component = p
+            f = bsdf.eval(ctx, si, wo, active)
+            pdf = bsdf.pdf(ctx, si, wo, active)
+            p_exit, radial, ok = self._path_exit(si, bsdf, radius, p, ds.d, active)
+            p_exit, radial = dr.select(ok, p_exit, p_res), dr.select(ok, radial, r_res)
+            dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
+            d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
+            shadow = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
+            T = self._transmittance(scene, shadow, active)
+            mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, pdf))
+            total += f * T * mis
+        return total
 
-    It carries the path's ``wavelengths``: a spectral ray without them sees every
-    emitter at 0 nm, i.e. black.
-    """
-    eps = (1.0 + dr.max(dr.abs(p))) * mi.math.RayEpsilon
-    o = p + dr.mulsign(n, dr.dot(n, d)) * eps
-    ray = mi.Ray3f(o, d, 0.0, wavelengths)
-    if maxt is not None:
-        ray.maxt = maxt
-    return ray
+    # -- helpers ----------------------------------------------------------
+    # what the BSDFs read (UV for the twist, the shading frame for the tangent); the
+    # normal derivatives of RayFlags.All read past the last bsplinecurve segment
+    RAY_FLAGS = mi.RayFlags.UV | mi.RayFlags.dPdUV | mi.RayFlags.ShadingFrame
 
+    def _radius(self, scene, si, bsdf, active):
+        """Bundle radius at a hit, from the shape where Mitsuba's parametrization holds it.
 
-def shape_radius(shape):
-    """The bundle radius a ``cylinder`` or ``bsplinecurve`` holds, else ``None``.
-
-    A cylinder's ``to_world`` scales its unit cylinder by the radius across the axis;
-    a curve's control points carry it as their fourth coordinate (a range if it varies).
-    """
-    import numpy as np
-
-    kind = shape.shape_type()
-    params = mi.traverse(shape)
-    if kind == int(mi.ShapeType.Cylinder):
-        m = np.asarray(params["to_world"].matrix).reshape(4, 4)
-        r = float(np.linalg.norm(m[:3, 0]))
-        return r, r
-    if kind == int(mi.ShapeType.BSplineCurve):
-        radii = np.asarray(params["control_points"]).reshape(-1, 4)[:, 3]
-        return float(radii.min()), float(radii.max())
-    return None
-
-
-def check_bundles(scene) -> list[str]:
-    """What is wrong with the bundles of a scene, in words (one line per shape).
-
-    ``fiber_bundle``, ``fiber_table`` and ``fiber_ray`` are defined on cylinders and B-spline curves
-    (the frame follows their tangent, the radius comes from their parametrization); a
-    BSDF ``radius`` that disagrees with the shape's is named (the shape's is used).
-    """
-    problems = []
-    for shape in scene.shapes():
-        bsdf = shape.bsdf()
-        plugin = getattr(bsdf, "plugin", None)
-        if plugin not in ("fiber_bundle", "fiber_table", "fiber_ray"):
-            continue
-        kind = shape.shape_type()
-        if kind not in (int(mi.ShapeType.Cylinder), int(mi.ShapeType.BSplineCurve)):
-            problems.append(f"shape '{shape.id()}' ({mi.ShapeType(kind).name}) has a {plugin} BSDF, which is "
-                            "defined on 'cylinder' and 'bsplinecurve' shapes only: its frame and radius are "
-                            "meaningless on this shape")
-            continue
-        lo, hi = shape_radius(shape)
-        r = float(getattr(bsdf, "radius", 0.0))
-        if r > 0 and not (0.99 * lo <= r <= 1.01 * hi):
-            problems.append(f"shape '{shape.id()}': the {plugin} BSDF's radius {r:g} disagrees with the shape's "
-                            f"({lo:g}" + (f" .. {hi:g}" if hi > lo else "") + "); the shape's is used, drop the "
-                            "BSDF's 'radius' or make them agree")
-    return problems
-
-
-def check_integrator(scene) -> str | None:
-    """Why ``scene``'s integrator cannot render its bundles, or ``None``.
-
-    ``fiber_bundle`` is a far-field model with passthrough and displaced exits that only
-    ``bundle_path`` carries out; under Mitsuba's ``path`` (or any other) integrator it
-    renders without an error but wrong. A Python BSDF cannot see its integrator, so the
-    entry points (``bcsdf render-scene``) ask here after loading.
-    """
-    uses = any(getattr(shape.bsdf(), "plugin", None) == "fiber_bundle" for shape in scene.shapes())
-    integrator = scene.integrator()
-    if uses and type(integrator).__name__ != "BundlePathIntegrator":
-        return (f"the scene's fiber_bundle BSDFs need the bundle_path integrator (passthrough, displaced exits), "
-                f"but its integrator is {type(integrator).__name__}: "
-                "use <integrator type=\"bundle_path\"> (it takes path's max_depth and rr_depth)")
-    return None
-
-
-def integrator_class():
-    """The ``bundle_path`` plugin class for the active Mitsuba variant."""
-    class BundlePathIntegrator(mi.SamplingIntegrator):
-        r"""Bundle path tracer (``bundle_path``)
-        -------------------------------------
-
-        Mitsuba's ``path`` integrator (next-event estimation, multiple importance
-        sampling, Russian roulette) with the two special cases of ``fiber_bundle``
-        surfaces (any BSDF with a ``passthrough`` attribute):
-
-        * **passthrough**: the BSDF's null lobe continues the ray in the same direction;
-          the far wall of the bundle is crossed as a null interface. Passthrough events
-          do not count as bounces and leave the MIS state of the last real vertex alone.
-          Shadow rays cross bundles with transmittance ``P_pass`` (``path`` would treat
-          them as opaque and find those paths by BSDF sampling only).
-        * **displaced exit**: scattered light, and the shadow ray of next-event
-          estimation, leave from :func:`displaced_exit`, with ``h`` uniform in [-1, 1].
-          The radius comes from the shape (``|dp/du| = 2 pi r`` per hit on
-          ``cylinder`` and ``bsplinecurve``), else the BSDF's ``radius``, else a probe
-          ray across the shape.
-
-        On scenes without bundles it is ``path``, sample for sample.
-
-        .. list-table::
-           :header-rows: 1
-
-           * - Parameter
-             - Description
-           * - max_depth
-             - Longest path (bounces; passthrough events excluded). Default -1: no limit.
-           * - rr_depth
-             - Depth at which Russian roulette starts (default 5).
-           * - displaced_exit
-             - Leave bundles from the displaced exit point (default ``true``).
-           * - max_passes
-             - Most bundle crossings of one path or shadow ray (default 64).
-
-        Not supported: ``hide_emitters`` (refused at load). Bundles belong on
-        ``cylinder`` and ``bsplinecurve`` shapes; the first render of a scene warns
-        once about a bundle BSDF on any other shape, or a BSDF ``radius`` that
-        disagrees with its shape's (:func:`check_bundles`).
-
-        .. code-block:: python
-
-            mi.set_variant("llvm_ad_rgb"); mitsuba_ext.register()
-            scene = mi.load_dict({..., "integrator": {"type": "bundle_path", "max_depth": 32}})
+        On ``cylinder`` and ``bsplinecurve`` the first surface derivative runs around
+        the circumference, ``|dp/du| = 2 pi r`` (exact, per hit, also for a curve whose
+        radius varies). Elsewhere: the BSDF's ``radius``, else a probe ray across the
+        shape (a probe spawned a float epsilon inside a thin cylinder can hit its entry
+        wall again, which is why it is the last resort).
         """
+        shape_type = si.shape.shape_type()
+        curve = (shape_type == int(mi.ShapeType.Cylinder)) | (shape_type == int(mi.ShapeType.BSplineCurve))
+        r_shape = dr.norm(si.dp_du) * (0.5 / dr.pi)
+        r = dr.select(curve & dr.isfinite(r_shape), r_shape, bsdf.eval_attribute_1("radius", si, active))
+        need = active & (r <= 0)
+        _, n_perp, _ = bundle_axis(si)
+        probe = offset_ray(si.p, -n_perp, -n_perp, si.wavelengths)
+        si_far = scene.ray_intersect(probe, need)
+        measured = dr.select(need & si_far.is_valid() & (si_far.shape == si.shape), 0.5 * si_far.t, 0.0)
+        return dr.select(need, measured, r)
 
-        def __init__(self, props):
-            super().__init__(props)
-            max_depth = integer("bundle_path", "max_depth", props.get("max_depth", -1), lo=-1)  # -1: no limit
-            self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth
-            self.rr_depth = integer("bundle_path", "rr_depth", props.get("rr_depth", 5), lo=1)
-            self.displace = boolean("bundle_path", "displaced_exit", props.get("displaced_exit", True))
-            self.max_passes = integer("bundle_path", "max_passes", props.get("max_passes", 64), lo=1)
-            if boolean("bundle_path", "hide_emitters", props.get("hide_emitters", False)):
-                raise ValueError("bundle_path: hide_emitters is not supported (directly visible emitters are "
-                                 "always shown); leave it out")
-            self._checked = {}
-            self._paths = 0
+    @dr.syntax
+    def _transmittance(self, scene, ray, active):
+        """Fraction of light crossing ``ray``: product of ``P_pass`` of the bundles on it."""
+        ray = mi.Ray3f(ray)
+        active = mi.Bool(active)
+        T = dr.select(active, mi.Float(1.0), 0.0)
+        steps = mi.UInt32(0)
 
-        def _check(self, scene):
-            """Warn once per scene about bundles on shapes they are not defined on; count the
-            paths of the scene's h-resolved fibers (``fiber_ray``: one emitter sample per path)."""
-            if id(scene) not in self._checked:
-                for line in check_bundles(scene):
-                    mi.Log(mi.LogLevel.Warn, "bundle_path: " + line)
-                self._checked[id(scene)] = max([int(getattr(s.bsdf(), "n_paths", 0)) for s in scene.shapes()] + [0])
-            self._paths = self._checked[id(scene)]
+        while dr.hint(active, label="bundle_shadow"):
+            si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=False, active=active)
+            hit = active & si.is_valid()
+            bsdf = si.bsdf()
+            bundle = hit & bsdf.has_attribute("passthrough", hit)
+            P = bsdf.eval_attribute_1("passthrough", si, bundle)
+            T = dr.select(hit, dr.select(bundle, T * P, 0.0), T)
+            steps += 1
+            active = bundle & (T > 0) & (steps < self.max_passes)
+            nxt = si.spawn_ray(ray.d)
+            nxt.maxt = ray.maxt - si.t
+            # from outside: continue beyond the bundle's far wall
+            front = active & (mi.Frame3f.cos_theta(si.wi) > 0)
+            p_far, radial, ok = far_side(si, self._radius(scene, si, bsdf, front), ray.d)
+            crossed = offset_ray(p_far, radial, ray.d, si.wavelengths, ray.maxt - si.t - dr.norm(p_far - si.p))
+            nxt = dr.select(front & ok, crossed, nxt)
+            ray = dr.select(active, nxt, ray)
+        return T
 
-        # -- h-resolved fibers: each path leaves from its own exit point --------------
-        def _path_exit(self, si, bsdf, radius, p, w, active):
-            """Start and outward normal of light leaving along ``w`` on path ``p`` (a Python
-            int) of an h-resolved fiber, and whether the path has a single exit (not the
-            residual). A direction into the fiber crosses it to the chord's far end."""
-            n = mi.Vector3f(bsdf.eval_attribute_3(f"exit_{p}", si, active))
-            ok = active & (dr.squared_norm(n) > 0.25)
-            t, n_perp, _ = bundle_axis(si)
-            w_perp = dr.normalize(w - dr.dot(w, t) * t)
-            nd = dr.dot(n, w_perp)
-            n = dr.select(nd < 0, n - 2 * nd * w_perp, n)
-            return si.p - radius * n_perp + radius * n, n, ok
+    # -- the integrator ---------------------------------------------------
+    @dr.syntax
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        self._check(scene)  # Python, once per render call: the body below is traced
+        ctx = mi.BSDFContext()
 
-        def _sampled_exit(self, si, bsdf, radius, path, w, active):
-            """:meth:`_path_exit` of the sampled path (``bs.sampled_component`` per lane)."""
-            p_out, n_out, ok = si.p, si.n, mi.Bool(False)
-            for p in range(self._paths - 1):  # the last index is at most a residual
-                mine = active & (path == p)
-                q, n, good = self._path_exit(si, bsdf, radius, p, w, mine)
-                p_out, n_out, ok = dr.select(mine, q, p_out), dr.select(mine, n, n_out), ok | (mine & good)
-            return p_out, n_out, ok
+        # ---------------------- loop state ----------------------
+        ray = mi.Ray3f(ray)
+        throughput = mi.Spectrum(1.0)
+        result = mi.Spectrum(0.0)
+        eta = mi.Float(1.0)
+        depth = mi.UInt32(0)
+        passes = mi.UInt32(0)
+        valid_ray = mi.Bool(scene.environment() is not None)
+        prev_si = dr.zeros(mi.Interaction3f)
+        prev_bsdf_pdf = mi.Float(1.0)
+        prev_bsdf_delta = mi.Bool(True)
+        active = mi.Bool(active)
 
-        def _emitter_paths(self, scene, si, bsdf, ds, radius, h, active):
-            """The emitter sample's contribution through every path of an h-resolved fiber,
-            each with its shadow ray from that path's exit and its own MIS weight."""
-            wo = si.to_local(ds.d)
-            total = mi.Spectrum(0.0)
-            p_res, r_res = displaced_exit(si, radius, h, ds.d)  # where the residual leaves
-            for p in range(self._paths):
-                ctx = mi.BSDFContext()
-                ctx.component = p
-                f = bsdf.eval(ctx, si, wo, active)
-                pdf = bsdf.pdf(ctx, si, wo, active)
-                p_exit, radial, ok = self._path_exit(si, bsdf, radius, p, ds.d, active)
-                p_exit, radial = dr.select(ok, p_exit, p_res), dr.select(ok, radial, r_res)
+        while dr.hint(active, label="bundle_path"):
+            si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=(depth == 0), active=active)
+
+            # ------------------ direct emission ------------------
+            ds = mi.DirectionSample3f(scene, si, prev_si)
+            em_pdf = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta)
+            em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
+            mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf)
+            emitted = ds.emitter.eval(si, active & (prev_bsdf_pdf > 0))
+            result = dr.select(active, dr.fma(throughput, emitted * mis_bsdf, result), result)
+
+            active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
+            bsdf = si.bsdf(ray)
+
+            # ------------- bundle hit: exit offset and radius -------------
+            bundle = active_next & bsdf.has_attribute("passthrough", active_next)
+            radius = self._radius(scene, si, bsdf, bundle)
+            h = mi.Float(0.0)
+            if dr.hint(self.displace, mode="scalar"):
+                h = 2.0 * sampler.next_1d(bundle) - 1.0
+
+            # ------------------ emitter sampling ------------------
+            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(active_em), False, active_em)
+            active_em &= ds.pdf != 0.0
+            shadow = si.spawn_ray_to(ds.p)
+            if dr.hint(self.displace, mode="scalar"):
+                p_exit, radial = displaced_exit(si, radius, h, ds.d)
                 dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
                 d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
-                shadow = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
-                T = self._transmittance(scene, shadow, active)
-                mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, pdf))
-                total += f * T * mis
-            return total
+                moved = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
+                shadow = dr.select(bundle & (radius > 0), moved, shadow)
+            T = self._transmittance(scene, shadow, active_em)
+            wo = si.to_local(ds.d)
 
-        # -- helpers ----------------------------------------------------------
-        # what the BSDFs read (UV for the twist, the shading frame for the tangent); the
-        # normal derivatives of RayFlags.All read past the last bsplinecurve segment
-        RAY_FLAGS = mi.RayFlags.UV | mi.RayFlags.dPdUV | mi.RayFlags.ShadingFrame
+            # ------------- BSDF evaluation and sampling -------------
+            sample_1 = sampler.next_1d(active_next)
+            sample_2 = sampler.next_2d(active_next)
+            bsdf_val, bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_next)
+            mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+            nee = bsdf_val * T * mis_em
+            if dr.hint((self._paths > 0) & self.displace, mode="scalar"):  # h-resolved fibers in the scene
+                lobed = active_em & bsdf.has_attribute("paths", active_em) & (radius > 0)
+                nee = dr.select(lobed, self._emitter_paths(scene, si, bsdf, ds, radius, h, lobed), nee)
+            result = dr.select(active_em, dr.fma(throughput, nee * em_weight, result), result)
 
-        def _radius(self, scene, si, bsdf, active):
-            """Bundle radius at a hit, from the shape where Mitsuba's parametrization holds it.
+            # ------------------ the next ray ------------------
+            passed = active_next & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+            wo_world = si.to_world(bs.wo)
+            next_ray = si.spawn_ray(wo_world)
+            # passing from outside: the whole crossing is one null event
+            p_far, radial, ok = far_side(si, radius, wo_world)
+            crossed = offset_ray(p_far, radial, wo_world, si.wavelengths)
+            next_ray = dr.select(passed & ok & (mi.Frame3f.cos_theta(si.wi) > 0), crossed, next_ray)
+            if dr.hint(self.displace, mode="scalar"):
+                p_exit, radial = displaced_exit(si, radius, h, wo_world)
+                moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
+                next_ray = dr.select(bundle & ~passed & (radius > 0), moved, next_ray)
+            if dr.hint((self._paths > 0) & self.displace, mode="scalar"):
+                lobed = bundle & ~passed & (radius > 0) & bsdf.has_attribute("paths", bundle)
+                p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world, lobed)
+                next_ray = dr.select(single, offset_ray(p_path, n_path, wo_world, si.wavelengths), next_ray)
+            ray = dr.select(active_next, next_ray, ray)
 
-            On ``cylinder`` and ``bsplinecurve`` the first surface derivative runs around
-            the circumference, ``|dp/du| = 2 pi r`` (exact, per hit, also for a curve whose
-            radius varies). Elsewhere: the BSDF's ``radius``, else a probe ray across the
-            shape (a probe spawned a float epsilon inside a thin cylinder can hit its entry
-            wall again, which is why it is the last resort).
-            """
-            shape_type = si.shape.shape_type()
-            curve = (shape_type == int(mi.ShapeType.Cylinder)) | (shape_type == int(mi.ShapeType.BSplineCurve))
-            r_shape = dr.norm(si.dp_du) * (0.5 / dr.pi)
-            r = dr.select(curve & dr.isfinite(r_shape), r_shape, bsdf.eval_attribute_1("radius", si, active))
-            need = active & (r <= 0)
-            _, n_perp, _ = bundle_axis(si)
-            probe = offset_ray(si.p, -n_perp, -n_perp, si.wavelengths)
-            si_far = scene.ray_intersect(probe, need)
-            measured = dr.select(need & si_far.is_valid() & (si_far.shape == si.shape), 0.5 * si_far.t, 0.0)
-            return dr.select(need, measured, r)
+            throughput = dr.select(active_next, throughput * bsdf_weight, throughput)
+            eta = dr.select(active_next, eta * bs.eta, eta)
+            # Mitsuba's rule (a hit on a non-null BSDF), plus a bundle seen from outside: it
+            # scatters even when this sample passes through (its emitter sample counts)
+            front_of_bundle = bsdf.has_attribute("passthrough", active) & (mi.Frame3f.cos_theta(si.wi) > 0)
+            valid_ray |= active & si.is_valid() & (~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
+                                                   | front_of_bundle)
 
-        @dr.syntax
-        def _transmittance(self, scene, ray, active):
-            """Fraction of light crossing ``ray``: product of ``P_pass`` of the bundles on it."""
-            ray = mi.Ray3f(ray)
-            active = mi.Bool(active)
-            T = dr.select(active, mi.Float(1.0), 0.0)
-            steps = mi.UInt32(0)
+            # passthrough keeps the last real vertex for MIS
+            real = active_next & ~passed
+            prev_si = dr.select(real, mi.Interaction3f(si), prev_si)
+            prev_bsdf_pdf = dr.select(real, bs.pdf, prev_bsdf_pdf)
+            prev_bsdf_delta = dr.select(real, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
+                                        prev_bsdf_delta)
+            depth = dr.select(real, depth + 1, depth)
+            passes = dr.select(passed, passes + 1, passes)
 
-            while dr.hint(active, label="bundle_shadow"):
-                si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=False, active=active)
-                hit = active & si.is_valid()
-                bsdf = si.bsdf()
-                bundle = hit & bsdf.has_attribute("passthrough", hit)
-                P = bsdf.eval_attribute_1("passthrough", si, bundle)
-                T = dr.select(hit, dr.select(bundle, T * P, 0.0), T)
-                steps += 1
-                active = bundle & (T > 0) & (steps < self.max_passes)
-                nxt = si.spawn_ray(ray.d)
-                nxt.maxt = ray.maxt - si.t
-                # from outside: continue beyond the bundle's far wall
-                front = active & (mi.Frame3f.cos_theta(si.wi) > 0)
-                p_far, radial, ok = far_side(si, self._radius(scene, si, bsdf, front), ray.d)
-                crossed = offset_ray(p_far, radial, ray.d, si.wavelengths, ray.maxt - si.t - dr.norm(p_far - si.p))
-                nxt = dr.select(front & ok, crossed, nxt)
-                ray = dr.select(active, nxt, ray)
-            return T
+            # ------------------ stopping criterion ------------------
+            throughput_max = dr.max(mi.unpolarized_spectrum(throughput))
+            rr_prob = dr.minimum(throughput_max * dr.square(eta), 0.95)
+            rr_active = (depth >= self.rr_depth) & ~passed
+            rr_continue = sampler.next_1d(active_next) < rr_prob
+            throughput = dr.select(active_next & rr_active, throughput * dr.rcp(rr_prob), throughput)
+            active = (active_next & (~rr_active | rr_continue) & (throughput_max != 0.0)
+                      & (passes <= self.max_passes))
 
-        # -- the integrator ---------------------------------------------------
-        @dr.syntax
-        def sample(self, scene, sampler, ray, medium=None, active=True):
-            self._check(scene)  # Python, once per render call: the body below is traced
-            ctx = mi.BSDFContext()
+        result = dr.select(dr.isfinite(dr.sum(mi.unpolarized_spectrum(result))), result, 0.0)
+        return dr.select(valid_ray, result, 0.0), valid_ray, []
 
-            # ---------------------- loop state ----------------------
-            ray = mi.Ray3f(ray)
-            throughput = mi.Spectrum(1.0)
-            result = mi.Spectrum(0.0)
-            eta = mi.Float(1.0)
-            depth = mi.UInt32(0)
-            passes = mi.UInt32(0)
-            valid_ray = mi.Bool(scene.environment() is not None)
-            prev_si = dr.zeros(mi.Interaction3f)
-            prev_bsdf_pdf = mi.Float(1.0)
-            prev_bsdf_delta = mi.Bool(True)
-            active = mi.Bool(active)
+    def aov_names(self):
+        return []
 
-            while dr.hint(active, label="bundle_path"):
-                si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=(depth == 0), active=active)
+    def to_string(self):
+        return f"BundlePathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
 
-                # ------------------ direct emission ------------------
-                ds = mi.DirectionSample3f(scene, si, prev_si)
-                em_pdf = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta)
-                em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
-                mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf)
-                emitted = ds.emitter.eval(si, active & (prev_bsdf_pdf > 0))
-                result = dr.select(active, dr.fma(throughput, emitted * mis_bsdf, result), result)
 
-                active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
-                bsdf = si.bsdf(ray)
-
-                # ------------- bundle hit: exit offset and radius -------------
-                bundle = active_next & bsdf.has_attribute("passthrough", active_next)
-                radius = self._radius(scene, si, bsdf, bundle)
-                h = mi.Float(0.0)
-                if dr.hint(self.displace, mode="scalar"):
-                    h = 2.0 * sampler.next_1d(bundle) - 1.0
-
-                # ------------------ emitter sampling ------------------
-                active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-                ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(active_em), False, active_em)
-                active_em &= ds.pdf != 0.0
-                shadow = si.spawn_ray_to(ds.p)
-                if dr.hint(self.displace, mode="scalar"):
-                    p_exit, radial = displaced_exit(si, radius, h, ds.d)
-                    dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
-                    d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
-                    moved = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
-                    shadow = dr.select(bundle & (radius > 0), moved, shadow)
-                T = self._transmittance(scene, shadow, active_em)
-                wo = si.to_local(ds.d)
-
-                # ------------- BSDF evaluation and sampling -------------
-                sample_1 = sampler.next_1d(active_next)
-                sample_2 = sampler.next_2d(active_next)
-                bsdf_val, bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_next)
-                mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
-                nee = bsdf_val * T * mis_em
-                if dr.hint((self._paths > 0) & self.displace, mode="scalar"):  # h-resolved fibers in the scene
-                    lobed = active_em & bsdf.has_attribute("paths", active_em) & (radius > 0)
-                    nee = dr.select(lobed, self._emitter_paths(scene, si, bsdf, ds, radius, h, lobed), nee)
-                result = dr.select(active_em, dr.fma(throughput, nee * em_weight, result), result)
-
-                # ------------------ the next ray ------------------
-                passed = active_next & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
-                wo_world = si.to_world(bs.wo)
-                next_ray = si.spawn_ray(wo_world)
-                # passing from outside: the whole crossing is one null event
-                p_far, radial, ok = far_side(si, radius, wo_world)
-                crossed = offset_ray(p_far, radial, wo_world, si.wavelengths)
-                next_ray = dr.select(passed & ok & (mi.Frame3f.cos_theta(si.wi) > 0), crossed, next_ray)
-                if dr.hint(self.displace, mode="scalar"):
-                    p_exit, radial = displaced_exit(si, radius, h, wo_world)
-                    moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
-                    next_ray = dr.select(bundle & ~passed & (radius > 0), moved, next_ray)
-                if dr.hint((self._paths > 0) & self.displace, mode="scalar"):
-                    lobed = bundle & ~passed & (radius > 0) & bsdf.has_attribute("paths", bundle)
-                    p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world, lobed)
-                    next_ray = dr.select(single, offset_ray(p_path, n_path, wo_world, si.wavelengths), next_ray)
-                ray = dr.select(active_next, next_ray, ray)
-
-                throughput = dr.select(active_next, throughput * bsdf_weight, throughput)
-                eta = dr.select(active_next, eta * bs.eta, eta)
-                # Mitsuba's rule (a hit on a non-null BSDF), plus a bundle seen from outside: it
-                # scatters even when this sample passes through (its emitter sample counts)
-                front_of_bundle = bsdf.has_attribute("passthrough", active) & (mi.Frame3f.cos_theta(si.wi) > 0)
-                valid_ray |= active & si.is_valid() & (~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
-                                                       | front_of_bundle)
-
-                # passthrough keeps the last real vertex for MIS
-                real = active_next & ~passed
-                prev_si = dr.select(real, mi.Interaction3f(si), prev_si)
-                prev_bsdf_pdf = dr.select(real, bs.pdf, prev_bsdf_pdf)
-                prev_bsdf_delta = dr.select(real, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
-                                            prev_bsdf_delta)
-                depth = dr.select(real, depth + 1, depth)
-                passes = dr.select(passed, passes + 1, passes)
-
-                # ------------------ stopping criterion ------------------
-                throughput_max = dr.max(mi.unpolarized_spectrum(throughput))
-                rr_prob = dr.minimum(throughput_max * dr.square(eta), 0.95)
-                rr_active = (depth >= self.rr_depth) & ~passed
-                rr_continue = sampler.next_1d(active_next) < rr_prob
-                throughput = dr.select(active_next & rr_active, throughput * dr.rcp(rr_prob), throughput)
-                active = (active_next & (~rr_active | rr_continue) & (throughput_max != 0.0)
-                          & (passes <= self.max_passes))
-
-            result = dr.select(dr.isfinite(dr.sum(mi.unpolarized_spectrum(result))), result, 0.0)
-            return dr.select(valid_ray, result, 0.0), valid_ray, []
-
-        def aov_names(self):
-            return []
-
-        def to_string(self):
-            return f"BundlePathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
-
-    return BundlePathIntegrator
+PLUGINS = {"bundle_path": BundlePathIntegrator}

@@ -14,7 +14,10 @@ use the same cells and the same mixture, which the chi-square test checks.
 
 from __future__ import annotations
 
+import drjit as dr
 import numpy as np
+
+from models.grid import cell
 
 FOUR_PI = 4.0 * np.pi
 
@@ -29,7 +32,6 @@ class DirectionGrid:
 
     def __init__(self, mass, phi_i, theta_i, phi_o_edges, theta_o_edges, relative: bool,
                  Float, uniform: float = 0.1):
-        import drjit as dr
 
         mass = np.asarray(mass, np.float64)
         if mass.ndim != 4 or not np.all(np.isfinite(mass)) or np.any(mass < 0):
@@ -61,7 +63,6 @@ class DirectionGrid:
     # -- helpers -------------------------------------------------------------
     def _condition(self, phi_i, theta_i):
         """Index of the nearest (phi_i, theta_i) node."""
-        import drjit as dr
 
         n_pi, n_ti = len(self.phi_i), len(self.theta_i)
         if n_pi == 1:
@@ -78,21 +79,16 @@ class DirectionGrid:
         return a * n_ti + b
 
     def _cell_of(self, phi_o, theta_o):
-        import drjit as dr
-
-        span = float(self.phi_o_edges[-1] - self.phi_o_edges[0])
-        p = phi_o - float(self.phi_o_edges[0])
-        p = p - dr.floor(p / span) * span
-        ip = self.UInt(dr.clip(dr.floor(p / (span / self.n_phi)), 0, self.n_phi - 1))
-        t_edges = self.theta_o_edges
-        it = self.UInt(dr.clip(dr.floor((theta_o - float(t_edges[0])) / float(t_edges[1] - t_edges[0])),
-                               0, self.n_theta - 1))
+        # tie 0: the cell that sample() drew from, up to its edge
+        ip, _ = cell(phi_o, self.phi_o_edges[0], self.phi_o_edges[-1] - self.phi_o_edges[0], self.n_phi,
+                     periodic=True, xp=dr)
+        it, _ = cell(theta_o, self.theta_o_edges[0], self.theta_o_edges[-1] - self.theta_o_edges[0], self.n_theta,
+                     xp=dr)
         return ip * self.n_theta + it, ip, it
 
     # -- the two operations --------------------------------------------------
     def sample(self, phi_i, theta_i, u_mix, u2):
         """Outgoing ``(phi_o, theta_o)`` (phi_o absolute) and its pdf per steradian."""
-        import drjit as dr
         import mitsuba as mi
 
         cond = self._condition(phi_i, theta_i)
@@ -120,7 +116,6 @@ class DirectionGrid:
 
     def pdf(self, phi_i, theta_i, phi_o, theta_o):
         """Mixture density per steradian of the absolute direction ``(phi_o, theta_o)``."""
-        import drjit as dr
 
         cond = self._condition(phi_i, theta_i)
         if self.relative:

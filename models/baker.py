@@ -43,13 +43,15 @@ single azimuth would describe one orientation of the ply, not the ply.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Any
 
+import drjit as dr
 import numpy as np
 
 from .bundle import Bundle
 from .fiber import lobes
-from .grid import bin_solid_angle
+from .grid import bin_solid_angle, cell
 from .jit import to_drjit
 from .fiber.base import FiberTable
 from .fiber.sampling import FiberSampler
@@ -168,7 +170,6 @@ class BundleScene:
 
         Returns ``(hit, fiber)``: a mask and the fiber index (-1 where missed).
         """
-        import drjit as dr
         import mitsuba as mi
 
         n = len(phi)
@@ -202,6 +203,61 @@ class BundleScene:
 
 
 # ------------------------------------------------------------------------------
+# The state of the bounce loop
+# ------------------------------------------------------------------------------
+
+@dataclass
+class Paths:
+    """The per-path state of the fast estimator's bounce loop (Dr.Jit arrays, one lane a
+    path). A lane that has ended (``active`` false) keeps its state, so the state after the
+    loop is the per-path result."""
+
+    ox: Any            # where the path's next ray starts, in the cross-section (x, z)
+    oz: Any
+    phi: Any           # its azimuth of travel
+    theta: Any         # its longitude (of w_o at the last fiber)
+    B: list            # spectral weight after the first bounce, per wavelength
+    R: list            # weight absorbed after the first bounce (expected value), per wavelength
+    depth: Any         # bounces so far
+    status: Any        # 0 while running, then ESCAPED, CAPPED or STOPPED
+    bin: Any           # output bin of an escaped path
+    active: Any
+    pid: Any           # the path's index in the batch (its output row and its random stream)
+    phi_i: Any         # its incident azimuth (a circle's paths enter from their own)
+    steps: Any         # bounces in this round
+
+    RESULTS = ("B", "R", "depth", "status", "bin")
+
+    @staticmethod
+    def outputs(n: int, L: int) -> dict:
+        """Zeroed per-path outputs of the :attr:`RESULTS`."""
+        import mitsuba as mi
+
+        return {"B": [dr.zeros(mi.Float, n) for _ in range(L)], "R": [dr.zeros(mi.Float, n) for _ in range(L)],
+                **{k: dr.zeros(mi.UInt32, n) for k in ("depth", "status", "bin")}}
+
+    def gather(self, index) -> "Paths":
+        """The lanes ``index`` (compaction between rounds), with a new round's step count."""
+        take = lambda v: [dr.gather(type(x), x, index) for x in v] if isinstance(v, list) \
+            else dr.gather(type(v), v, index)  # noqa: E731
+        out = Paths(**{f.name: take(getattr(self, f.name)) for f in fields(self)})
+        out.steps = dr.zeros(type(self.steps), dr.width(index))
+        return out
+
+
+@dataclass
+class _LoopScene:
+    """What every bounce reads: the Mitsuba scene, the fibers uploaded, the batch's seed."""
+
+    scene: Any
+    centers_x: Any
+    centers_z: Any
+    radii: Any
+    shape_to_fiber: Any
+    seed: Any
+
+
+# ------------------------------------------------------------------------------
 # The tracer
 # ------------------------------------------------------------------------------
 
@@ -217,12 +273,13 @@ class Baker:
         self.sampler = FiberSampler(fiber)
         self.n_lambda = len(fiber.wavelength)
 
-    def _bin(self, phi_travel, theta, phi_i):
+    def _bin(self, phi_travel, theta, phi_i, xp=np):
+        """The output bin (flat ``phi_o x theta_o`` index) of light leaving along ``phi_travel``
+        at longitude ``theta``, for numpy or Dr.Jit."""
         spec = self.spec
         phi = phi_travel - phi_i if spec.relative_phi else phi_travel
-        phi = np.mod(phi + np.pi, 2 * np.pi) - np.pi
-        a = np.clip(((phi + np.pi) / (2 * np.pi) * spec.n_phi_o).astype(np.int64), 0, spec.n_phi_o - 1)
-        b = np.clip(np.searchsorted(spec.theta_o_edges, theta, side="right") - 1, 0, spec.n_theta_o - 1)
+        a, _ = cell(phi, -np.pi, 2 * np.pi, spec.n_phi_o, periodic=True, xp=xp)
+        b, _ = cell(theta, -np.pi / 2, np.pi, spec.n_theta_o, xp=xp)
         return a * spec.n_theta_o + b
 
     def trace(self, phi_index: int, n_paths: int, seed) -> Tally:
@@ -262,7 +319,6 @@ class Baker:
         n = len(phi_t)
 
         # Phase 1: the first bounce, from the mixture over every incident theta_i
-        import drjit as dr
         import mitsuba as mi
         from scipy import sparse
 
@@ -356,7 +412,6 @@ class Baker:
         the h-resolved exit, ``lobe_path = (h, p)`` of each path's first event and ``f`` is
         that path's lobe at that offset.
         """
-        import drjit as dr
         import mitsuba as mi
 
         n_ti, L, P = len(self.spec.theta_i), self.n_lambda, twin.packet
@@ -394,133 +449,142 @@ class Baker:
         path's result from inside the loop (52 masked scatters per vertex) and packet
         gathers of whole spectra gained more (docs/BENCHMARKS.md).
         """
-        import drjit as dr
         import mitsuba as mi
 
-        spec, fib, L = self.spec, self._drjit_fiber(), self.n_lambda
-        exit_model = spec.exit
-        lob = self._lobes() if exit_model == "lobe" else None
         Float, UInt = mi.Float, mi.UInt32
-        n = len(theta)
-        geo = self.geometry
-        centers_x = Float(self.bundle.centers[:, 0].astype(np.float32))
-        centers_z = Float(self.bundle.centers[:, 1].astype(np.float32))
-        radii = Float(self.bundle.radii.astype(np.float32))
-        shape_to_fiber = UInt(geo.shape_to_fiber.astype(np.uint32))
-        two_pi = 2 * np.pi
-        seed_opaque = dr.opaque(mi.UInt64, seed % 2**63)
-
-        # a lane that has ended keeps its state in the loop (inactive lanes are not updated),
-        # so the final state is the per-path result: no scatters inside the loop
-        state = [to_drjit(Float, origin[:, 0]), to_drjit(Float, origin[:, 1]),
-                 to_drjit(Float, np.mod(phi_t, 2 * np.pi)), to_drjit(Float, theta),
-                 [dr.full(Float, 1.0, n) for _ in range(L)], [dr.zeros(Float, n) for _ in range(L)],
-                 dr.full(UInt, 1, n), dr.zeros(UInt, n), dr.zeros(UInt, n), dr.full(mi.Bool, True, n),
-                 dr.arange(UInt, n), to_drjit(Float, phi_i) if np.ndim(phi_i) else Float(np.asarray(phi_i, np.float32)),
-                 dr.zeros(UInt, n)]
-        limit = [None]  # iterations per round, an opaque kernel parameter (one compiled kernel)
-
-        def cond(ox, oz, phi, th, B, R, depth, status, bins, active, pid, phi_i_path, steps):
-            return active & (steps < limit[0])
-
-        def body(ox, oz, phi, th, B, R, depth, status, bins, active, pid, phi_i_path, steps):
-            steps = steps + 1
-            sp, cp = dr.sincos(phi)
-            ray = mi.Ray3f(mi.Point3f(ox, 0.0, oz), mi.Vector3f(cp, 0.0, sp))
-            hit_info = geo.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
-            hit = active & hit_info.is_valid()
-            rel = phi - phi_i_path if spec.relative_phi else phi
-            rel = rel - two_pi * dr.floor((rel + np.pi) * (1 / two_pi))
-            a = dr.clip(UInt(dr.floor((rel + np.pi) * (spec.n_phi_o / two_pi))), 0, spec.n_phi_o - 1)
-            b = dr.clip(UInt(dr.floor((th + np.pi / 2) * (spec.n_theta_o / np.pi))), 0, spec.n_theta_o - 1)
-            escaped = active & ~hit
-            status = dr.select(escaped, ESCAPED, status)
-            bins = dr.select(escaped, a * spec.n_theta_o + b, bins)
-            capped = hit & (depth >= spec.max_bounces)
-            status = dr.select(capped, CAPPED, status)
-            go = hit & ~capped
-            depth = dr.select(go, depth + 1, depth)
-
-            rng = mi.PCG32()
-            rng.seed(seed_opaque + mi.UInt64(depth), mi.UInt64(pid))
-            u = [rng.next_float32() for _ in range(5)]
-            x6, x7 = rng.next_float32(), rng.next_float32()
-            theta_in = -th
-            if exit_model != "uniform":  # the event's geometry: the fiber hit and the ray's offset
-                k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, go)
-                cx, cz = dr.gather(Float, centers_x, k, go), dr.gather(Float, centers_z, k, go)
-                r = dr.gather(Float, radii, k, go)
-                h_in = lobes.entry_offset(cx, cz, r, ox, oz, cp, sp, dr)
-            if exit_model == "lobe":
-                p, theta_out, dphi, pdf = lob.sample(theta_in, h_in, u[:4])
-                f, alb = lob.eval_spectrum(theta_in, h_in, p, theta_out, dphi)
-            else:
-                theta_out, dphi = fib.sample(theta_in, u)
-                pdf = fib.pdf(theta_in, theta_out, dphi)
-                f = fib.eval_spectrum(theta_in, theta_out, dphi)
-                alb = fib.albedo(theta_in)
-            scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
-            valid = go & (pdf > 0)
-            R = [dr.select(go, R[l] + B[l] * (1 - alb[l]), R[l]) for l in range(L)]
-            B = [dr.select(go, B[l] * f[l] * scale, B[l]) for l in range(L)]
-            roulette = depth > spec.rr_start
-            q = B[0]
-            for l in range(1, L):
-                q = dr.maximum(q, B[l])
-            q = dr.minimum(q, 1.0)
-            survive = ~roulette | (x6 < q)
-            B = [dr.select(go & roulette, B[l] / dr.maximum(q, 1e-30), B[l]) for l in range(L)]
-            status = dr.select(go & ~(valid & survive), STOPPED, status)
-            alive = go & valid & survive
-            h_u = dr.select(roulette, x7, x6)
-
-            phi_n = phi + np.pi + dphi
-            phi_n = phi_n - two_pi * dr.floor(phi_n * (1 / two_pi))
-            s_o, c_o = dr.sincos(phi_n)
-            if exit_model == "uniform":  # anywhere on the outgoing side, h uniform
-                k = dr.gather(UInt, shape_to_fiber, hit_info.shape_index, alive)
-                cx, cz = dr.gather(Float, centers_x, k, alive), dr.gather(Float, centers_z, k, alive)
-                new_x, new_z = lobes.leave_uniform(cx, cz, dr.gather(Float, radii, k, alive), 2 * h_u - 1, c_o, s_o, dr)
-            else:  # where the light entered, or where its path leaves
-                nx, nz = lobes.entry_normal(h_in, cp, sp, dr)
-                if exit_model == "lobe":
-                    nx, nz = lob.exit_normal(nx, nz, p, h_in, theta_in, dr)
-                new_x, new_z = lobes.leave(cx, cz, r, nx, nz, c_o, s_o, dr)
-                if exit_model == "lobe":  # the residual has no single exit: the uniform one
-                    res_x, res_z = lobes.leave_uniform(cx, cz, r, 2 * h_u - 1, c_o, s_o, dr)
-                    residual = p == lob.p_max
-                    new_x, new_z = dr.select(residual, res_x, new_x), dr.select(residual, res_z, new_z)
-            ox = dr.select(alive, new_x, ox)
-            oz = dr.select(alive, new_z, oz)
-            phi = dr.select(alive, phi_n, phi)
-            th = dr.select(alive, theta_out, th)
-            return ox, oz, phi, th, B, R, depth, status, bins, alive, pid, phi_i_path, steps
+        n, L = len(theta), self.n_lambda
+        scene = _LoopScene(
+            scene=self.geometry.scene,
+            centers_x=Float(self.bundle.centers[:, 0].astype(np.float32)),
+            centers_z=Float(self.bundle.centers[:, 1].astype(np.float32)),
+            radii=Float(self.bundle.radii.astype(np.float32)),
+            shape_to_fiber=UInt(self.geometry.shape_to_fiber.astype(np.uint32)),
+            seed=dr.opaque(mi.UInt64, seed % 2**63))
+        paths = Paths(
+            ox=to_drjit(Float, origin[:, 0]), oz=to_drjit(Float, origin[:, 1]),
+            phi=to_drjit(Float, np.mod(phi_t, 2 * np.pi)), theta=to_drjit(Float, theta),
+            B=[dr.full(Float, 1.0, n) for _ in range(L)], R=[dr.zeros(Float, n) for _ in range(L)],
+            depth=dr.full(UInt, 1, n), status=dr.zeros(UInt, n), bin=dr.zeros(UInt, n),
+            active=dr.full(mi.Bool, True, n), pid=dr.arange(UInt, n),
+            phi_i=to_drjit(Float, phi_i) if np.ndim(phi_i) else Float(np.asarray(phi_i, np.float32)),
+            steps=dr.zeros(UInt, n))
 
         # Rounds: a SIMD packet of lanes iterates until its longest path ends, so after a
         # round of `ROUND` bounces the unfinished lanes are compacted and continue; the
         # last round (few lanes) runs to the end. Results go to per-path outputs by id.
-        out_B, out_R = [dr.zeros(Float, n) for _ in range(L)], [dr.zeros(Float, n) for _ in range(L)]
-        out_depth, out_status, out_bin = dr.zeros(UInt, n), dr.zeros(UInt, n), dr.zeros(UInt, n)
+        out = Paths.outputs(n, L)
         while True:
-            lanes = dr.width(state[0])
-            last = lanes <= self.TAIL_LANES
-            limit[0] = dr.opaque(UInt, spec.max_bounces + 2 if last else self.ROUND)
-            state = list(dr.while_loop(tuple(state), cond, body, label="bake_bounces"))
-            _, _, _, _, B, R, depth, status, bins, active, pid, _, _ = state
-            for out, value in zip(out_B + out_R + [out_depth, out_status, out_bin], B + R + [depth, status, bins]):
-                dr.scatter(out, value, pid)
+            last = dr.width(paths.ox) <= self.TAIL_LANES
+            limit = dr.opaque(UInt, self.spec.max_bounces + 2 if last else self.ROUND)  # one compiled kernel
+            paths = self._bounce_round(paths, scene, limit)
+            for name in Paths.RESULTS:
+                targets, values = out[name], getattr(paths, name)
+                for o, v in zip(targets, values) if isinstance(values, list) else [(targets, values)]:
+                    dr.scatter(o, v, paths.pid)
             if last:
-                dr.eval(out_B, out_R, out_depth, out_status, out_bin)
+                dr.eval(out)
                 break
-            dr.eval(out_B, out_R, out_depth, out_status, out_bin, state)  # one kernel for all
-            keep = dr.compress(active)
+            dr.eval(out, paths)  # one kernel for all
+            keep = dr.compress(paths.active)
             if dr.width(keep) == 0:
                 break
-            state = [[dr.gather(type(v), v, keep) for v in s] if isinstance(s, list) else dr.gather(type(s), s, keep)
-                     for s in state]
-            state[-1] = dr.zeros(UInt, dr.width(keep))  # steps
-        return {"status": out_status.numpy(), "bin": out_bin.numpy().astype(np.int64), "B": out_B, "R": out_R,
-                "vertices": int(out_depth.numpy().astype(np.int64).sum())}
+            paths = paths.gather(keep)
+        return {"status": out["status"].numpy(), "bin": out["bin"].numpy().astype(np.int64), "B": out["B"],
+                "R": out["R"], "vertices": int(out["depth"].numpy().astype(np.int64).sum())}
+
+    @dr.syntax
+    def _bounce_round(self, paths: "Paths", scene: "_LoopScene", limit) -> "Paths":
+        """Bounce every active path until it ends or has made ``limit`` bounces this round."""
+
+        while dr.hint(paths.active & (paths.steps < limit), label="bake_bounces"):
+            paths = self._bounce(paths, scene)
+        return paths
+
+    def _bounce(self, paths: "Paths", scene: "_LoopScene") -> "Paths":
+        """One bounce of every active path: ray cast, tally or scatter, roulette, exit point."""
+        import mitsuba as mi
+
+        spec, L = self.spec, self.n_lambda
+        exit_model = spec.exit
+        Float, UInt = mi.Float, mi.UInt32
+        p = paths
+        p.steps = p.steps + 1
+
+        # Phase 1: the ray from the path's exit point; an escaping ray is tallied in its bin
+        sp, cp = dr.sincos(p.phi)
+        ray = mi.Ray3f(mi.Point3f(p.ox, 0.0, p.oz), mi.Vector3f(cp, 0.0, sp))
+        hit_info = scene.scene.ray_intersect_preliminary(ray, coherent=False, active=p.active)
+        hit = p.active & hit_info.is_valid()
+        escaped = p.active & ~hit
+        p.status = dr.select(escaped, ESCAPED, p.status)
+        p.bin = dr.select(escaped, self._bin(p.phi, p.theta, p.phi_i, xp=dr), p.bin)
+        capped = hit & (p.depth >= spec.max_bounces)
+        p.status = dr.select(capped, CAPPED, p.status)
+        go = hit & ~capped
+        p.depth = dr.select(go, p.depth + 1, p.depth)
+
+        # Phase 2: sample the fiber at the path's longitude (and offset, for the lobe exit)
+        rng = mi.PCG32()
+        rng.seed(scene.seed + mi.UInt64(p.depth), mi.UInt64(p.pid))
+        u = [rng.next_float32() for _ in range(5)]
+        x6, x7 = rng.next_float32(), rng.next_float32()
+        theta_in = -p.theta
+        if exit_model != "uniform":  # the event's geometry: the fiber hit and the ray's offset
+            k = dr.gather(UInt, scene.shape_to_fiber, hit_info.shape_index, go)
+            cx, cz = dr.gather(Float, scene.centers_x, k, go), dr.gather(Float, scene.centers_z, k, go)
+            r = dr.gather(Float, scene.radii, k, go)
+            h_in = lobes.entry_offset(cx, cz, r, p.ox, p.oz, cp, sp, dr)
+        if exit_model == "lobe":
+            lob = self._lobes()
+            path, theta_out, dphi, pdf = lob.sample(theta_in, h_in, u[:4])
+            f, alb = lob.eval_spectrum(theta_in, h_in, path, theta_out, dphi)
+        else:
+            fib = self._drjit_fiber()
+            theta_out, dphi = fib.sample(theta_in, u)
+            pdf = fib.pdf(theta_in, theta_out, dphi)
+            f = fib.eval_spectrum(theta_in, theta_out, dphi)
+            alb = fib.albedo(theta_in)
+
+        # Phase 3: the weight (B carries f cos / pdf, R the expected absorption) and roulette
+        scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
+        valid = go & (pdf > 0)
+        p.R = [dr.select(go, p.R[l] + p.B[l] * (1 - alb[l]), p.R[l]) for l in range(L)]
+        p.B = [dr.select(go, p.B[l] * f[l] * scale, p.B[l]) for l in range(L)]
+        roulette = p.depth > spec.rr_start
+        q = p.B[0]
+        for l in range(1, L):
+            q = dr.maximum(q, p.B[l])
+        q = dr.minimum(q, 1.0)
+        survive = ~roulette | (x6 < q)
+        p.B = [dr.select(go & roulette, p.B[l] / dr.maximum(q, 1e-30), p.B[l]) for l in range(L)]
+        p.status = dr.select(go & ~(valid & survive), STOPPED, p.status)
+        alive = go & valid & survive
+        h_u = dr.select(roulette, x7, x6)
+
+        # Phase 4: where the scattered light leaves the fiber (the exit model)
+        phi_n = p.phi + np.pi + dphi
+        phi_n = phi_n - 2 * np.pi * dr.floor(phi_n * (1 / (2 * np.pi)))
+        s_o, c_o = dr.sincos(phi_n)
+        if exit_model == "uniform":  # anywhere on the outgoing side, h uniform
+            k = dr.gather(UInt, scene.shape_to_fiber, hit_info.shape_index, alive)
+            cx, cz = dr.gather(Float, scene.centers_x, k, alive), dr.gather(Float, scene.centers_z, k, alive)
+            new_x, new_z = lobes.leave_uniform(cx, cz, dr.gather(Float, scene.radii, k, alive), 2 * h_u - 1,
+                                               c_o, s_o, dr)
+        else:  # where the light entered, or where its path leaves
+            nx, nz = lobes.entry_normal(h_in, cp, sp, dr)
+            if exit_model == "lobe":
+                nx, nz = lob.exit_normal(nx, nz, path, h_in, theta_in, dr)
+            new_x, new_z = lobes.leave(cx, cz, r, nx, nz, c_o, s_o, dr)
+            if exit_model == "lobe":  # the residual has no single exit: the uniform one
+                res_x, res_z = lobes.leave_uniform(cx, cz, r, 2 * h_u - 1, c_o, s_o, dr)
+                residual = path == lob.p_max
+                new_x, new_z = dr.select(residual, res_x, new_x), dr.select(residual, res_z, new_z)
+        p.ox = dr.select(alive, new_x, p.ox)
+        p.oz = dr.select(alive, new_z, p.oz)
+        p.phi = dr.select(alive, phi_n, p.phi)
+        p.theta = dr.select(alive, theta_out, p.theta)
+        p.active = alive
+        return p
 
     def _lobes(self):
         """The h-resolved ray fiber (exit ``lobe``), built from the fiber table's parameters."""

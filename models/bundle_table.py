@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .grid import bin_solid_angle, linear
+from .grid import TIE, bin_solid_angle, cell, linear
 from .io import atomic_path, check_axis
 
 FORMAT = "bcsdf.bundle_table/1"
@@ -254,15 +254,56 @@ def bin_slopes(table: BundleTable) -> tuple[np.ndarray, np.ndarray]:
     return s_phi.astype(np.float32), s_u.astype(np.float32)
 
 
-def _node_corners(grid, x, periodic, nearest):
-
+def node_corners(grid, x, periodic: bool, nearest: bool, xp=np) -> list:
+    """``[(index, weight), ...]``: the nodes of ``grid`` that a lookup at ``x`` blends."""
+    i0, i1, w = linear(grid, x, periodic=periodic, xp=xp)
     if len(grid) == 1:
-        z = np.zeros(np.shape(x), np.int64)
-        return [(z, np.ones(np.shape(x)))]
-    i0, i1, w = linear(grid, x, periodic=periodic) if periodic else linear(grid, np.clip(x, grid[0], grid[-1]))
+        return [(i0, w * 0 + 1)]
     if nearest:
-        return [(np.where(w < 0.5, i0, i1), np.ones(np.shape(x)))]
+        return [(xp.where(w < 0.5, i0, i1) if xp is np else xp.select(w < 0.5, i0, i1), w * 0 + 1)]
     return [(i0, 1 - w), (i1, w)]
+
+
+def cone_lookup(reader, phi_i, theta_i, phi_o, theta_o, nearest: bool, xp=np):
+    """The lookup along the specular cone (the comment above), for numpy and Dr.Jit.
+
+    ``reader`` holds the table on its backend: ``phi_i`` and ``theta_i`` (node grids),
+    ``sin_theta_i(b)`` (the sine of node ``b``) and ``read(a, b, phi, u, weight)``, which
+    adds ``weight`` x node ``(a, b)``'s reconstruction at ``(phi_o, sin theta_o) = (phi, u)``
+    to its output (zero weights read nothing).
+    """
+    select = np.where if xp is np else xp.select
+    half_pi = float(np.pi / 2)
+    theta_i = xp.clip(theta_i, -half_pi, half_pi)
+    u, sin_i = xp.sin(theta_o), xp.sin(theta_i)
+    for a, wa in node_corners(reader.phi_i, phi_i, True, nearest, xp):
+        corners = node_corners(reader.theta_i, theta_i, False, nearest, xp)
+        shifts = [sin_i - reader.sin_theta_i(b) for b, _ in corners]
+        # each node read at the same distance from its own cone, in u = sin(theta_o) ...
+        for (b, wb), s in zip(corners, shifts):
+            reader.read(a, b, phi_o, u + s, select(xp.abs(u + s) <= 1.0, wa * wb, 0.0))
+        # ... and its light shifted past a pole comes back over it at phi + pi. A lane near
+        # the lower pole takes it from the node below (s >= 0), near the upper pole from the
+        # node above (s <= 0): one read per lane, not one per node
+        (b0, w0), (b1, w1) = corners[0], corners[-1]
+        s0, s1 = shifts[0], shifts[-1]
+        lower = u < 0.0
+        s = select(lower, s0, s1)
+        back = select(lower, (s0 > 0) & (u <= s0 - 1.0), (s1 < 0) & (u >= 1.0 + s1))
+        u_back = select(lower, -2.0 - u + s, 2.0 - u + s)
+        reader.read(a, select(lower, b0, b1), phi_o + float(np.pi), u_back,
+                    select(back, wa * select(lower, w0, w1), 0.0))
+
+
+def cell_offsets(phi_o0, n_phi, n_theta, phi, u, xp=np):
+    """The output cell of ``(phi, u = sin theta_o)``, ``(kp, kt)``, and the offsets from its
+    centre in ``phi`` and ``u`` that the limited slopes multiply (``u_edges``: sin of the
+    ``theta_o`` edges; returned as a function of the gathered edges)."""
+    kp, t = cell(phi, phi_o0, 2 * np.pi, n_phi, periodic=True, tie=TIE, xp=xp)
+    kt, _ = cell(xp.arcsin(xp.clip(u, -1.0, 1.0)) if xp is np else xp.safe_asin(xp.clip(u, -1.0, 1.0)),
+                 -np.pi / 2, np.pi, n_theta, tie=TIE, xp=xp)
+    dp = (t - kp - 0.5) * float(2 * np.pi / n_phi)
+    return kp, kt, dp
 
 
 def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "linear", slopes=None) -> np.ndarray:
@@ -270,7 +311,8 @@ def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "line
 
     The table must be expanded (``BundleTable.load(..., expand=True)``); relative tables
     take ``phi_o - phi_i`` on their output axis. ``slopes``: :func:`bin_slopes`, if
-    already computed.
+    already computed. The Dr.Jit twin of the reader is ``mitsuba_ext.table.DrJitTable``;
+    the algorithm is :func:`cone_lookup`, shared.
     """
     reductions = table.meta.get("reductions", {})
     if reductions.get("theta_i") == "mirror" or reductions.get("phi_i") == "mirror_xz":
@@ -281,34 +323,31 @@ def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "line
                                                            for a in (phi_i, theta_i, phi_o, theta_o)))
     if reductions["phi_o"] == "relative":
         phi_o = phi_o - phi_i
-    nearest = mode == "nearest"
-    s_phi, s_u = (None, None) if nearest else (slopes or bin_slopes(table))
-    n_p, n_t = len(table.phi_o_edges) - 1, len(table.theta_o_edges) - 1
-    u_edges = np.sin(table.theta_o_edges)
+    reader = _NumpyReader(table, mode == "nearest", slopes, phi_i.shape)
+    cone_lookup(reader, phi_i, theta_i, phi_o, theta_o, reader.nearest)
+    return reader.out
 
-    def read(a, b, phi, u):
-        """Node (a, b) at (phi, u): its bin value plus the slopes' offsets."""
-        t = np.mod(phi - table.phi_o_edges[0], 2 * np.pi) * (n_p / (2 * np.pi))
-        kp = np.minimum(np.floor(t).astype(np.int64), n_p - 1)
-        to = np.arcsin(np.clip(u, -1.0, 1.0))
-        kt = np.clip(np.floor((to + np.pi / 2) * (n_t / np.pi)).astype(np.int64), 0, n_t - 1)
-        value = table.values[a, b, kp, kt].astype(np.float64)
-        if not nearest:
-            dp = (t - kp - 0.5) * (2 * np.pi / n_p)
-            du = u - 0.5 * (u_edges[kt] + u_edges[kt + 1])
-            value = value + s_phi[a, b, kp, kt] * dp[..., None] + s_u[a, b, kp, kt] * du[..., None]
-        return value
 
-    u = np.sin(theta_o)
-    out = np.zeros(phi_i.shape + (len(table.wavelength),))
-    for a, wa in _node_corners(table.phi_i, phi_i, True, nearest):
-        for b, wb in _node_corners(table.theta_i, np.clip(theta_i, -np.pi / 2, np.pi / 2), False, nearest):
-            # this node read at the same distance from its own cone, in u = sin(theta_o) ...
-            s = np.sin(theta_i) - np.sin(table.theta_i[b])
-            out += (wa * wb * (np.abs(u + s) <= 1.0))[..., None] * read(a, b, phi_o, u + s)
-            # ... and its light shifted past a pole, which comes back over it at phi + pi
-            u_back = np.where(s > 0, -2.0 - u + s, 2.0 - u + s)
-            back = np.where(s > 0, u <= s - 1.0, u >= 1.0 + s) & (s != 0)
-            if np.any(back):
-                out += (wa * wb * back)[..., None] * read(a, b, phi_o + np.pi, np.where(back, u_back, 0.0))
-    return out
+class _NumpyReader:
+    """The table in numpy for :func:`cone_lookup`, accumulating ``S`` in ``out``."""
+
+    def __init__(self, table: BundleTable, nearest: bool, slopes, shape):
+        self.table, self.nearest = table, nearest
+        self.phi_i, self.theta_i = table.phi_i, table.theta_i
+        self.s_phi, self.s_u = (None, None) if nearest else (slopes or bin_slopes(table))
+        self.n_p, self.n_t = len(table.phi_o_edges) - 1, len(table.theta_o_edges) - 1
+        self.u_edges = np.sin(table.theta_o_edges)
+        self.out = np.zeros(shape + (len(table.wavelength),))
+
+    def sin_theta_i(self, b):
+        return np.sin(self.theta_i[b])
+
+    def read(self, a, b, phi, u, weight):
+        if not np.any(weight):
+            return
+        kp, kt, dp = cell_offsets(self.table.phi_o_edges[0], self.n_p, self.n_t, phi, u)
+        value = self.table.values[a, b, kp, kt].astype(np.float64)
+        if not self.nearest:
+            du = u - 0.5 * (self.u_edges[kt] + self.u_edges[kt + 1])
+            value = value + self.s_phi[a, b, kp, kt] * dp[..., None] + self.s_u[a, b, kp, kt] * du[..., None]
+        self.out += weight[..., None] * value

@@ -1,35 +1,106 @@
-"""The grids every table shares: node interpolation and the solid angle of a bin.
+"""The grids every table shares: node interpolation, cells (bins) and a cell's solid angle.
 
-Written once for the whole project; the tables of single fibers (``models.fiber``), the
-bundle tables (``models.bundle_table``), the baker's tallies and the plugins' uploads
-all use these.
+Written once for the whole project, for numpy (``xp=np``) and Dr.Jit (``xp=dr``): the
+single-fiber tables (``models.fiber``), the baker's tallies (``models.bake``), the bundle
+table's lookup (``models.bundle_table``) and the plugins' uploads (``mitsuba_ext``).
+
+Two kinds of axis:
+
+* **nodes** (``theta_i``, the fiber table's ``theta``, ``phi`` and wavelength): values
+  live on the nodes and are read by linear interpolation (:func:`linear`);
+* **cells** (the bundle table's ``phi_o`` and ``theta_o`` bins): ``n`` equal cells over a
+  span, a value per cell (:func:`cell`). A cell is half open, ``[lo, hi)``: a point on an
+  edge belongs to the cell above it.
+
+A lookup reads a table at directions that a user or a renderer chose, and those are often
+exactly on an edge (the specular cone at a ``theta_i`` node falls on a ``theta_o`` edge,
+the forward direction ``phi_o - phi_i = pi`` on a ``phi_o`` edge). Whether the arithmetic
+lands a hair below or above the edge then depends on the backend's trigonometry (numpy's
+double, Dr.Jit's float32), so lookups pass ``tie=TIE``: a point within ``TIE`` cell widths
+below an edge is read in the cell above, as the edge's own cell, on every backend. The
+baker tallies random directions with ``tie=0``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+# lookups: cells widths below an edge that still count as on it (float32 rounding of the
+# angle is ~1e-6 cells; a direction chosen this near an edge is on it)
+TIE = 1e-4
 
-def linear(grid: np.ndarray, x: np.ndarray, periodic: bool = False):
+
+def _is_numpy(xp) -> bool:
+    return xp is np
+
+
+def _uint(xp, x):
+    return xp.uint32_array_t(type(x))(x)
+
+
+def linear(grid, x, periodic: bool = False, xp=np):
     """Indices and weights of linear interpolation on a sorted grid: ``(i0, i1, w)`` with
     ``value = (1 - w) v[i0] + w v[i1]``.
 
-    Periodic grids are uniform over ``[grid[0], grid[0] + 2 pi)``; other grids clamp
-    ``x`` to their range (a constant extension at the ends).
+    Periodic grids are uniform over ``[grid[0], grid[0] + 2 pi)``; other grids clamp ``x``
+    to their range (a constant extension at the ends). numpy reads any sorted grid (by
+    search, so exactly ``w = 0`` on a node); Dr.Jit needs uniform steps (its arithmetic is
+    the same to float32 rounding), and reads a NaN as ``grid[0]`` (it must not become an
+    index).
     """
+    grid = np.asarray(grid, np.float64)
     n = len(grid)
+    if _is_numpy(xp):
+        if n == 1:
+            z = np.zeros(np.shape(x), dtype=np.int64)
+            return z, z, np.zeros(np.shape(x))
+        if periodic:
+            step = 2 * np.pi / n
+            t = np.mod(x - grid[0], 2 * np.pi) / step
+            i0 = np.floor(t).astype(np.int64) % n
+            return i0, (i0 + 1) % n, t - np.floor(t)
+        x = np.clip(x, grid[0], grid[-1])
+        i0 = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, n - 2)
+        w = (x - grid[i0]) / (grid[i0 + 1] - grid[i0])
+        return i0, i0 + 1, w
+
+    dr = xp
+    Float = type(x)
+    UInt = dr.uint32_array_t(Float)
+    x = dr.select(dr.isfinite(x), x, float(grid[0]))
     if n == 1:
-        z = np.zeros(np.shape(x), dtype=np.int64)
-        return z, z, np.zeros(np.shape(x))
+        zero = dr.zeros(UInt, dr.width(x))
+        return zero, zero, dr.zeros(Float, dr.width(x))
     if periodic:
-        step = 2 * np.pi / n
-        t = np.mod(x - grid[0], 2 * np.pi) / step
-        i0 = np.floor(t).astype(np.int64) % n
-        return i0, (i0 + 1) % n, t - np.floor(t)
-    x = np.clip(x, grid[0], grid[-1])
-    i0 = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, n - 2)
-    w = (x - grid[i0]) / (grid[i0 + 1] - grid[i0])
-    return i0, i0 + 1, w
+        t = (x - float(grid[0])) * float(1.0 / (2 * np.pi / n))
+        t = t - dr.floor(t * (1.0 / n)) * n  # wrap into [0, n)
+        i0f = dr.floor(t)
+        i0 = UInt(dr.clip(i0f, 0, n - 1))
+        return i0, dr.select(i0 + 1 >= n, 0, i0 + 1), t - i0f
+    steps = np.diff(grid)
+    if not np.allclose(steps, steps[0], rtol=1e-6, atol=0):
+        raise ValueError("Dr.Jit node interpolation needs uniformly spaced nodes")
+    t = dr.clip((x - float(grid[0])) * float(1.0 / steps[0]), 0.0, float(n - 1))
+    i0f = dr.minimum(dr.floor(t), float(n - 2))
+    return UInt(i0f), UInt(i0f) + 1, t - i0f
+
+
+def cell(x, lo: float, span: float, n: int, periodic: bool = False, tie: float = 0.0, xp=np):
+    """``(k, t)``: the cell ``k`` of ``x`` among ``n`` equal cells over ``[lo, lo + span)``,
+    and ``x``'s position ``t`` in cell units (``k <= t < k + 1`` inside the range).
+
+    Periodic axes wrap ``x`` into the span first; others clamp ``k`` to the first and last
+    cell. ``tie``: see the module docstring (0 for tallies, :data:`TIE` for lookups).
+    """
+    lo, span = float(lo), float(span)
+    if periodic:
+        x = x - span * xp.floor((x - lo) * (1.0 / span))
+    t = (x - lo) * float(n / span)
+    if periodic and tie:  # just below the end of the span: on the first edge
+        t = (np.where if _is_numpy(xp) else xp.select)(t + tie >= n, t - n, t)
+    if _is_numpy(xp):
+        return np.clip(np.floor(t + tie), 0, n - 1).astype(np.int64), t
+    return _uint(xp, xp.clip(xp.floor(t + tie) if tie else xp.floor(t), 0, n - 1)), t
 
 
 def bin_solid_angle(phi_edges, theta_edges) -> np.ndarray:

@@ -16,6 +16,8 @@ import inspect
 import sys
 from pathlib import Path
 
+from mitsuba_ext import plugin_modules
+
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "plugins"
 KIND = {"fiber_bundle": "BSDF", "fiber_table": "BSDF", "fiber_ray": "BSDF", "bundle_path": "integrator"}
 
@@ -26,11 +28,9 @@ def pages() -> dict:
 
     if mi.variant() is None:
         mi.set_variant("scalar_rgb")
-    from mitsuba_ext.bsdf import bsdf_classes
-    from mitsuba_ext.integrator import integrator_class
-
-    classes = dict(bsdf_classes())
-    classes["bundle_path"] = integrator_class()
+    classes = {}
+    for module in plugin_modules():
+        classes.update(module.PLUGINS)
     out = {}
     for name, cls in sorted(classes.items()):
         doc = inspect.cleandoc(cls.__doc__ or "")

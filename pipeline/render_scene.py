@@ -46,7 +46,7 @@ def render_scene(scene_path, out, spp=None, variant="llvm_ad_spectral", defines=
             where, _, rest = text.partition("Traceback")
             text = where.strip().rstrip(":") + ": " + rest.strip().splitlines()[-1]
         raise ValueError(f"{scene_path}: {text}") from None
-    from mitsuba_ext.integrator import check_integrator
+    from mitsuba_ext.crossing import check_integrator
 
     problem = check_integrator(scene)
     if problem:

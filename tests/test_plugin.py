@@ -166,7 +166,7 @@ def test_eval_is_the_table_lookup_in_the_bundle_frame(mi_plug, tables, which):
     """
     import drjit as dr
 
-    from mitsuba_ext.bsdf import spectral_weights
+    from mitsuba_ext.frame import spectral_weights
 
     mi = mi_plug
     table = BundleTable.load(tables[which], expand=True)
@@ -226,7 +226,7 @@ def furnace_expected(table_path, theta_c=0.0):
     ``L = P + integral S(w_l -> w_c) cos(theta_l) / cos(theta_c) d omega_l``
     (DESIGN's far field ``I = E 2R cos(theta_l) S`` over the width ``2R cos(theta_c)``).
     """
-    from mitsuba_ext.bsdf import spectral_weights
+    from mitsuba_ext.frame import spectral_weights
     from models.fiber.base import sphere_quadrature
 
     t = BundleTable.load(table_path, expand=True)
@@ -304,7 +304,7 @@ def test_spectral_render_equals_mono_renders_combined_with_cie(variant_guard, ta
     """Mitsuba's spectral variant against the thesis's way: one mono render per table
     wavelength, combined with CIE 1931 and D65 into sRGB."""
     import mitsuba_ext
-    from mitsuba_ext.bsdf import spectral_weights
+    from mitsuba_ext.frame import spectral_weights
 
     mi = variant_guard
     table = BundleTable.load(tables["circle"])
@@ -414,7 +414,7 @@ def test_files_resolve_against_the_scene_file(mi_plug, tables, tmp_path, monkeyp
 
 
 def test_bundles_on_other_shapes_and_disagreeing_radii_are_named(mi_plug, tables):
-    from mitsuba_ext.integrator import check_bundles
+    from mitsuba_ext.crossing import check_bundles
 
     table = str(tables["circle"])
     scene = mi_plug.load_dict({

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..xp import asin, select
+
 TWO_PI = 2 * np.pi
 P_MAX = 3  # Chiang's explicit paths: R, TT, TRT (then the residual)
 COS_GRAZING = float(np.cos(np.deg2rad(89.99)))
@@ -52,14 +54,6 @@ def tilt_shifts(alpha_deg: float, p_max: int = P_MAX) -> np.ndarray:
     return np.array([-2 * a, a, 4 * a] + [0.0] * (p_max - 2))
 
 
-def _select(xp):
-    return np.where if xp is np else xp.select
-
-
-def _asin(x, xp):
-    return np.arcsin(np.clip(x, -1.0, 1.0)) if xp is np else xp.safe_asin(x)
-
-
 def bravais(eta, cos_theta, xp):
     """Bravais' index ``eta'`` of the cross-section for a ray of longitude ``theta``."""
     return xp.sqrt(xp.maximum(eta * eta - (1 - cos_theta * cos_theta), 0.0)) / cos_theta
@@ -67,7 +61,7 @@ def bravais(eta, cos_theta, xp):
 
 def gammas(h, eta_p, xp):
     """``(gamma_i, gamma_t)``: the angles of incidence and refraction in the cross-section."""
-    return _asin(h, xp), _asin(h / eta_p, xp)
+    return asin(h, xp), asin(h / eta_p, xp)
 
 
 def fresnel(cos_i, eta, xp):
@@ -77,7 +71,7 @@ def fresnel(cos_i, eta, xp):
     cos_t = xp.sqrt(xp.maximum(0.0, 1 - sin_t2))
     rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
     rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    return _select(xp)(sin_t2 >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
+    return select(xp)(sin_t2 >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
 def attenuation(cos_theta_i, eta, h, sigma_a, p_max, xp) -> list:
@@ -98,8 +92,8 @@ def attenuation(cos_theta_i, eta, h, sigma_a, p_max, xp) -> list:
     for _ in range(2, p_max):
         A.append(A[-1] * T * F)
     denom = 1 - T * F
-    select = _select(xp)
-    A.append(select(denom > 1e-12, A[p_max - 1] * F * T / xp.maximum(denom, 1e-12), 0.0 * denom))
+    where = select(xp)
+    A.append(where(denom > 1e-12, A[p_max - 1] * F * T / xp.maximum(denom, 1e-12), 0.0 * denom))
     return A
 
 
@@ -200,8 +194,7 @@ class LobeSampler:
         return dr.select(p == self.p_max, 1 / TWO_PI, lobe)
 
     def _longitudinal(self, p, theta_in, theta_out):
-        from .sampling_drjit import longitudinal
-        return self._pick([longitudinal(m, theta_in, theta_out) for m in self.M], p)
+        return self._pick([m(theta_in, theta_out, xp=self.dr) for m in self.M], p)
 
     def lobe_probabilities(self, A):
         """``P(p)``: each path's share of the spectrally averaged attenuation."""
@@ -225,8 +218,7 @@ class LobeSampler:
         for q in range(self.p_max):  # the first lobe whose running sum passes u[0]
             cdf = cdf + P[q]
             p = dr.select((p == self.p_max) & (u[0] < cdf), q, p)
-        from .sampling_drjit import sample_longitudinal
-        theta_out = self._pick([sample_longitudinal(m, theta_in, u[1], u[2]) for m in self.M], p)
+        theta_out = self._pick([m.sample(theta_in, u[1], u[2], xp=dr) for m in self.M], p)
         gamma_i, gamma_t = gammas(h, bravais(self.eta[self.ref], cos_in, dr), dr)
         dphi = dr.select(p == self.p_max, TWO_PI * u[3] - np.pi,
                          wrap(Phi(self.Float(p), gamma_i, gamma_t) + sample_logistic(u[3], self.s, dr), dr))
@@ -264,7 +256,7 @@ class LobeSampler:
         cos = xp.maximum(xp.cos(theta), COS_GRAZING)
         _, gamma_t = gammas(h, bravais(self.eta[self.ref], cos, xp), xp)
         pf = np.asarray(p, np.float64) if xp is np else self.Float(p)
-        turn = _select(xp)(p == self.p_max, 0.0, exit_turn(pf, gamma_t))
+        turn = select(xp)(p == self.p_max, 0.0, exit_turn(pf, gamma_t))
         s, c = xp.sin(turn), xp.cos(turn)
         return c * nx - s * nz, s * nx + c * nz
 
@@ -301,7 +293,7 @@ def leave(cx, cz, r, nx, nz, dx, dz, xp):
     """
     nd = nx * dx + nz * dz
     inward = nd < 0
-    select = _select(xp)
+    select = select(xp)
     nx = select(inward, nx - 2 * nd * dx, nx)
     nz = select(inward, nz - 2 * nd * dz, nz)
     return cx + r * (1 + 1e-4) * nx, cz + r * (1 + 1e-4) * nz

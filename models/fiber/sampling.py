@@ -89,7 +89,7 @@ class FiberSampler:
                 theta_o[sel] = sign[sel] * np.arcsin(s0 + np.clip(u[3][sel], EDGE, 1 - EDGE) * (s1 - s0))
                 dphi[sel] = self.table.phi[c] + np.clip(u[4][sel], EDGE, 1 - EDGE) * self.dphi
             else:
-                theta_o[sel] = sample_longitudinal(lobe.longitudinal, theta_i[sel], u[3][sel], u[4][sel])
+                theta_o[sel] = lobe.longitudinal.sample(theta_i[sel], u[3][sel], u[4][sel])
                 # the phi uniform is reused: cell chosen by u[2], position by its remainder
                 lo = np.where(k > 0, self.cdf[p][node[sel] * n_cells + k - 1] - node[sel], 0.0)
                 hi = self.cdf[p][node[sel] * n_cells + k] - node[sel]
@@ -104,13 +104,13 @@ class FiberSampler:
         sign = np.where(theta_i < 0, -1.0, 1.0)
         P, (i0, i1, w) = self._lobe_probabilities(np.abs(theta_i))
         n_phi = len(self.table.phi)
-        c = np.floor(np.mod(dphi - self.table.phi[0], 2 * np.pi) / self.dphi).astype(np.int64) % n_phi
+        c = linear(self.table.phi, dphi, periodic=True)[0]  # the azimuth's cell
         out = np.zeros(theta_i.shape)
         for p, lobe in enumerate(self.table.lobes):
             if lobe.dense:
                 t = sign * theta_o
                 grid = self.table.theta_o
-                a = np.clip(np.searchsorted(grid, t, side="right") - 1, 0, len(grid) - 2)
+                a = linear(grid, t)[0]
                 inside = (t >= grid[0]) & (t <= grid[-1])
                 k = a * n_phi + c
                 cell_area = (grid[a + 1] - grid[a]) * self.dphi  # density per d theta d phi
@@ -120,28 +120,3 @@ class FiberSampler:
                 q_phi = ((1 - w) * self.cell[p][i0, c] + w * self.cell[p][i1, c]) / self.dphi
                 out += P[p] * lobe.longitudinal(theta_i, theta_o) * np.cos(theta_o) * q_phi
         return out
-
-
-def sample_longitudinal(lobe, theta_i, u1, u2):
-    """Sample ``theta_o`` with density ``M(theta_i, theta_o) cos(theta_o)``."""
-    if lobe.kind == "deon":
-        v = lobe.v
-        theta_p = theta_i + lobe.shift
-        u1 = np.maximum(u1, 1e-12)
-        # d'Eon et al. 2011: a point on the cone, perturbed by a vMF of concentration 1/v
-        cos_t = 1 + v * np.log(u1 + (1 - u1) * np.exp(-2 / v))
-        sin_t = np.sqrt(np.maximum(0.0, 1 - cos_t**2))
-        sin_o = -cos_t * np.sin(theta_p) + sin_t * np.cos(2 * np.pi * u2) * np.abs(np.cos(theta_p))
-        return np.arcsin(np.clip(sin_o, -1, 1))
-    if lobe.kind == "uniform":
-        return np.arcsin(2 * u1 - 1)
-    if lobe.kind == "stripes":
-        n = lobe.n_stripes
-        edges = np.sin(np.linspace(-np.pi / 2, np.pi / 2, 2 * n + 1))
-        lo, hi = edges[0:-1:2], edges[1::2]  # lit bands
-        cw = np.cumsum(hi - lo) / np.sum(hi - lo)
-        band = np.minimum(np.searchsorted(cw, u1, side="right"), n - 1)
-        prev = np.where(band > 0, cw[band - 1], 0.0)
-        frac = (u1 - prev) / (cw[band] - prev)
-        return np.arcsin(np.clip(lo[band] + frac * (hi[band] - lo[band]), -1, 1))
-    raise ValueError(f"cannot sample a longitudinal lobe of kind {lobe.kind!r}")

@@ -256,7 +256,7 @@ def side_by_side(images: dict, flip_maps: dict, entry: dict, path: Path, name: s
 def mono_check(mi, cfg, table_props: dict, out: Path) -> dict:
     """The spectral render against mono renders per table wavelength combined with CIE + D65."""
     import mitsuba_ext
-    from mitsuba_ext.bsdf import spectral_weights
+    from mitsuba_ext.frame import spectral_weights
     from models.bundle_table import BundleTable
 
     from .. import scenes
