@@ -37,13 +37,12 @@ class CurveBSDF(mi.BSDF):
         def get(name, default):
             return props.get(name, default)
 
-        self.twist = float(np.radians(number(self.plugin, "twist", get("twist", 0.0))))
-        self.twist_rate = float(np.radians(number(self.plugin, "twist_rate", get("twist_rate", 0.0))))
-        up = vector3(self.plugin, "up", get("up", [0.0, 0.0, 1.0]))
-        if np.linalg.norm(up) == 0:
-            raise ValueError(f"{self.plugin}: 'up' must be a non-zero 3-vector, got {up}")
-        self.up = [float(v) for v in up / np.linalg.norm(up)]
-        self.radius = number(self.plugin, "radius", get("radius", 0.0), lo=0.0)
+        # what mi.traverse exposes (as the user wrote them: degrees, any length of up) ...
+        self.params = {"twist": mi.Float(number(self.plugin, "twist", get("twist", 0.0))),
+                       "twist_rate": mi.Float(number(self.plugin, "twist_rate", get("twist_rate", 0.0))),
+                       "up": mi.ScalarVector3f(vector3(self.plugin, "up", get("up", [0.0, 0.0, 1.0]))),
+                       "radius": mi.Float(number(self.plugin, "radius", get("radius", 0.0), lo=0.0))}
+        self._read_params()
 
         # how the table's wavelengths become this variant's Spectrum
         self.wavelength = wl = np.asarray(wavelength, float)
@@ -59,6 +58,27 @@ class CurveBSDF(mi.BSDF):
             kind = "rgb" if mi.is_rgb else "mono"
             mono_nm = number(self.plugin, "wavelength", props["wavelength"], 1.0) if "wavelength" in props else None
             self.weights = spectral_weights(wl, kind, mono_nm).tolist()
+
+    def _read_params(self):
+        """... and the Python floats the kernels are traced with (literals, not kernel inputs)."""
+        def scalar(name, lo=-np.inf):
+            return number(self.plugin, name, float(dr.ravel(self.params[name])[0]), lo=lo)
+        self.twist = float(np.radians(scalar("twist")))
+        self.twist_rate = float(np.radians(scalar("twist_rate")))
+        up = np.array([float(v) for v in self.params["up"]])
+        if not np.all(np.isfinite(up)) or np.linalg.norm(up) == 0:
+            raise ValueError(f"{self.plugin}: 'up' must be a finite, non-zero 3-vector, got {up.tolist()}")
+        self.up = [float(v) for v in up / np.linalg.norm(up)]
+        self.radius = scalar("radius", lo=0.0)
+
+    def traverse(self, callback):
+        """``mi.traverse`` exposes ``twist``, ``twist_rate`` (degrees, per scene unit of
+        length), ``up`` and ``radius``; the kernels are traced anew after a change."""
+        for name, value in self.params.items():
+            callback.put(name, value, mi.ParamFlags.NonDifferentiable)
+
+    def parameters_changed(self, keys):
+        self._read_params()
 
     def _spectrum(self, S, si):
         """Table spectrum (list over lambda) -> this variant's unpolarized Spectrum."""
@@ -185,6 +205,10 @@ class FiberBundleBSDF(CurveBSDF):
     uniform share; ``pdf`` is that proposal's density (Mitsuba's chi-square test),
     and the weight ``eval / pdf`` is exact whatever the proposal.
 
+    ``mi.traverse`` exposes ``twist``, ``twist_rate``, ``up``, ``radius`` and
+    ``sampling_uniform`` (non-differentiable; edit them and ``params.update()``, as with
+    Mitsuba's own plugins: the next render uses them).
+
     The passthrough is a null lobe
     (``sample`` returns ``w_o = -w_i`` with probability ``P_pass(phi_i)``); a hit from
     the inside of the shape always passes, so the far wall of a cylinder is not a
@@ -213,11 +237,18 @@ class FiberBundleBSDF(CurveBSDF):
         self.grid = self.backend.sampling_grid(uniform)
         self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
         self._init_curve(props, self.backend.wavelength)
+        self.params["sampling_uniform"] = mi.Float(uniform)
         scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
                    mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide | mi.BSDFFlags.NonSymmetric)
         passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
         self.m_components = [scatter, passing]
         self.m_flags = scatter | passing
+
+    def parameters_changed(self, keys):
+        super().parameters_changed(keys)
+        if "sampling_uniform" in keys:
+            uniform = float(dr.ravel(self.params["sampling_uniform"])[0])
+            self.grid = self.backend.sampling_grid(number(self.plugin, "sampling_uniform", uniform, 0.0, 1.0))
 
     def _passthrough(self, si, phi_i, inside):
         if not self.use_passthrough:
@@ -308,6 +339,7 @@ class FiberTableBSDF(CurveBSDF):
          - Mono variants: the wavelength (nm) to render; default CIE luminance.
 
     Defined on ``cylinder`` and ``bsplinecurve`` shapes, like ``fiber_bundle``.
+    ``mi.traverse`` exposes ``twist``, ``twist_rate``, ``up`` and ``radius``.
 
     .. code-block:: python
 
@@ -408,6 +440,8 @@ class FiberRayBSDF(CurveBSDF):
            its parameters (index and absorption per wavelength, roughness, tilt, paths).
        * - radius, up, twist, twist_rate, wavelength
          - As ``fiber_table``.
+
+    ``mi.traverse`` exposes ``twist``, ``twist_rate``, ``up`` and ``radius``.
 
     .. code-block:: python
 

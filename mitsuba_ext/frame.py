@@ -149,7 +149,7 @@ def resolve_path(plugin: str, name: str, value) -> str | None:
 
     if value is None:
         return None
-    found = str(mi.Thread.thread().file_resolver().resolve(str(value)))
+    found = str(mi.file_resolver().resolve(str(value)))
     if not Path(found).exists():
         raise ValueError(f"{plugin}: '{name}' file {value} not found (looked in the current folder and in the "
                          "scene file's folder); give a path relative to the scene file or an absolute one")

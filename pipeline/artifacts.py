@@ -14,12 +14,27 @@ from models.bundle_table import BundleTable
 from .config import BAKE_SECTIONS, FIBER_SECTIONS
 
 
+def config_dir(cfg, out_root="artifacts") -> Path:
+    """``<out_root>/<config name>/``: everything one config makes."""
+    return Path(out_root) / cfg.name
+
+
+def stage_dir(cfg, stage: str, out_root="artifacts") -> Path:
+    """``<out_root>/<config name>/<stage>/``: one stage's outputs (or a bench's, by its name)."""
+    return config_dir(cfg, out_root) / stage
+
+
+def checkpoint_path(cfg, model: str, out_root="artifacts") -> Path:
+    """The trained model ``model`` (a size of ``train.models``)."""
+    return stage_dir(cfg, "train", out_root) / model / "model.pt"
+
+
 def fiber_table_path(cfg, out_root="artifacts") -> Path:
-    return Path(out_root) / cfg.name / "fiber" / "fiber_table.npz"
+    return stage_dir(cfg, "fiber", out_root) / "fiber_table.npz"
 
 
 def bundle_table_path(cfg, out_root="artifacts") -> Path:
-    return Path(out_root) / cfg.name / "bake" / "bundle_table.npz"
+    return stage_dir(cfg, "bake", out_root) / "bundle_table.npz"
 
 
 def load_fiber_table(cfg, out_root="artifacts"):

@@ -26,7 +26,7 @@ import contextlib
 import os
 import sys
 import time
-from pathlib import Path
+from .artifacts import config_dir
 
 EPILOG = """\
 The config's keys are documented in configs/default.yaml and pipeline/config.py.
@@ -93,7 +93,7 @@ def main(argv=None) -> int:
             check_variants(cfg)  # a cuda_* variant on a machine without a GPU: before any work
             from models.io import confined, exclusive, writable_folder
             hold.enter_context(confined(args.artifacts))  # no write leaves the artifacts root
-            folder = writable_folder(Path(args.artifacts) / cfg.name)  # before any long work, not after it
+            folder = writable_folder(config_dir(cfg, args.artifacts))  # before any long work, not after it
             hold.enter_context(exclusive(folder, f"bcsdf {args.command} {args.config}"))  # one writer per config
             _run(args, cfg)
     except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
@@ -202,7 +202,7 @@ def _run(args, cfg) -> None:
         t0 = time.perf_counter()
         shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
         # all or nothing (the sweep keeps each member as it finishes, as a bake keeps its checkpoint)
-        with contextlib.nullcontext() if stage == "sweep" else journal(Path(args.artifacts) / cfg.name):
+        with contextlib.nullcontext() if stage == "sweep" else journal(config_dir(cfg, args.artifacts)):
             _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
         graph.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0, work=estimate.work(stage, cfg))
 

@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
 from models.errors import albedo_error, log_mae, relative_l1
 from models.jit import to_drjit
 from models.io import write_text
+from .artifacts import checkpoint_path, stage_dir
 
 
 def _best_of(fn, repeat=3):
@@ -66,7 +66,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     # -- queries: held-out bins (errors) and 1M random directions (cost) ---------------
     truth = table.values.reshape(-1, n_l).astype(np.float64)
     first = next(iter(cfg.train.models))
-    first_spec = NeuralSpec.from_dict(load_checkpoint(Path(artifacts) / cfg.name / "train" / first / "model.pt")["spec"])
+    first_spec = NeuralSpec.from_dict(load_checkpoint(checkpoint_path(cfg, first, artifacts))["spec"])
     val = held_out_bins(table, first_spec, cfg)  # every model of a config shares the split
     omega = np.broadcast_to(table.solid_angle[None, None, :, :], table.values.shape[:4]).ravel()
     scattered = table.scattered  # [phi_i, theta_i, lambda]
@@ -133,9 +133,9 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
         report(f"table {mode}", "drjit", dt.nbytes, run, timed)
 
     # -- the models -------------------------------------------------------------------
-    export_root = Path(artifacts) / cfg.name / "export"
+    export_root = stage_dir(cfg, "export", artifacts)
     for name in cfg.train.models:
-        ckpt = load_checkpoint(Path(artifacts) / cfg.name / "train" / name / "model.pt")
+        ckpt = load_checkpoint(checkpoint_path(cfg, name, artifacts))
         spec = NeuralSpec.from_dict(ckpt["spec"])
         if spec.folds != first_spec.folds:
             raise ValueError(f"models of one config must share their folds ({name}: {spec.folds}, "
@@ -170,7 +170,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
         jit_timed()  # compile once; the kernel cache serves the timed runs
         report(f"mlp {name}", "drjit", nbytes, jit_run, jit_timed)
 
-    out = Path(artifacts) / cfg.name / "export"
+    out = stage_dir(cfg, "export", artifacts)
     noise_l1 = float(np.sqrt(2 / np.pi) * table.stderr.reshape(-1, n_l)[val].sum() / truth[val].sum())
     print(f"the table's own Monte Carlo noise on these bins: relative L1 {noise_l1:.2%}")
     write_text(out / "error_vs_time.json", json.dumps({"rows": rows, "table_noise_l1": noise_l1,

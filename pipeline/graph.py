@@ -22,6 +22,7 @@ from pathlib import Path
 import yaml
 
 from models.io import write_text
+from .artifacts import config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 DVC_YAML = ROOT / "dvc.yaml"
@@ -92,7 +93,7 @@ def fingerprint(stage: str, cfg, root="artifacts") -> str:
 
 def stamp_path(stage: str, cfg, root="artifacts") -> Path:
     """Where ``stage``'s stamp for this config lives (beside, not inside, its outputs)."""
-    return Path(root) / cfg.name / ".stamps" / f"{stage}.json"
+    return config_dir(cfg, root) / ".stamps" / f"{stage}.json"
 
 
 def stamp(stage: str, cfg, root="artifacts", seconds: float | None = None, work: float | None = None) -> None:

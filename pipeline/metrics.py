@@ -15,10 +15,11 @@ import math
 from pathlib import Path
 
 from models.io import write_text
+from .artifacts import stage_dir
 
 
 def folder(cfg, root) -> Path:
-    return Path(root) / cfg.name / "metrics"
+    return stage_dir(cfg, "metrics", root)
 
 
 def _clean(v):

@@ -384,6 +384,48 @@ def test_twist_rate_is_per_scene_unit_of_length(mi_plug, tables):
     assert not np.allclose(long_, untwisted, rtol=0.05)  # the ellipse's table does depend on the twist
 
 
+def test_traverse_exposes_what_a_user_edits(mi_plug, tables):
+    """``mi.traverse`` lists fiber_bundle's orientation, radius and sampling share; an edit
+    followed by ``update()`` renders as the plugin loaded with that value does, and a value
+    outside its domain is refused by the update."""
+    mi = mi_plug
+    path = str(tables["ellipse"])
+    rng = np.random.default_rng(3)
+    n = 64
+    wi = np.array(wi_of(rng.uniform(-60, 60, n), rng.uniform(10, 170, n))).T
+    wo = vec(mi, wi_of(rng.uniform(-80, 80, n), rng.uniform(-180, 180, n)))
+
+    def scene_of(**kw):
+        return mi.load_dict({"type": "scene", "c": {"type": "cylinder", "p0": [0, 0, 0], "p1": [0, 2, 0],
+                                                    "radius": 0.3, "bsdf": {"type": "fiber_bundle", "table": path,
+                                                                            **kw}}})
+
+    def query(scene):
+        origin = mi.Point3f(np.zeros(n), np.full(n, 0.5), np.full(n, 5.0))
+        si = scene.ray_intersect(mi.Ray3f(origin, mi.Vector3f(0, 0, -1)), mi.RayFlags.All, True)
+        si.wi = si.to_local(vec(mi, wi.T))
+        ctx = mi.BSDFContext()
+        return (np.array(si.bsdf().eval(ctx, si, si.to_local(wo))),
+                np.array(si.bsdf().pdf(ctx, si, si.to_local(wo))))
+
+    scene = scene_of()
+    params = mi.traverse(scene)
+    keys = {k.split(".")[-1] for k in params.keys() if k.startswith("c.bsdf.")}
+    assert {"twist", "twist_rate", "up", "radius", "sampling_uniform"} <= keys
+    untwisted = query(scene)
+    params["c.bsdf.twist"] = 60.0
+    params["c.bsdf.sampling_uniform"] = 0.5
+    params.update()
+    edited = query(scene)
+    loaded = query(scene_of(twist=60.0, sampling_uniform=0.5))
+    assert np.allclose(edited[0], loaded[0], rtol=1e-5, atol=1e-8)
+    assert np.allclose(edited[1], loaded[1], rtol=1e-5, atol=1e-8)
+    assert not np.allclose(edited[0], untwisted[0], rtol=0.05)
+    params["c.bsdf.radius"] = -1.0
+    with pytest.raises(ValueError, match="radius"):
+        params.update()
+
+
 @pytest.mark.parametrize("bad,message", [({"twist_rate": float("nan")}, "'twist_rate' must be finite"),
                                          ({"twist": float("inf")}, "'twist' must be finite"),
                                          ({"sampling_uniform": 1.5}, "'sampling_uniform' must be [0, 1]"),

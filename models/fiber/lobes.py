@@ -293,7 +293,7 @@ def leave(cx, cz, r, nx, nz, dx, dz, xp):
     """
     nd = nx * dx + nz * dz
     inward = nd < 0
-    select = select(xp)
-    nx = select(inward, nx - 2 * nd * dx, nx)
-    nz = select(inward, nz - 2 * nd * dz, nz)
+    where = select(xp)
+    nx = where(inward, nx - 2 * nd * dx, nx)
+    nz = where(inward, nz - 2 * nd * dz, nz)
     return cx + r * (1 + 1e-4) * nx, cz + r * (1 + 1e-4) * nz

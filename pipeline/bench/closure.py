@@ -32,6 +32,7 @@ import numpy as np
 from models.io import write_text
 
 from ..config import load_config
+from ..artifacts import config_dir, stage_dir
 
 LAM = 550.0
 
@@ -61,7 +62,7 @@ def far_field(mi, cfg, out_root) -> dict:
     from .. import closure
     from ..build import build_bundle
 
-    root = Path(out_root) / cfg.name
+    root = config_dir(cfg, out_root)
     pairs = closure.direction_pairs(cone_offsets_deg=(0.0, 0.8, -1.7, -3.0))
     fiber = {"type": "fiber_table", "filename": str(root / "fiber" / "fiber_table.npz")}
     bundles = {b: render.backend_props(cfg, out_root, b) for b in ("table", "mlp", "onnx")}
@@ -98,7 +99,7 @@ def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
              "ellipse": poisson((1.25 * Rb, 0.75 * Rb), r, packing=0.35, seed=4)}
     if quick:
         plies = {"default": plies["default"]}
-    tmp = Path(out_root) / cfg.name / "closure"
+    tmp = stage_dir(cfg, "closure", out_root)
     rows = []
     for fname, model in fiber_models.items():
         table_f = model.tabulate(nodes)
@@ -145,7 +146,7 @@ def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
     mi.set_variant(r.variant)
     mitsuba_ext.register()
     bundle = build_bundle(cfg)
-    fiber = Path(out_root) / cfg.name / "fiber" / "fiber_table.npz"
+    fiber = stage_dir(cfg, "fiber", out_root) / "fiber_table.npz"
     rows = scenes.ply_rows(cfg, r.height)
     mean = lambda sc: float(np.asarray(mi.render(mi.load_dict(sc)))[rows].mean())  # noqa: E731
     bundle_means = {b: mean(scenes.ply_scene(mi, cfg, render.backend_props(cfg, out_root, b), 256, 5,
@@ -175,7 +176,7 @@ def main(argv=None) -> int:
     cfg = load_config(args.config)
     if args.ply_only:
         result = ply_scene(cfg, args.artifacts)
-        write_text(Path(args.artifacts) / cfg.name / "closure" / "bench_closure_ply.json", json.dumps(result, indent=2))
+        write_text(stage_dir(cfg, "closure", args.artifacts) / "bench_closure_ply.json", json.dumps(result, indent=2))
         return 0
     import mitsuba as mi
 
@@ -199,7 +200,7 @@ def main(argv=None) -> int:
         print(f"[closure] far field, {name:11}: rendered / predicted {r.min():.4f} .. {r.max():.4f} "
               f"({len(r)} direction pairs)")
     result["explicit"] = explicit_vs_bake(mi, cfg, args.artifacts, args.quick, args.spp)
-    out = Path(args.artifacts) / cfg.name / "closure"
+    out = stage_dir(cfg, "closure", args.artifacts)
     write_text(out / "bench_closure.json", json.dumps(result, indent=2))
     groups = {}
     for r_ in result["explicit"]:

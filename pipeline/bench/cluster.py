@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from ..artifacts import config_dir, stage_dir
 
 
 def _bake(cfg, root, workers=None) -> tuple[float, float, float]:
@@ -35,7 +36,7 @@ def _bake(cfg, root, workers=None) -> tuple[float, float, float]:
     t0 = time.perf_counter()
     bake.run(cfg, root, workers=workers)
     stage = time.perf_counter() - t0
-    summary = json.loads((Path(root) / cfg.name / "bake" / "summary.json").read_text())
+    summary = json.loads((stage_dir(cfg, "bake", root) / "summary.json").read_text())
     return stage, summary["bake_seconds"], summary["tracing_cpu_seconds"]
 
 
@@ -69,11 +70,11 @@ def main(argv=None) -> int:
         roots = {k: Path(tmp) / k for k in (*runs, "one batch serial", "one batch 1 worker")}
         fiber.run(cfg, roots["serial"])
         for k in list(roots)[1:]:
-            (roots[k] / cfg.name).mkdir(parents=True)
-            os.symlink(roots["serial"] / cfg.name / "fiber", roots[k] / cfg.name / "fiber")
+            config_dir(cfg, roots[k]).mkdir(parents=True)
+            os.symlink(stage_dir(cfg, "fiber", roots["serial"]), stage_dir(cfg, "fiber", roots[k]))
         timed = {k: _bake(cfg, roots[k], w) for k, w in runs.items()}
         warm = {k: _bake(one, roots[k], w)[1] for k, w in (("one batch serial", None), ("one batch 1 worker", 1))}
-        tables = [BundleTable.load(roots[k] / cfg.name / "bake" / "bundle_table.npz") for k in runs]
+        tables = [BundleTable.load(stage_dir(cfg, "bake", roots[k]) / "bundle_table.npz") for k in runs]
         identical = all(np.array_equal(t.values, tables[0].values) for t in tables[1:])
     seconds = {k: v[0] for k, v in timed.items()}
     tracing = {k: v[1] for k, v in timed.items()}
@@ -100,7 +101,7 @@ def main(argv=None) -> int:
     print("[cluster] CPU of the client and scheduler (this process) while tracing: "
           + ", ".join(f"{k} {v:.1f} s" for k, v in client_cpu.items()))
     print("[cluster] projection (stage): " + ", ".join(f"{n} workers {s:.0f} s" for n, s in projection.items()))
-    write_text(Path(args.artifacts) / cfg.name / "bench_cluster.json", json.dumps(result, indent=1))
+    write_text(config_dir(cfg, args.artifacts) / "bench_cluster.json", json.dumps(result, indent=1))
     return 0 if identical else 1
 
 

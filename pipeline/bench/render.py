@@ -18,6 +18,7 @@ from pathlib import Path
 from models.io import write_text
 
 from ..config import load_config
+from ..artifacts import stage_dir
 
 
 def measure(cfg, out_root="artifacts", spp=None) -> dict:
@@ -65,7 +66,7 @@ def main(argv=None) -> int:
     for row in result["rows"]:
         print(f"{row['scene']:6} {row['method']:8} {row['backend']:8} {row['seconds']:8.2f} {row['time_ratio']:8.2f} "
               f"{row['flip']:7.4f} {row['psnr']:6.1f} {row['bytes']:10d}")
-    out = Path(args.artifacts) / cfg.name / "render" / "bench_render.json"
+    out = stage_dir(cfg, "render", args.artifacts) / "bench_render.json"
     write_text(out, json.dumps(result, indent=2))
     return 0
 

@@ -32,7 +32,7 @@ from models.fiber.base import FiberTable
 from models.io import atomic_path, clear_torn, write_text
 
 from .. import cluster
-from ..artifacts import load_fiber_table
+from ..artifacts import load_fiber_table, stage_dir
 from ..build import batch_seed, build_bundle, code_version, make_spec
 from ..config import BAKE_SECTIONS
 from ..metrics import write_metrics
@@ -80,7 +80,7 @@ class Bake:
 
     def __init__(self, cfg, out_root, bundle: bundles.Bundle | None = None):
         self.cfg, self.out_root = cfg, out_root
-        self.out = Path(out_root) / cfg.name / "bake"
+        self.out = stage_dir(cfg, "bake", out_root)
         self.fiber = load_fiber_table(cfg, out_root)
         self.bundle = bundle or build_bundle(cfg)
         self.spec, self.reductions = make_spec(cfg, self.bundle, self.fiber)

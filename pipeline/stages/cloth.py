@@ -32,6 +32,7 @@ from tqdm import tqdm
 from models.io import write_text
 
 from ..metrics import write_metrics
+from ..artifacts import stage_dir
 
 
 def yarn_model(c):
@@ -178,7 +179,7 @@ def run(cfg, out_root="artifacts") -> Path:
         raise ValueError("cloth: the plies need a bundle table; add a `bundle:` section")
     c = cfg.cloth
     props = {b: backend_props(cfg, out_root, b) for b in c.backends}  # refuse mismatches before building
-    out = Path(out_root) / cfg.name / "cloth"
+    out = stage_dir(cfg, "cloth", out_root)
     out.mkdir(parents=True, exist_ok=True)
 
     # -- phases 1 and 2: centre lines and plies

@@ -26,15 +26,16 @@ from ..config import TRAIN_SECTIONS
 from .train import load_checkpoint
 from ..metrics import folder as metrics_folder
 from ..metrics import write_curve, write_metrics
+from ..artifacts import checkpoint_path, stage_dir
 
 
 def run(cfg, out_root="artifacts") -> Path:
     import onnx
     import torch
 
-    out = Path(out_root) / cfg.name / "export"
+    out = stage_dir(cfg, "export", out_root)
     for name in cfg.train.models:
-        ckpt_path = Path(out_root) / cfg.name / "train" / name / "model.pt"
+        ckpt_path = checkpoint_path(cfg, name, out_root)
         ckpt = load_checkpoint(ckpt_path)
         spec = NeuralSpec.from_dict(ckpt["spec"])
         if spec.config_hash != cfg.hash(*TRAIN_SECTIONS):

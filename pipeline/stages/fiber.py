@@ -26,10 +26,11 @@ from models.io import write_text
 from ..config import FIBER_SECTIONS
 from ..metrics import write_metrics
 from ..plots import save_figure, spectral_image
+from ..artifacts import stage_dir
 
 
 def run(cfg, out_root="artifacts") -> Path:
-    out = Path(out_root) / cfg.name / "fiber"
+    out = stage_dir(cfg, "fiber", out_root)
     wl = cfg.wavelengths.grid()
     theta_i = np.deg2rad(np.arange(0.0, 90.0 + 1e-9, cfg.tabulate.theta_i_step_deg))
 

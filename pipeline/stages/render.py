@@ -30,6 +30,7 @@ from models.io import atomic_path, write_text
 
 from ..config import BAKE_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
 from ..metrics import write_metrics
+from ..artifacts import config_dir, stage_dir
 
 
 # -- inputs ------------------------------------------------------------------------
@@ -46,7 +47,7 @@ def backend_props(cfg, out_root, backend: str) -> dict:
     from mitsuba_ext.neural import check_compatible, load_weights
     from models.bundle_table import BundleTable
 
-    root = Path(out_root) / cfg.name
+    root = config_dir(cfg, out_root)
     if backend == "table":
         path = root / "bake" / "bundle_table.npz"
         if not path.exists():
@@ -158,7 +159,7 @@ def run(cfg, out_root="artifacts") -> Path:
     if cfg.bundle is None:
         raise ValueError("render: this config has no bundle; add a `bundle:` section")
     r = cfg.render
-    out = Path(out_root) / cfg.name / "render"
+    out = stage_dir(cfg, "render", out_root)
     out.mkdir(parents=True, exist_ok=True)
     props = {b: backend_props(cfg, out_root, b) for b in r.backends}  # refuse mismatches before rendering
     mi.set_variant(r.variant)
@@ -308,7 +309,7 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     from ..build import build_bundle
 
     r = cfg.render
-    root = Path(out_root) / cfg.name
+    root = config_dir(cfg, out_root)
     fiber_table = root / "fiber" / "fiber_table.npz"
     bundle = build_bundle(cfg)
     raw = BundleTable.load(props["table"]["table"])

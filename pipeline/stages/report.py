@@ -23,12 +23,13 @@ from models.io import atomic_path, write_text
 from models.jit import to_drjit
 
 from ..plots import save_figure, spectral_image
+from ..artifacts import config_dir, stage_dir
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
 
 
 def run(cfg, out_root="artifacts") -> Path:
-    root = Path(out_root) / cfg.name
+    root = config_dir(cfg, out_root)
     out = root / "report"
     out.mkdir(parents=True, exist_ok=True)
     sections = []
@@ -200,7 +201,7 @@ def compare_slices(cfg, out_root, out) -> str:
     table, _ = load_bundle_table(cfg, out_root)
     relative = table.meta["reductions"]["phi_o"] == "relative"
     name = list(cfg.train.models)[-1] if len(cfg.train.models) < 2 else list(cfg.train.models)[1]
-    mlp = DrJitMLP(Path(out_root) / cfg.name / "export" / name / "weights.npz")
+    mlp = DrJitMLP(stage_dir(cfg, "export", out_root) / name / "weights.npz")
     body = (f"<p>Table against model <b>{name}</b> (Dr.Jit evaluator), the model's bin averages (4 x 4 "
             "points per bin) as a table value is an average over its bin.</p>")
 

@@ -35,6 +35,7 @@ import numpy as np
 from models.io import scratch, write_text
 
 from ..metrics import write_metrics
+from ..artifacts import stage_dir
 
 
 @dataclass
@@ -437,7 +438,7 @@ def run_cases(names=None) -> list[Check]:
 
 
 def run(cfg, out_root="artifacts") -> Path:
-    out = Path(out_root) / cfg.name / "stability"
+    out = stage_dir(cfg, "stability", out_root)
     checks = run_cases()
     rows = [asdict(c) for c in checks]
     write_text(out / "stability.json", json.dumps(rows, indent=1))

@@ -51,6 +51,7 @@ from models.io import atomic_path, write_text
 from .. import estimate, graph
 from ..config import FIBER_SECTIONS, sweep_members
 from ..metrics import write_curve, write_metrics
+from ..artifacts import stage_dir
 
 SEED = "bundle.seed"
 THETA_I_SHOWN = 30.0  # deg: the incidence of the slices and profiles on the family page
@@ -67,7 +68,7 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
 
     expanded = sweep_members(cfg)
     members = [m for _, m in expanded]
-    root = Path(out_root) / cfg.name / "sweep"
+    root = stage_dir(cfg, "sweep", out_root)
     # every member's fibers are placed before any work: an arrangement that cannot be
     # drawn (a packing too dense for its radius) is refused before anything is baked
     bundles = {}

@@ -51,7 +51,7 @@ from models.io import atomic_path, write_text
 from models.neural import (NeuralSpec, bin_average, features, fold_table, make_export_module, make_torch_model,
                            points_in_bins)
 
-from ..artifacts import load_bundle_table
+from ..artifacts import load_bundle_table, stage_dir
 from ..config import TRAIN_SECTIONS
 from ..metrics import folder as metrics_folder
 from ..metrics import write_curve, write_metrics
@@ -189,7 +189,7 @@ def run(cfg, out_root="artifacts") -> Path:
     table, table_path = load_bundle_table(cfg, out_root)
     problem = prepare(cfg, table, table_path)
     base, data = problem.base, problem.data
-    out = Path(out_root) / cfg.name / "train"
+    out = stage_dir(cfg, "train", out_root)
     headline = {}
     for name, hidden in c.models.items():
         spec = dataclasses.replace(base, hidden=list(hidden))
