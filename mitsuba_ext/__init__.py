@@ -25,12 +25,11 @@ again after switching variants. The modules:
 """
 
 import importlib
+import mitsuba as mi
 
 
 def plugin_modules() -> list:
     """The plugin modules, imported for the active variant (reloaded after a switch)."""
-    import mitsuba as mi
-
     if mi.variant() is None:
         raise RuntimeError("mitsuba_ext.register(): choose a variant first, e.g. mi.set_variant('llvm_ad_rgb')")
     modules = []
@@ -45,8 +44,6 @@ def plugin_modules() -> list:
 def register() -> None:
     """Register ``fiber_bundle``, ``fiber_table``, ``fiber_ray`` and ``bundle_path`` for the
     active Mitsuba variant."""
-    import mitsuba as mi
-
     bsdf, integrator = plugin_modules()
     for name, cls in bsdf.PLUGINS.items():
         mi.register_bsdf(name, lambda props, cls=cls: cls(props))

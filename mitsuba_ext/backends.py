@@ -4,7 +4,7 @@ Each backend answers the same three questions for Dr.Jit arrays of bundle-frame
 angles (radians):
 
 * ``eval(phi_i, theta_i, phi_o, theta_o)`` -> list of ``n_lambda`` arrays, ``S`` in 1/sr;
-* ``passthrough(phi_i)`` -> the probability that a ray crosses the bundle untouched;
+* ``passthrough(phi_i, theta_i)`` -> the probability that a ray crosses the bundle untouched;
 * ``sampling_grid(Float)`` -> a :class:`~mitsuba_ext.sampling.DirectionGrid` to
   importance-sample outgoing directions.
 
@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 
 import numpy as np
+import drjit as dr
 
 from mitsuba_ext.sampling import DirectionGrid
 from models.grid import bin_solid_angle, linear
@@ -28,11 +29,27 @@ BACKENDS = ("table", "mlp", "onnx")
 
 def _periodic_linear(Float, values, nodes, phi):
     """Periodic linear interpolation of ``values`` at uniform ``nodes`` (radians)."""
-    import drjit as dr
-
     i0, i1, w = linear(np.asarray(nodes, float), phi, periodic=True, xp=dr)
     arr = Float(np.asarray(values, np.float32))
     return dr.lerp(dr.gather(Float, arr, i0), dr.gather(Float, arr, i1), w)
+
+
+def passthrough_at(Float, values, phi_nodes, phi_i, theta_i, per_theta=None, theta_nodes=None):
+    """``P_pass(phi_i)`` (``values`` per ``phi_nodes``, periodic), or, where it depends on
+    theta_i (``per_theta[phi, theta]`` at ``theta_nodes``, a twisted ply), ``P_pass(phi_i,
+    theta_i)``: bilinear, periodic in phi_i and held constant beyond the theta_i nodes."""
+    if per_theta is None:
+        return _periodic_linear(Float, values, phi_nodes, phi_i)
+    per_theta = np.asarray(per_theta, np.float32)
+    n_t = per_theta.shape[1]
+    a0, a1, wa = linear(np.asarray(phi_nodes, float), phi_i, periodic=True, xp=dr)
+    b0, b1, wb = linear(np.asarray(theta_nodes, float), theta_i, xp=dr)
+    arr = Float(per_theta.ravel())
+    out = dr.zeros(Float, dr.width(theta_i))
+    for a, w_a in ((a0, 1 - wa), (a1, wa)):
+        for b, w_b in ((b0, 1 - wb), (b1, wb)):
+            out = dr.fma(w_a * w_b, dr.gather(Float, arr, a * n_t + b), out)
+    return out
 
 
 class TableBackend:
@@ -58,8 +75,9 @@ class TableBackend:
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         return self.dj.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup)
 
-    def passthrough(self, phi_i):
-        return _periodic_linear(self.Float, self.table.passthrough, self.table.phi_i, phi_i)
+    def passthrough(self, phi_i, theta_i):
+        t = self.table
+        return passthrough_at(self.Float, t.passthrough, t.phi_i, phi_i, theta_i, t.passthrough_theta, t.theta_i)
 
     def sampling_grid(self, uniform: float):
         t = self.table
@@ -80,13 +98,13 @@ class _NeuralBackend:
         self.wavelength = np.asarray(spec.wavelength, float)
         self.relative = spec.relative_phi
 
-    def passthrough(self, phi_i):
-        return _periodic_linear(self.Float, self.spec.passthrough, self.spec.passthrough_phi_i, phi_i)
+    def passthrough(self, phi_i, theta_i):
+        s = self.spec
+        return passthrough_at(self.Float, s.passthrough, s.passthrough_phi_i, phi_i, theta_i,
+                              s.passthrough_theta or None, s.passthrough_theta_i)
 
     def sampling_grid(self, uniform: float, n_phi: int = 72, n_theta: int = 36, n_theta_i: int = 37):
         """Tabulate the model's mean over wavelengths at cell centres (2 x 2 per cell)."""
-        import drjit as dr
-
         phi_i = np.asarray(self.spec.passthrough_phi_i if not self.relative else [0.0], float)
         theta_i = np.linspace(-np.pi / 2, np.pi / 2, n_theta_i)
         phi_edges = np.linspace(-np.pi, np.pi, n_phi + 1)
@@ -139,8 +157,6 @@ class OnnxBackend(_NeuralBackend):
         self.nbytes = os.path.getsize(onnx_path)
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
-        import drjit as dr
-
         if dr.flag(dr.JitFlag.SymbolicScope):  # inside a recorded loop or call: no numpy here
             raise RuntimeError("the onnx backend needs Dr.Jit's evaluated mode: call "
                                "dr.set_flag(dr.JitFlag.SymbolicLoops, False) and "

@@ -67,7 +67,7 @@ class CurveBSDF(mi.BSDF):
         self.twist_rate = float(np.radians(scalar("twist_rate")))
         up = np.array([float(v) for v in self.params["up"]])
         if not np.all(np.isfinite(up)) or np.linalg.norm(up) == 0:
-            raise ValueError(f"{self.plugin}: 'up' must be a finite, non-zero 3-vector, got {up.tolist()}")
+            raise ValueError(f"{self.plugin}: 'up' must be a non-zero 3-vector, got {up.tolist()}")
         self.up = [float(v) for v in up / np.linalg.norm(up)]
         self.radius = scalar("radius", lo=0.0)
 
@@ -109,7 +109,7 @@ class CurveBSDF(mi.BSDF):
         inside = (mi.Frame3f.cos_theta(si.wi) < 0.0) | ~dr.isfinite(dr.sum(wi))
         return frame, phi_i, theta_i, inside
 
-    def _passthrough(self, si, phi_i, inside):
+    def _passthrough(self, si, phi_i, theta_i, inside):
         return dr.select(inside, 1.0, 0.0)
 
     def _load_fiber(self, props, what: str):
@@ -129,8 +129,8 @@ class CurveBSDF(mi.BSDF):
 
     def eval_attribute_1(self, name, si, active=True):
         if name == "passthrough":
-            _, phi_i, _, inside = self._setup(si)
-            return self._passthrough(si, phi_i, inside)
+            _, phi_i, theta_i, inside = self._setup(si)
+            return self._passthrough(si, phi_i, theta_i, inside)
         if name == "radius":
             return dr.zeros(mi.Float, dr.width(si.t)) + self.radius
         return dr.zeros(mi.Float, dr.width(si.t))
@@ -250,10 +250,10 @@ class FiberBundleBSDF(CurveBSDF):
             uniform = float(dr.ravel(self.params["sampling_uniform"])[0])
             self.grid = self.backend.sampling_grid(number(self.plugin, "sampling_uniform", uniform, 0.0, 1.0))
 
-    def _passthrough(self, si, phi_i, inside):
+    def _passthrough(self, si, phi_i, theta_i, inside):
         if not self.use_passthrough:
             return dr.select(inside, 1.0, 0.0)
-        return dr.select(inside, 1.0, dr.clip(self.backend.passthrough(phi_i), 0.0, 1.0))
+        return dr.select(inside, 1.0, dr.clip(self.backend.passthrough(phi_i, theta_i), 0.0, 1.0))
 
     def _value(self, ctx, si, frame, wo):
         """The BSDF value for local ``wo``: the table's ``S(w_i -> w_o)`` with ``w_i``
@@ -273,13 +273,13 @@ class FiberBundleBSDF(CurveBSDF):
     def pdf(self, ctx, si, wo, active=True):
         frame, phi_i, theta_i, inside = self._setup(si)
         phi_o, theta_o = angles(si.to_world(wo), frame)
-        P = self._passthrough(si, phi_i, inside)
+        P = self._passthrough(si, phi_i, theta_i, inside)
         pdf = (1.0 - P) * self.grid.pdf(phi_i, theta_i, phi_o, theta_o)
         return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), pdf, 0.0)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
         frame, phi_i, theta_i, inside = self._setup(si)
-        P = self._passthrough(si, phi_i, inside)
+        P = self._passthrough(si, phi_i, theta_i, inside)
         if not ctx.is_enabled(mi.BSDFFlags.Null, 1):
             P = dr.zeros(mi.Float, dr.width(P))
         elif not ctx.is_enabled(mi.BSDFFlags.Glossy, 0):

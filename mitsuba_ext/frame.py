@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from models.spectrum import spectrum_to_srgb
@@ -25,8 +27,6 @@ def arc_length(si):
     spaced control points); elsewhere it is the local estimate. Zero where the shape
     gives no derivative.
     """
-    import drjit as dr
-
     s = si.uv.y * dr.norm(si.dp_dv)
     return dr.select(dr.isfinite(s), s, 0.0)
 
@@ -41,9 +41,6 @@ def bundle_frame(si, up, twist, twist_rate):
     curve at the same pitch whatever the curve's length. Degenerate tangents or an
     ``up`` parallel to the tangent fall back to a frame built from the normal.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     t = si.sh_frame.t
     bad_t = ~dr.isfinite(dr.sum(t)) | (dr.squared_norm(t) < 0.25)
     n_ok = dr.isfinite(dr.sum(si.n)) & (dr.squared_norm(si.n) > 0.25)
@@ -64,8 +61,6 @@ def angles(w, frame):
     A non-finite direction (a degenerate shading frame) gives (0, 0), never NaN: the
     angles become table indices, and a NaN index reads out of bounds.
     """
-    import drjit as dr
-
     x, t, z = frame
     theta = dr.safe_asin(dr.clip(dr.dot(w, t), -1.0, 1.0))
     phi = dr.atan2(dr.dot(w, z), dr.dot(w, x))
@@ -75,8 +70,6 @@ def angles(w, frame):
 
 def direction(phi, theta, frame):
     """World direction of bundle-frame angles."""
-    import drjit as dr
-
     x, t, z = frame
     sp, cp = dr.sincos(phi)
     st, ct = dr.sincos(theta)
@@ -107,8 +100,6 @@ def spectral_weights(wavelength_nm, variant_kind: str, mono_nm=None) -> np.ndarr
 
 def split_uniform(u, bits: int = 12):
     """Two uniforms from one: its top ``bits`` bits and the remaining fraction."""
-    import drjit as dr
-
     scaled = u * float(1 << bits)
     hi = dr.floor(scaled)
     return hi * (1.0 / (1 << bits)), scaled - hi
@@ -121,8 +112,6 @@ def light_and_camera(ctx, si, wo):
     ``wo`` points towards the light and ``si.wi`` towards the camera; a light tracer
     (``Importance``) swaps them. Returns local ``(w_light, w_camera, radiance)``.
     """
-    import mitsuba as mi
-
     if ctx.mode == mi.TransportMode.Radiance:
         return wo, si.wi, True
     return si.wi, wo, False
@@ -137,16 +126,12 @@ def adjoint_factor(theta_light, theta_camera):
     For a reciprocal ``S`` this equals ``S(w_o -> w_i)``. The camera's cosine is kept
     from zero (a view along the axis sees no projected width anyway).
     """
-    import drjit as dr
-
     return dr.cos(theta_light) / dr.maximum(dr.cos(theta_camera), 1e-4)
 
 
 def resolve_path(plugin: str, name: str, value) -> str | None:
     """A file parameter resolved as Mitsuba resolves its own ``filename``s: against the
     file resolver, which holds the scene file's folder while an XML scene loads."""
-    import mitsuba as mi
-
     if value is None:
         return None
     found = str(mi.file_resolver().resolve(str(value)))

@@ -19,6 +19,8 @@ import json
 import zipfile
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from models.neural import NeuralSpec, features, stable_expm1
 from models.jit import to_drjit
@@ -89,8 +91,6 @@ class OnnxMLP:
 
 def _default_float():
     """The active Mitsuba variant's ``Float``, else Dr.Jit's LLVM ``Float``."""
-    import mitsuba as mi
-
     if mi.variant() is not None:
         return mi.Float
     import drjit.llvm
@@ -119,8 +119,6 @@ class DrJitMLP:
         in: a numpy array ``[..., n_lambda]``, computed with the active Mitsuba
         variant's ``Float`` (Dr.Jit's LLVM backend if none is set).
         """
-        import drjit as dr
-
         args = (phi_i, theta_i, phi_o, theta_o)
         if not any(dr.is_array_v(a) for a in args):
             Float = _default_float()

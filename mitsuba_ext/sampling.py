@@ -15,6 +15,7 @@ use the same cells and the same mixture, which the chi-square test checks.
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from models.grid import cell
@@ -89,8 +90,6 @@ class DirectionGrid:
     # -- the two operations --------------------------------------------------
     def sample(self, phi_i, theta_i, u_mix, u2):
         """Outgoing ``(phi_o, theta_o)`` (phi_o absolute) and its pdf per steradian."""
-        import mitsuba as mi
-
         cond = self._condition(phi_i, theta_i)
         base = cond * self.n_cells
         # discrete cell from u2.x, the remainder of u2.x places phi inside the cell

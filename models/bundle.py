@@ -239,3 +239,100 @@ def zhao2016(yarn: str, r: float, seed=0, max_tries=200_000, name=None) -> Bundl
         raise ValueError(f"yarn {yarn}: only {len(centers)} of {m} fibers of radius {r} um fit without "
                          "overlap; use a smaller fiber radius")
     return Bundle(np.array(centers), r, (a, b), name or f"zhao2016 {yarn}")
+
+
+# ------------------------------------------------------------------------------
+# Twisted plies: the cross-section turned along the axis
+# ------------------------------------------------------------------------------
+
+@dataclass
+class TwistedBundle:
+    """A ply whose fibers are helices about its axis: the cross-section ``bundle`` (at
+    ``y = 0``) turned rigidly along ``+y``, one turn per ``pitch`` micrometres.
+
+    ``pitch`` is signed as Zhao et al. 2016's ``alpha``: positive, every fiber is a
+    right-handed helix (a Z twist); negative, left-handed (an S twist). Fiber ``k`` at
+    height ``y`` sits at its ``y = 0`` position turned by ``-2 pi y / pitch`` about the
+    axis (the project's ``phi`` runs from ``+x`` to ``+z``, a left-handed sense about
+    ``+y``). A fiber at distance ``rho`` from the axis leans ``atan(2 pi rho / |pitch|)``
+    from it. The arrangement repeats every ``|pitch|`` along the axis.
+
+    Circular plies only (an ellipse would turn with its fibers, which a yarn's plies do
+    not). Checked on construction: no two fibers come closer than their radii anywhere
+    along their length (:meth:`closest_approach`).
+    """
+
+    bundle: Bundle
+    pitch: float
+
+    def __post_init__(self):
+        if not np.isfinite(self.pitch) or self.pitch == 0:
+            raise ValueError(f"twisted ply: the pitch must be a finite, non-zero length (got {self.pitch} um); "
+                             "leave bundle.twist out for parallel fibers")
+        if not self.bundle.is_circle:
+            raise ValueError("twisted ply: only circular cross-sections can be twisted (an elliptical ply "
+                             f"{self.bundle.semi_axes} would turn with its fibers); use shape: circle")
+        self.validate()
+
+    @property
+    def omega(self) -> float:
+        """Turn per unit length about ``+y`` in the ``phi`` sense (radians per um)."""
+        return -2 * np.pi / self.pitch
+
+    @property
+    def period(self) -> float:
+        return abs(self.pitch)
+
+    @property
+    def max_lean(self) -> float:
+        """The largest angle (radians) between a fiber and the ply's axis."""
+        rho = np.hypot(*self.bundle.centers.T)
+        return float(np.arctan(np.max(rho) * abs(self.omega)))
+
+    def centers_at(self, y) -> np.ndarray:
+        """Fiber centres ``[..., n, 2]`` (x, z) at heights ``y`` (broadcast)."""
+        a = self.omega * np.asarray(y, float)[..., None]
+        x, z = self.bundle.centers.T
+        return np.stack([x * np.cos(a) - z * np.sin(a), x * np.sin(a) + z * np.cos(a)], -1)
+
+    def closest_approach(self) -> tuple[float, int, int]:
+        """``(gap, i, j)``: the smallest surface-to-surface distance between two fibers
+        anywhere along their length (negative: they intersect), and the pair.
+
+        The twist is a screw symmetry, so the distance between fibers ``i`` and ``j`` at
+        heights ``y`` and ``y + dy`` depends on ``dy`` alone; it is minimized over ``dy``
+        (dense samples, then refined) for every pair within reach.
+        """
+        b = self.bundle
+        c, r = b.centers, b.radii
+        reach = 1.5 * (2 * r.max()) / np.cos(self.max_lean)  # beyond it, no pair comes near touching
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(c).query_pairs(reach, output_type="ndarray")
+        if len(pairs) == 0:
+            return np.inf, -1, -1
+        i, j = pairs.T
+        span = 2 * reach * np.tan(self.max_lean) + 1e-9
+        dy = np.linspace(-span, span, 801)
+
+        def dist(dy_):
+            cj = self.centers_at(dy_)[..., j, :]                    # [k, pairs, 2]
+            return np.sqrt(np.sum((c[i] - cj) ** 2, -1) + dy_[:, None] ** 2)
+
+        d = dist(dy)
+        k = np.argmin(d, 0)
+        step = dy[1] - dy[0]
+        fine = dy[k][None, :] + np.linspace(-step, step, 201)[:, None]  # refine around each minimum
+        cj = np.stack([self.centers_at(fine[:, p])[:, q] for p, q in enumerate(j)], 1)
+        d_fine = np.sqrt(np.sum((c[i][None] - cj) ** 2, -1) + fine**2)
+        gap = d_fine.min(0) - r[i] - r[j]
+        worst = int(np.argmin(gap))
+        return float(gap[worst]), int(i[worst]), int(j[worst])
+
+    def validate(self, tol: float = 1e-6) -> None:
+        gap, i, j = self.closest_approach()
+        if gap < -tol * self.bundle.bounding_radius:
+            raise ValueError(
+                f"twisted ply: fibers {i} and {j} intersect by {-gap:.4g} um where they lean past each other "
+                f"(the pitch {self.pitch:g} um leans the outer fibers {np.degrees(self.max_lean):.1f} deg); space "
+                "the cross-section out (bundle.gap_um) or lengthen the pitch")

@@ -2,7 +2,9 @@
 
 ``S(phi_i, theta_i, phi_o, theta_o, lambda)`` in 1/sr, normalized over the rays that
 enter the bundle's bounding width ``2 R_b``: a bin's value is its summed path weight
-over (rays x bin solid angle). With ``P_pass(phi_i)`` (rays touching no fiber),
+over (rays x bin solid angle). With ``P_pass(phi_i)`` (rays touching no fiber; per
+``(phi_i, theta_i)`` in ``passthrough_theta`` where it depends on ``theta_i``, as for a
+twisted ply),
 ``absorbed`` and ``lost`` (weight dropped at the bounce cap), per (phi_i, theta_i,
 lambda)::
 
@@ -64,6 +66,9 @@ class BundleTable:
     theta_o_edges: np.ndarray
     wavelength: np.ndarray
     meta: dict = field(default_factory=dict)
+    # [phi_i, theta_i]: where the passthrough depends on theta_i (twisted plies); then
+    # ``passthrough`` is its mean over theta_i
+    passthrough_theta: np.ndarray | None = None
 
     # -- derived axes --------------------------------------------------------
     @property
@@ -84,9 +89,15 @@ class BundleTable:
         """``integral S d omega_o`` per (phi_i, theta_i, lambda)."""
         return np.einsum("abpql,pq->abl", self.values.astype(np.float64), self.solid_angle)
 
+    def passthrough_at_nodes(self) -> np.ndarray:
+        """``P_pass`` per (phi_i, theta_i) node: [phi_i, theta_i]."""
+        if self.passthrough_theta is not None:
+            return self.passthrough_theta
+        return np.broadcast_to(self.passthrough[:, None], self.absorbed.shape[:2])
+
     def energy_balance(self) -> dict:
         """Scattered, passthrough, absorbed, lost, and their total, per (phi_i, theta_i, lambda)."""
-        p = np.broadcast_to(self.passthrough[:, None, None], self.absorbed.shape)
+        p = np.broadcast_to(self.passthrough_at_nodes()[:, :, None], self.absorbed.shape)
         s = self.scattered
         return {"scattered": s, "passthrough": p, "absorbed": self.absorbed, "lost": self.lost,
                 "total": s + p + self.absorbed + self.lost}
@@ -96,6 +107,8 @@ class BundleTable:
         arrays = {k: getattr(self, k) for k in ARRAYS}
         arrays["values"] = arrays["values"].astype(np.float32)
         arrays["stderr"] = arrays["stderr"].astype(np.float32)
+        if self.passthrough_theta is not None:
+            arrays["passthrough_theta"] = self.passthrough_theta
         header = {"format": FORMAT, "meta": self.meta}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
@@ -109,7 +122,8 @@ class BundleTable:
                 header = json.loads(str(z["header"]))
                 if header.get("format") != FORMAT:
                     raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
-                table = cls(**{k: z[k] for k in ARRAYS}, meta=header["meta"])
+                table = cls(**{k: z[k] for k in ARRAYS}, meta=header["meta"],
+                            passthrough_theta=z["passthrough_theta"] if "passthrough_theta" in z.files else None)
             table.validate()
             if expand:  # expanded for a lookup
                 table.check_lookup()
@@ -127,11 +141,13 @@ class BundleTable:
                  len(self.theta_o_edges) - 1, len(self.wavelength))
         if self.values.shape != shape or self.stderr.shape != shape:
             raise ValueError(f"values have shape {self.values.shape}, the axes give {shape}")
+        optional = (("passthrough_theta", shape[:2]),) if self.passthrough_theta is not None else ()
         for name, want in (("passthrough", shape[:1]), ("passthrough_stderr", shape[:1]),
-                           ("absorbed", shape[:2] + shape[4:]), ("lost", shape[:2] + shape[4:])):
+                           ("absorbed", shape[:2] + shape[4:]), ("lost", shape[:2] + shape[4:])) + optional:
             if np.shape(getattr(self, name)) != want:
                 raise ValueError(f"{name} has shape {np.shape(getattr(self, name))}, the axes give {want}")
-        for name in ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost"):
+        for name in ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost") + \
+                tuple(n for n, _ in optional):
             a = getattr(self, name)
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"{name} holds NaN or Inf")
@@ -141,7 +157,7 @@ class BundleTable:
         if np.any(self.values > MAX_VALUE):
             raise ValueError(f"values reach {float(self.values.max()):.3g} /sr (at most {MAX_VALUE:.0e}: a "
                              "renderer's weights would overflow float32)")
-        for name in ("passthrough", "absorbed", "lost"):
+        for name in ("passthrough", "absorbed", "lost") + tuple(n for n, _ in optional):
             if np.any(getattr(self, name) > 1 + 1e-6):
                 raise ValueError(f"{name} reaches {float(np.max(getattr(self, name))):.4g}; a probability is at most 1")
         reductions = self.meta.get("reductions", {"phi_o": "relative"})
@@ -172,7 +188,8 @@ class BundleTable:
         return t
 
     def _replace(self, **kw):
-        data = {k: getattr(self, k) for k in ARRAYS} | {"meta": dict(self.meta)}
+        data = {k: getattr(self, k) for k in ARRAYS} | {"meta": dict(self.meta),
+                                                        "passthrough_theta": self.passthrough_theta}
         data.update(kw)
         return BundleTable(**data)
 
@@ -186,7 +203,8 @@ class BundleTable:
         return self._replace(
             theta_i=np.concatenate([-self.theta_i[pos][::-1], self.theta_i])[order],
             values=cat(self.values, 1, 3), stderr=cat(self.stderr, 1, 3),
-            absorbed=cat(self.absorbed, 1), lost=cat(self.lost, 1))
+            absorbed=cat(self.absorbed, 1), lost=cat(self.lost, 1),
+            passthrough_theta=None if self.passthrough_theta is None else cat(self.passthrough_theta, 1))
 
     def _mirror_phi(self):
         """Ellipse: from phi_i in [0, pi/2] to [0, 2 pi) by the x and z mirrors.
@@ -211,7 +229,9 @@ class BundleTable:
         return self._replace(phi_i=np.array(phis), values=pick(self.values, True), stderr=pick(self.stderr, True),
                              absorbed=pick(self.absorbed, False), lost=pick(self.lost, False),
                              passthrough=pick(self.passthrough, False),
-                             passthrough_stderr=pick(self.passthrough_stderr, False))
+                             passthrough_stderr=pick(self.passthrough_stderr, False),
+                             passthrough_theta=None if self.passthrough_theta is None
+                             else pick(self.passthrough_theta, False))
 
 
 # ------------------------------------------------------------------------------

@@ -68,6 +68,9 @@ class NeuralSpec:
     folds: list = field(default_factory=list)              # symmetry folds of the features (above)
     passthrough: list = field(default_factory=list)       # P_pass at the phi_i nodes below
     passthrough_phi_i: list = field(default_factory=list)  # radians, uniform over 2 pi
+    # where P_pass depends on theta_i (twisted plies): [phi_i node][theta_i node], and those nodes
+    passthrough_theta: list = field(default_factory=list)
+    passthrough_theta_i: list = field(default_factory=list)
     format: str = FORMAT
 
     def __post_init__(self):
@@ -83,6 +86,12 @@ class NeuralSpec:
         p = np.asarray(self.passthrough, float)
         if len(p) != len(self.passthrough_phi_i) or not np.all(np.isfinite(p)) or np.any((p < 0) | (p > 1)):
             raise ValueError("model metadata: passthrough must hold one probability in [0, 1] per passthrough_phi_i")
+        if self.passthrough_theta:
+            q = np.asarray(self.passthrough_theta, float)
+            if q.shape != (len(p), len(self.passthrough_theta_i)) or not np.all(np.isfinite(q)) or \
+                    np.any((q < 0) | (q > 1)):
+                raise ValueError("model metadata: passthrough_theta must hold a probability in [0, 1] per "
+                                 "(passthrough_phi_i, passthrough_theta_i)")
         bad = [f for f in self.folds if f not in FOLDS]
         if bad or ("dphi" in self.folds and not self.relative_phi) or ("xz" in self.folds and self.relative_phi):
             raise ValueError(f"folds {self.folds} do not fit a {'relative' if self.relative_phi else 'absolute'}"

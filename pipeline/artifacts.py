@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from models.bundle_table import BundleTable
-
 from .config import BAKE_SECTIONS, FIBER_SECTIONS
 
 
@@ -52,7 +50,11 @@ def load_fiber_table(cfg, out_root="artifacts"):
     return table
 
 
-def load_bundle_table(cfg, out_root="artifacts") -> tuple[BundleTable, Path]:
+def load_bundle_table(cfg, out_root="artifacts") -> tuple:
+    """The config's expanded :class:`models.bundle_table.BundleTable` and its path, checked."""
+    # imported here: the stages that read no bundle table run none of its code (their deps)
+    from models.bundle_table import BundleTable
+
     path = bundle_table_path(cfg, out_root)
     if not path.exists():
         raise ValueError(f"{path} does not exist; run `bcsdf bake` (or `bcsdf run`) with this config first")

@@ -12,42 +12,83 @@ from pathlib import Path
 import numpy as np
 
 from models import bundle as bundles
-from models.baker import BakeSpec
+from models.bake import Baker, BakeSpec
+from models.bake.twisted import TwistedBaker
 from models.fiber.base import FiberTable
 
 
 def build_bundle(cfg) -> bundles.Bundle:
+    """The cross-section (of a twisted ply: at height 0, spaced so that its leaning fibers clear)."""
     b, r = cfg.bundle, cfg.fiber.radius_um
     if b.arrangement == "zhao2016":
         return bundles.zhao2016(b.yarn, r, seed=b.seed, name=f"{cfg.name} ({b.yarn})")
     if b.arrangement == "file":
         return bundles.from_file(b.file, b.semi_axes(), name=cfg.name)
-    return bundles.poisson(b.semi_axes(), r, gap=b.gap_um, packing=b.packing, seed=b.seed, name=cfg.name)
+    gap = b.gap_um
+    if b.twist is not None:
+        # fibers leaning by `lean` clear each other when their centres are 2 r / cos(lean)
+        # apart in the cross-section: widen the Poisson distance for the leanest (outermost)
+        lean = np.arctan(2 * np.pi * (b.bounding_radius_um() - r) / abs(b.twist.pitch(b.bounding_radius_um())))
+        gap = max(gap, 2 * r * (1 / np.cos(lean) - 1) * 1.001)
+    return bundles.poisson(b.semi_axes(), r, gap=gap, packing=b.packing, seed=b.seed, name=cfg.name)
 
 
-def exit_model(name: str, fiber: FiberTable, estimator: str = "fast") -> str:
+def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
+    """What the bake traces: the cross-section, or the twisted ply of ``bundle.twist``."""
+    bundle = build_bundle(cfg)
+    if cfg.bundle.twist is None:
+        return bundle
+    return bundles.TwistedBundle(bundle, cfg.bundle.twist.pitch(bundle.bounding_radius))
+
+
+def tracer(ply, fiber: FiberTable, spec: BakeSpec):
+    """The bake's tracer for this ply: the 2D one for parallel fibers, the 3D one for a twist."""
+    if isinstance(ply, bundles.TwistedBundle):
+        return TwistedBaker(ply, fiber, spec)
+    return Baker(ply, fiber, spec)
+
+
+def cross_section(ply) -> bundles.Bundle:
+    """The cross-section of a ply (a twisted one's at height 0)."""
+    return ply.bundle if isinstance(ply, bundles.TwistedBundle) else ply
+
+
+def exit_model(name: str, fiber: FiberTable, estimator: str = "fast", twisted: bool = False) -> str:
     """The exit model a bake uses: ``auto`` is the one that agrees with exact geometry where
-    the fiber knows its paths (``lobe`` for ray fibers with the fast estimator), else
-    ``uniform`` (measured on the ray model's smooth limit: docs/BENCHMARKS.md, "Exit models")."""
+    the fiber knows its paths (``lobe`` for ray fibers with the fast estimator, parallel
+    fibers), else ``uniform`` (measured on the ray model's smooth limit: docs/BENCHMARKS.md,
+    "Exit models"; the twisted bake has the uniform exit only)."""
     if name == "auto":
-        return "lobe" if fiber.meta.get("model") == "ray" and estimator == "fast" else "uniform"
+        return "lobe" if fiber.meta.get("model") == "ray" and estimator == "fast" and not twisted else "uniform"
     return name  # an impossible choice is refused by the config (and by BakeSpec and the ray sampler)
 
 
 def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
-    """Incident directions and bins, after the symmetry reductions the scene allows."""
+    """Incident directions and bins, after the symmetry reductions the scene allows.
+
+    A twisted ply (``bundle`` a :class:`~models.bundle.TwistedBundle`) keeps the rotation
+    reduction (a turn of the ply is a shift along its axis, and rays enter over a whole
+    period), but not the theta mirror (the mirror of a twisted ply is twisted the other way);
+    its theta_i nodes stop short of +-90 deg, where light runs along the axis and crosses no
+    width (the lookup holds the last node's value beyond it).
+    """
     c = cfg.bake
-    mirror_theta = bool(fiber.meta.get("mirror_symmetric", True))
+    twisted = isinstance(bundle, bundles.TwistedBundle)
+    bundle = cross_section(bundle)
+    mirror_theta = bool(fiber.meta.get("mirror_symmetric", True)) and not twisted
     step = np.deg2rad(c.theta_i_step_deg)
     # clipped: the last node of the arange can exceed pi/2 by a rounding error
     theta_i = np.clip(np.arange(0 if mirror_theta else -np.pi / 2, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2)
+    if twisted:
+        theta_i = np.arange(0, np.pi / 2 - 1e-6, step)
+        theta_i = np.concatenate([-theta_i[:0:-1], theta_i])
     if bundle.is_circle:
         phi_i, phi_reduction = np.zeros(1), "rotation"
     else:
         phi_i, phi_reduction = np.deg2rad(np.arange(0, 90 + 1e-9, c.phi_i_step_deg)), "mirror_xz"
     spec = BakeSpec(theta_i, phi_i, c.n_theta_o, c.n_phi_o, relative_phi=bundle.is_circle,
                     estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
-                    exit=exit_model(c.exit, fiber, c.estimator))
+                    exit=exit_model(c.exit, fiber, c.estimator, twisted))
     reductions = {"theta_i": "mirror" if mirror_theta else None, "phi_i": phi_reduction,
                   "phi_o": "relative" if bundle.is_circle else "absolute"}
     return spec, reductions

@@ -51,9 +51,7 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, thre
 
     import mitsuba as mi
 
-    from models.baker import Baker
-
-    from .build import batch_seed, build_bundle, make_spec
+    from .build import batch_seed, build_ply, make_spec, tracer
     from .config import Config
 
     cfg = Config.model_validate(json.loads(cfg_json))
@@ -70,11 +68,11 @@ def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, thre
             dr.set_thread_count(threads)
     if key not in _BAKERS:
         mi.set_variant(cfg.bake.variant)  # this worker's entry point
-        bundle = build_bundle(cfg)
-        spec, _ = make_spec(cfg, bundle, fiber)
+        ply = build_ply(cfg)
+        spec, _ = make_spec(cfg, ply, fiber)
         while len(_BAKERS) >= BAKERS_KEPT:
             _BAKERS.pop(next(iter(_BAKERS)))  # the oldest
-        _BAKERS[key] = Baker(bundle, fiber, spec)
+        _BAKERS[key] = tracer(ply, fiber, spec)
     return pack(_BAKERS[key].trace(a, size, batch_seed(cfg, a, k)))
 
 
@@ -91,13 +89,14 @@ def pack(tally) -> dict:
     nz = np.flatnonzero((a["sum"] != 0) | (a["sum_sq"] != 0))
     return {"shape": a["sum"].shape, "index": nz.astype(np.int64), "sum": a["sum"].ravel()[nz],
             "sum_sq": a["sum_sq"].ravel()[nz], **{k: a[k] for k in ("absorbed", "lost", "paths", "passthrough",
+                                                                        "paths_theta", "passthrough_theta",
                                                                         "vertices")}}
 
 
 def unpack(packed: dict):
     import numpy as np
 
-    from models.baker import Tally
+    from models.bake import Tally
 
     dense = {}
     for k in ("sum", "sum_sq"):

@@ -149,6 +149,38 @@ class Tabulate(Strict):
         return v
 
 
+class TwistCfg(Strict):
+    """Fibers twisted about the ply's axis (a twisted ply, baked in 3D: models/bake/twisted.py).
+
+    ``pitch_um``: the axial length of one turn, signed as Zhao et al. 2016's alpha (> 0 a
+    right-handed helix, a Z twist; < 0 an S twist), in micrometres like every length of the
+    cross-section. Or ``yarn``: a Zhao 2016 yarn of data/zhao2016_table2.csv whose pitch is
+    scaled with the ply (pitch = alpha x the bundle radius / the yarn's e_X), so that the
+    outer fibers lean as in that yarn. Fiber migration is not modelled (the fibers keep
+    their distance from the axis).
+    """
+
+    pitch_um: Optional[float] = Field(None, description="signed pitch (um); > 0 right-handed")
+    yarn: Optional[str] = None
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.pitch_um is None) == (self.yarn is None):
+            raise ValueError("bundle.twist: give either pitch_um (signed, um) or yarn (a Zhao 2016 yarn), not both")
+        if self.pitch_um is not None and not (abs(self.pitch_um) >= 1.0):
+            raise ValueError(f"bundle.twist.pitch_um: {self.pitch_um} um; the pitch must be a non-zero length "
+                             "(at least 1 um either way); leave bundle.twist out for parallel fibers")
+        return self
+
+    def pitch(self, bounding_radius_um: float) -> float:
+        """The signed pitch in micrometres for a ply of this bounding radius."""
+        if self.pitch_um is not None:
+            return float(self.pitch_um)
+        from models.bundle import zhao2016_row
+        row = zhao2016_row(self.yarn)
+        return float(row["alpha"]) * 1e4 * bounding_radius_um / row["eX_um"]
+
+
 class BundleCfg(Strict):
     """The fiber arrangement in the cross-section (radii from ``fiber.radius_um``)."""
 
@@ -161,9 +193,13 @@ class BundleCfg(Strict):
     file: Optional[str] = None
     yarn: Optional[str] = None
     seed: int = Field(1, ge=0, le=2**32 - 1)
+    twist: Optional[TwistCfg] = None
 
     @model_validator(mode="after")
     def _consistent(self):
+        if self.twist is not None and (self.shape != "circle" or self.arrangement == "zhao2016"):
+            raise ValueError("bundle.twist needs a circular cross-section (shape: circle, arrangement poisson or "
+                             "file): an elliptical ply would turn with its fibers")
         if self.arrangement == "zhao2016":
             if not self.yarn:
                 raise ValueError("arrangement 'zhao2016' needs 'yarn' (e.g. 'Cotton 1')")
@@ -201,7 +237,7 @@ RENDER_VARIANTS = ("llvm_ad_rgb", "llvm_ad_spectral", "cuda_ad_rgb", "cuda_ad_sp
 
 
 class BakeCfg(Strict):
-    """The ground-truth path tracer (see models/baker.py)."""
+    """The ground-truth path tracer (see models/bake/baker.py)."""
 
     estimator: Literal["fast", "thesis"] = "fast"
     paths_per_phi_i: int = Field(1_000_000, ge=1, le=10_000_000_000)
@@ -213,7 +249,7 @@ class BakeCfg(Strict):
     max_bounces: int = Field(1000, ge=1, le=1_000_000)
     rr_start: int = Field(8, ge=1)
     exit: Literal["auto", "uniform", "entry", "lobe"] = Field(
-        "auto", description="where scattered light leaves a fiber (models/baker.py); auto: lobe for ray fibers, "
+        "auto", description="where scattered light leaves a fiber (models/bake/baker.py); auto: lobe for ray fibers, "
                             "else uniform")
     seed: int = Field(1, ge=0, le=2**32 - 1)
     variant: Literal[BAKE_VARIANTS] = "llvm_ad_mono"
@@ -445,6 +481,10 @@ class Config(Strict):
                              "uniform or entry")
         if b.exit in ("entry", "lobe") and b.estimator != "fast":
             raise ValueError(f"bake.exit: {b.exit} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
+        if self.bundle is not None and self.bundle.twist is not None and (b.exit in ("entry", "lobe")
+                                                                          or b.estimator != "fast"):
+            raise ValueError("bundle.twist: a twisted ply is baked with bake.estimator: fast and the uniform exit "
+                             f"(got estimator {b.estimator!r}, exit {b.exit!r}); use exit: auto or uniform")
         return self
 
     @model_validator(mode="after")

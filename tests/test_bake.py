@@ -9,7 +9,7 @@ estimators agree, and the thesis's chapter-5 trends hold.
 import numpy as np
 import pytest
 
-from models.baker import Baker, BakeSpec
+from models.bake import Baker, BakeSpec
 from models.bundle import Bundle, poisson
 from models.bundle_table import BundleTable
 from models.fiber.patterns import PatternFiber

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import yaml
 
-from models.baker import Baker, BakeSpec
+from models.bake import Baker, BakeSpec
 from models.bundle import Bundle, poisson
 from models.bundle_table import BundleTable
 from models.fiber.patterns import PatternFiber

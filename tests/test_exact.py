@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from models import exact
-from models.baker import BakeSpec
+from models.bake import BakeSpec
 from models.bundle import Bundle, poisson
 from models.fiber import lobes
 from models.fiber.ray import RayFiber
@@ -243,7 +243,7 @@ def test_exit_models_refused_where_they_cannot_apply():
         BakeSpec([0.0], [0.0], exit="somewhere")
     with pytest.raises(ValueError, match="fast estimator"):
         BakeSpec([0.0], [0.0], estimator="thesis", exit="lobe")
-    from models.baker import Baker
+    from models.bake import Baker
     from models.fiber.patterns import PatternFiber
     iso = PatternFiber(np.array([550.0]), "isotropic").tabulate(NODES)
     one = Bundle([[0.0, 0.0]], 20.0, (20.0, 20.0))

@@ -156,6 +156,26 @@ def test_passthrough_is_a_null_lobe_with_the_baked_probability(mi_plug, tables):
     assert np.all(np.asarray(bsdf.eval(mi.BSDFContext(), inside, mi.Vector3f(0, 0, 1))) == 0)
 
 
+def test_passthrough_follows_theta_i_where_the_table_has_it(mi_plug, tables, tmp_path):
+    """A twisted ply's table holds P_pass per (phi_i, theta_i): the plugin reads it at the
+    light's theta_i, linearly between nodes, held beyond the last, and the table's energy
+    balance counts it per theta_i."""
+    mi = mi_plug
+    t = BundleTable.load(tables["circle"])  # theta_i 0..90 by 15, mirror-reduced
+    t.passthrough_theta = (0.1 + 0.5 * np.sin(t.theta_i) ** 2)[None, :]
+    t.passthrough = t.passthrough_theta.mean(1)
+    t.save(tmp_path / "twisted.npz")
+    back = BundleTable.load(tmp_path / "twisted.npz", expand=True)   # mirrored: P(-theta) = P(theta)
+    assert np.allclose(back.passthrough_theta[0], 0.1 + 0.5 * np.sin(back.theta_i) ** 2)
+    assert np.allclose(back.energy_balance()["passthrough"][..., 0], back.passthrough_theta)
+    bsdf = mi.load_dict({"type": "fiber_bundle", "table": str(tmp_path / "twisted.npz")})
+    for theta in (0.0, 30.0, -45.0, 52.5, 89.0):
+        si = local_si(mi, wi_of(theta, 60), 4)
+        nodes = np.rad2deg(back.theta_i)
+        want = np.interp(theta, nodes, back.passthrough_theta[0])
+        assert np.allclose(np.asarray(bsdf.eval_attribute_1("passthrough", si)), want, atol=1e-5), theta
+
+
 @pytest.mark.parametrize("which", ["circle", "ellipse"])
 def test_eval_is_the_table_lookup_in_the_bundle_frame(mi_plug, tables, which):
     """eval in rgb = the numpy lookup with ``w_i`` the light side, seen through the D65 sRGB weights.

@@ -23,6 +23,7 @@ with ``u_perp = (-u_z, u_x)``.
 
 from __future__ import annotations
 
+import drjit as dr
 import numpy as np
 
 from ..xp import asin, select
@@ -148,8 +149,6 @@ class LobeSampler:
     """
 
     def __init__(self, meta: dict, wavelength, Float):
-        import drjit as dr
-
         from .longitudinal import Longitudinal
 
         if meta.get("model") != "ray":

@@ -55,7 +55,7 @@ def main(argv=None):
     import mitsuba as mi
 
     from models import fiber as fiber_models
-    from models.baker import Baker, BundleScene, Tally
+    from models.bake import Baker, BundleScene, Tally
     from pipeline.build import build_bundle, make_spec
     from pipeline.config import load_config
 

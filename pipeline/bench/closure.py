@@ -79,7 +79,7 @@ def far_field(mi, cfg, out_root) -> dict:
 def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
     import mitsuba_ext
     from models import fiber as fibers
-    from models.baker import BakeSpec
+    from models.bake import BakeSpec
     from models.bundle import poisson
 
     from .. import closure

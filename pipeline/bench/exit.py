@@ -72,7 +72,7 @@ def measure(rays: int, paths: int, plies: dict, thetas) -> list:
     from tqdm import tqdm
 
     from models import bundle, exact
-    from models.baker import BakeSpec
+    from models.bake import BakeSpec
     from models.fiber.ray import RayFiber
     from pipeline.stages.bake import bake_unreduced
 

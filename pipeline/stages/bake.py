@@ -26,14 +26,15 @@ from pathlib import Path
 import numpy as np
 
 from models import bundle as bundles
-from models.baker import Baker, BakeSpec, Tally
+from models.bake import Baker, BakeSpec, Tally
+from models.bake.twisted import TwistedBaker
 from models.bundle_table import BundleTable
 from models.fiber.base import FiberTable
 from models.io import atomic_path, clear_torn, write_text
 
 from .. import cluster
 from ..artifacts import load_fiber_table, stage_dir
-from ..build import batch_seed, build_bundle, code_version, make_spec
+from ..build import batch_seed, build_ply, code_version, cross_section, make_spec, tracer
 from ..config import BAKE_SECTIONS
 from ..metrics import write_metrics
 from ..plots import save_figure, spectral_image
@@ -78,12 +79,13 @@ class Bake:
     (``pipeline.stages.sweep``), which keeps several at once.
     """
 
-    def __init__(self, cfg, out_root, bundle: bundles.Bundle | None = None):
+    def __init__(self, cfg, out_root, bundle: bundles.Bundle | bundles.TwistedBundle | None = None):
         self.cfg, self.out_root = cfg, out_root
         self.out = stage_dir(cfg, "bake", out_root)
         self.fiber = load_fiber_table(cfg, out_root)
-        self.bundle = bundle or build_bundle(cfg)
-        self.spec, self.reductions = make_spec(cfg, self.bundle, self.fiber)
+        self.ply = bundle or build_ply(cfg)             # what is traced
+        self.bundle = cross_section(self.ply)           # its cross-section (a twisted one's at height 0)
+        self.spec, self.reductions = make_spec(cfg, self.ply, self.fiber)
         c = cfg.bake
         n_batches = int(np.ceil(c.paths_per_phi_i / c.batch_paths))
         self.work = [(a, k) for a in range(len(self.spec.phi_i)) for k in range(n_batches)]
@@ -106,7 +108,7 @@ class Bake:
     def baker(self) -> Baker:
         """The in-process tracer (built on first use: a cluster's client needs none)."""
         if self._baker is None:
-            self._baker = Baker(self.bundle, self.fiber, self.spec)
+            self._baker = tracer(self.ply, self.fiber, self.spec)
         return self._baker
 
     @property
@@ -242,7 +244,7 @@ def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50
     of probe paths at the first incident azimuth through both specs, alternating
     (kernels compiled by a warm-up first); the median of three ratios (one ratio alone
     ranged over 4x on this shared machine) times the ratio of azimuths, applied to this
-    bake's time.
+    bake's time (a twisted ply's paths carry one theta_i each: its cost is per azimuth).
     """
     c, spec = cfg.bake, baker.spec
     probe_paths = min(probe_paths, c.paths_per_phi_i, c.batch_paths)
@@ -256,11 +258,14 @@ def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50
         b.trace(0, probe_paths, np.random.SeedSequence([c.seed, 999, k]))
         return time.perf_counter() - t0
 
-    full_baker = copy.copy(baker)  # the same scene and fiber sampler, only the spec differs
-    full_baker.spec = full
-    for b in (baker, full_baker):
-        b.trace(0, min(2000, probe_paths), np.random.SeedSequence([c.seed, 998]))  # compile
-    per_azimuth = float(np.median([seconds(full_baker, k) / max(seconds(baker, k), 1e-9) for k in range(3)]))
+    if isinstance(baker, TwistedBaker):
+        per_azimuth = 1.0  # each path carries one theta_i either way: the cost is per azimuth
+    else:
+        full_baker = copy.copy(baker)  # the same scene and fiber sampler, only the spec differs
+        full_baker.spec = full
+        for b in (baker, full_baker):
+            b.trace(0, min(2000, probe_paths), np.random.SeedSequence([c.seed, 998]))  # compile
+        per_azimuth = float(np.median([seconds(full_baker, k) / max(seconds(baker, k), 1e-9) for k in range(3)]))
 
     def nbytes(sp):  # values and stderr, float32
         return 2 * 4 * len(sp.phi_i) * len(sp.theta_i) * c.n_phi_o * c.n_theta_o * baker.n_lambda
@@ -288,9 +293,14 @@ def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: 
     mean = tally.sum / n
     var = np.maximum(tally.sum_sq / n - mean**2, 0.0) / n
     p = tally.passthrough / tally.paths
+    # per theta_i where it depends on it (twisted plies: each path one theta_i); a parallel
+    # bake's is the same for every theta_i, and its table keeps the one per phi_i
+    p_theta = tally.passthrough_theta / np.maximum(tally.paths_theta, 1)
+    per_theta = not np.array_equal(p_theta, np.broadcast_to(p[:, None], p_theta.shape))
     return BundleTable(
         values=(mean / omega).astype(np.float32), stderr=(np.sqrt(var) / omega).astype(np.float32),
         passthrough=p, passthrough_stderr=np.sqrt(p * (1 - p) / tally.paths),
+        passthrough_theta=p_theta if per_theta else None,
         absorbed=tally.absorbed / tally.paths[:, None, None], lost=tally.lost / tally.paths[:, None, None],
         phi_i=spec.phi_i, theta_i=spec.theta_i, phi_o_edges=spec.phi_o_edges,
         theta_o_edges=spec.theta_o_edges, wavelength=fiber.wavelength.copy(),

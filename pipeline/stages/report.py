@@ -347,13 +347,17 @@ def render_section(cfg, root: Path, out: Path) -> str:
     if "explicit" in s:
         e = s["explicit"]
         ff = {k: np.array([row[3] for row in rows]) for k, rows in e["far_field"].items()}
-        bins = e["explicit_bins"]
-        within = np.mean([abs(b["ratio"] - 1) <= 0.02 + 3 * b["sigma"] for b in bins])
         body += ("<h3>Closure: does a render reproduce what it was given?</h3>"
                  f"<p>Far field (docs/DESIGN.md; one cylinder, directional light, orthographic camera, "
                  f"{e['wavelength_nm']:.0f} nm): rendered / predicted "
                  + ", ".join(f"{k} {v.min():.4f} .. {v.max():.4f}" for k, v in ff.items())
-                 + f" over {len(next(iter(ff.values())))} direction pairs. The bake's own {e['fibers']} fibers, "
+                 + f" over {len(next(iter(ff.values())))} direction pairs.")
+        if "explicit_note" in e:  # a twisted ply: no explicit helical fibers yet
+            body += f" {e['explicit_note']}.</p>"
+            return body + img_tag(out, root / "render" / "closure.png", "closure: far field")
+        bins = e["explicit_bins"]
+        within = np.mean([abs(b["ratio"] - 1) <= 0.02 + 3 * b["sigma"] for b in bins])
+        body += (f" The bake's own {e['fibers']} fibers, "
                  f"each rendered as a cylinder with the fiber model and averaged over the bin and 16 turns of the "
                  f"arrangement, against the bake: {within:.0%} of {len(bins)} bins within 3 standard errors + 2% "
                  f"(right, error bars 1 sigma of bake and render).</p>")

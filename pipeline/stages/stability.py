@@ -159,7 +159,7 @@ def ray_extremes() -> list[Check]:
 def _bake(bundle, fiber_table, theta_i_deg, paths, max_bounces=100_000, n_phi=24, n_theta=18):
     import mitsuba as mi
 
-    from models.baker import Baker, BakeSpec
+    from models.bake import Baker, BakeSpec
 
     from . import bake as bake_stage
 

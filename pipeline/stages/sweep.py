@@ -64,7 +64,7 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
                          "sweep: {bundle.packing: [0.3, 0.5], bundle.seed: [1, 2]}")
     if cfg.bundle is None:
         raise ValueError(f"config {cfg.name} has no 'bundle:' section: a sweep bakes bundles")
-    from ..build import build_bundle
+    from ..build import build_ply
 
     expanded = sweep_members(cfg)
     members = [m for _, m in expanded]
@@ -74,7 +74,7 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
     bundles = {}
     for m in members:
         try:
-            bundles[m.name] = build_bundle(m)
+            bundles[m.name] = build_ply(m)
         except ValueError as e:
             raise ValueError(f"sweep member {m.name}: {e}") from None
 

@@ -149,7 +149,9 @@ def prepare(cfg, table, table_path) -> Problem:
     base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
                       wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
                       config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"],
-                      folds=folds, passthrough=table.passthrough.tolist(), passthrough_phi_i=table.phi_i.tolist())
+                      folds=folds, passthrough=table.passthrough.tolist(), passthrough_phi_i=table.phi_i.tolist(),
+                      passthrough_theta=[] if table.passthrough_theta is None else table.passthrough_theta.tolist(),
+                      passthrough_theta_i=[] if table.passthrough_theta is None else table.theta_i.tolist())
     data = fold_table(table, base)
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)

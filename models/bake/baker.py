@@ -43,163 +43,25 @@ single azimuth would describe one orientation of the ply, not the ply.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 import drjit as dr
+import mitsuba as mi  # its types resolve to the variant chosen at the entry point, at call time
 import numpy as np
+from scipy import sparse
 
-from .bundle import Bundle
-from .fiber import lobes
-from .grid import bin_solid_angle, cell
-from .jit import to_drjit
-from .fiber.base import FiberTable
-from .fiber.sampling import FiberSampler
-
+from ..bundle import Bundle
+from ..fiber import lobes
+from ..fiber.base import FiberTable
+from ..fiber.sampling import FiberSampler
+from ..fiber.sampling_drjit import DrJitFiber
+from ..jit import to_drjit
+from .scene import BundleScene
+from .tally import BakeSpec, Tally, output_bin
 
 # how a path of the fast estimator ended
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
-# exit models: where scattered light leaves a fiber
-EXITS = ("uniform", "entry", "lobe")
-
-
-@dataclass
-class BakeSpec:
-    """What to tabulate and how. Angles in radians, wavelengths from the fiber table."""
-
-    theta_i: np.ndarray                # incident longitudes (nodes)
-    phi_i: np.ndarray                  # incident azimuths (nodes)
-    n_theta_o: int = 36                # bins over [-pi/2, pi/2]
-    n_phi_o: int = 72                  # bins over [-pi, pi)
-    relative_phi: bool = True          # tabulate phi_o - phi_i (rotation-invariant bundles)
-    estimator: str = "fast"
-    max_bounces: int = 1000
-    rr_start: int = 8                  # fast: Russian roulette from this bounce on
-    exit: str = "uniform"              # where scattered light leaves a fiber (module docstring)
-
-    def __post_init__(self):
-        self.theta_i = np.atleast_1d(np.asarray(self.theta_i, dtype=np.float64))
-        self.phi_i = np.atleast_1d(np.asarray(self.phi_i, dtype=np.float64))
-        if self.estimator not in ("fast", "thesis"):
-            raise ValueError(f"estimator {self.estimator!r}: use 'fast' or 'thesis'")
-        if self.exit not in EXITS:
-            raise ValueError(f"exit {self.exit!r}: use one of {', '.join(EXITS)}")
-        if self.exit != "uniform" and self.estimator != "fast":
-            raise ValueError(f"exit {self.exit!r} needs the fast estimator (the thesis baseline leaves uniformly)")
-        if self.max_bounces < 1:
-            raise ValueError(f"the bounce cap must be at least 1 (got {self.max_bounces})")
-        if np.any(np.abs(self.theta_i) > np.pi / 2):
-            raise ValueError("theta_i must lie in [-pi/2, pi/2] radians")
-
-    @property
-    def theta_o_edges(self):
-        return np.linspace(-np.pi / 2, np.pi / 2, self.n_theta_o + 1)
-
-    @property
-    def phi_o_edges(self):
-        return np.linspace(-np.pi, np.pi, self.n_phi_o + 1)
-
-    def bin_solid_angle(self):
-        """Solid angle of each (phi_o, theta_o) bin: [n_phi_o, n_theta_o]."""
-        return bin_solid_angle(self.phi_o_edges, self.theta_o_edges)
-
-
-@dataclass
-class Tally:
-    """Running sums of one bake; adding two tallies merges batches."""
-
-    sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
-    sum_sq: np.ndarray
-    absorbed: np.ndarray   # [phi_i, theta_i, lambda]
-    lost: np.ndarray
-    paths: np.ndarray      # [phi_i] paths launched (entering the bounding width)
-    passthrough: np.ndarray  # [phi_i]
-    vertices: int = 0
-    extra: dict = field(default_factory=dict)
-
-    @classmethod
-    def zeros(cls, spec: BakeSpec, n_lambda: int):
-        shape = (len(spec.phi_i), len(spec.theta_i))
-        return cls(np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
-                   np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
-                   np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
-                   np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)))
-
-    def add(self, other: "Tally") -> None:
-        for name in ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough"):
-            getattr(self, name).__iadd__(getattr(other, name))
-        self.vertices += other.vertices
-
-    def arrays(self) -> dict:
-        return {k: getattr(self, k) for k in ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough")} | {
-            "vertices": np.array(self.vertices)}
-
-    @classmethod
-    def from_arrays(cls, a) -> "Tally":
-        return cls(*(np.array(a[k]) for k in ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough")),
-                   int(a["vertices"]))
-
-
-# ------------------------------------------------------------------------------
-# Geometry: Mitsuba cylinders, horizontal rays
-# ------------------------------------------------------------------------------
-
-class BundleScene:
-    """The bundle as a Mitsuba scene of cylinders along y; casts 2D rays."""
-
-    def __init__(self, bundle: Bundle):
-        import mitsuba as mi
-
-        self.bundle = bundle
-        half = 1e3 * bundle.bounding_radius  # long enough: rays stay at y = 0
-        shapes = {f"fiber_{k}": {"type": "cylinder", "p0": [float(x), -half, float(z)],
-                                 "p1": [float(x), half, float(z)], "radius": float(r)}
-                  for k, ((x, z), r) in enumerate(zip(bundle.centers, bundle.radii))}
-        self.scene = mi.load_dict({"type": "scene", **shapes})
-        # Mitsuba numbers shapes in the order it stores them; map back by position
-        order = []
-        for shape in self.scene.shapes():
-            bbox = shape.bbox()
-            order.append(((bbox.min.x + bbox.max.x) / 2, (bbox.min.z + bbox.max.z) / 2))
-        order = np.array(order, dtype=np.float64).reshape(-1, 2)
-        from scipy.spatial import cKDTree
-        _, self.shape_to_fiber = cKDTree(bundle.centers).query(order)
-
-    def cast(self, origin: np.ndarray, phi: np.ndarray):
-        """First hit of rays from ``origin[n, 2]`` (x, z) along azimuth ``phi``.
-
-        Returns ``(hit, fiber)``: a mask and the fiber index (-1 where missed).
-        """
-        import mitsuba as mi
-
-        n = len(phi)
-        if n == 0:
-            return np.zeros(0, bool), np.zeros(0, np.int64)
-        o = mi.Point3f(origin[:, 0].astype(np.float32), np.zeros(n, np.float32), origin[:, 1].astype(np.float32))
-        d = mi.Vector3f(np.cos(phi).astype(np.float32), np.zeros(n, np.float32), np.sin(phi).astype(np.float32))
-        pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=False)
-        t = pi.t.numpy()
-        index = pi.shape_index.numpy().astype(np.int64)
-        dr.sync_thread()
-        hit = np.isfinite(t) & (index < len(self.shape_to_fiber))
-        fiber = np.where(hit, self.shape_to_fiber[np.where(hit, index, 0)], -1)
-        return hit, fiber
-
-    def exit_point(self, fiber: np.ndarray, phi_out: np.ndarray, h: np.ndarray) -> np.ndarray:
-        """Where light leaving ``fiber`` along ``phi_out`` with offset ``h`` starts (on the surface)."""
-        c = self.bundle.centers[fiber]
-        r = self.bundle.radii[fiber]
-        return np.stack(lobes.leave_uniform(c[:, 0], c[:, 1], r, h, np.cos(phi_out), np.sin(phi_out), np), -1)
-
-    def entry(self, phi_i, t: np.ndarray):
-        """Rays of light arriving from azimuths ``phi_i`` (w_i; one, or one per ray), offsets
-        ``t`` across 2 R_b."""
-        Rb = self.bundle.bounding_radius
-        phi_travel = np.broadcast_to(np.asarray(phi_i, np.float64) + np.pi, t.shape)
-        d = np.stack([np.cos(phi_travel), np.sin(phi_travel)], -1)
-        side = np.stack([-d[:, 1], d[:, 0]], -1)
-        origin = -2 * Rb * d + t[:, None] * side
-        return origin, phi_travel.copy()
 
 
 # ------------------------------------------------------------------------------
@@ -231,8 +93,6 @@ class Paths:
     @staticmethod
     def outputs(n: int, L: int) -> dict:
         """Zeroed per-path outputs of the :attr:`RESULTS`."""
-        import mitsuba as mi
-
         return {"B": [dr.zeros(mi.Float, n) for _ in range(L)], "R": [dr.zeros(mi.Float, n) for _ in range(L)],
                 **{k: dr.zeros(mi.UInt32, n) for k in ("depth", "status", "bin")}}
 
@@ -274,13 +134,7 @@ class Baker:
         self.n_lambda = len(fiber.wavelength)
 
     def _bin(self, phi_travel, theta, phi_i, xp=np):
-        """The output bin (flat ``phi_o x theta_o`` index) of light leaving along ``phi_travel``
-        at longitude ``theta``, for numpy or Dr.Jit."""
-        spec = self.spec
-        phi = phi_travel - phi_i if spec.relative_phi else phi_travel
-        a, _ = cell(phi, -np.pi, 2 * np.pi, spec.n_phi_o, periodic=True, xp=xp)
-        b, _ = cell(theta, -np.pi / 2, np.pi, spec.n_theta_o, xp=xp)
-        return a * spec.n_theta_o + b
+        return output_bin(self.spec, phi_travel, theta, phi_i, xp)
 
     def trace(self, phi_index: int, n_paths: int, seed) -> Tally:
         rng = np.random.default_rng(seed)
@@ -297,8 +151,7 @@ class Baker:
         phi_i = np.broadcast_to(np.asarray(phi_i, np.float64), t.shape)
         origin, phi_t = self.geometry.entry(phi_i, t)
         hit, fiber = self.geometry.cast(origin, phi_t)
-        tally.paths[phi_index] = n_paths
-        tally.passthrough[phi_index] = np.sum(~hit)
+        tally.count(phi_index, n_paths, int(np.sum(~hit)))
         tally.vertices += n_paths
         if self.spec.estimator == "fast":
             self._trace_fast(tally, phi_index, origin[hit], phi_t[hit], fiber[hit], phi_i[hit], rng)
@@ -319,9 +172,6 @@ class Baker:
         n = len(phi_t)
 
         # Phase 1: the first bounce, from the mixture over every incident theta_i
-        import mitsuba as mi
-        from scipy import sparse
-
         twin = self._drjit_fiber()
         j = rng.integers(n_ti, size=n)
         u = rng.uniform(size=(5, n))
@@ -412,8 +262,6 @@ class Baker:
         the h-resolved exit, ``lobe_path = (h, p)`` of each path's first event and ``f`` is
         that path's lobe at that offset.
         """
-        import mitsuba as mi
-
         n_ti, L, P = len(self.spec.theta_i), self.n_lambda, twin.packet
         lane = dr.arange(mi.UInt32, m * n_ti)
         path = lo + lane // n_ti
@@ -449,8 +297,6 @@ class Baker:
         path's result from inside the loop (52 masked scatters per vertex) and packet
         gathers of whole spectra gained more (docs/BENCHMARKS.md).
         """
-        import mitsuba as mi
-
         Float, UInt = mi.Float, mi.UInt32
         n, L = len(theta), self.n_lambda
         scene = _LoopScene(
@@ -502,8 +348,6 @@ class Baker:
 
     def _bounce(self, paths: "Paths", scene: "_LoopScene") -> "Paths":
         """One bounce of every active path: ray cast, tally or scatter, roulette, exit point."""
-        import mitsuba as mi
-
         spec, L = self.spec, self.n_lambda
         exit_model = spec.exit
         Float, UInt = mi.Float, mi.UInt32
@@ -589,8 +433,6 @@ class Baker:
     def _lobes(self):
         """The h-resolved ray fiber (exit ``lobe``), built from the fiber table's parameters."""
         if getattr(self, "_lobe_sampler", None) is None:
-            import mitsuba as mi
-
             self._lobe_sampler = lobes.LobeSampler(self.fiber.meta, self.fiber.wavelength, mi.Float)
         return self._lobe_sampler
 
@@ -633,9 +475,6 @@ class Baker:
 
     def _drjit_fiber(self):
         if getattr(self, "_dj_fiber", None) is None:
-            import mitsuba as mi
-
-            from .fiber.sampling_drjit import DrJitFiber
             self._dj_fiber = DrJitFiber(self.fiber, self.sampler, mi.Float)
         return self._dj_fiber
 
@@ -681,4 +520,3 @@ class Baker:
         shape = (n_ti, spec.n_phi_o, spec.n_theta_o, n_l)
         tally.sum[phi_index] += np.bincount(flat, ws, size).reshape(shape)
         tally.sum_sq[phi_index] += np.bincount(flat, ws**2, size).reshape(shape)
-

@@ -1,0 +1,14 @@
+"""The bake: paths through a bundle of fibers, tallied into its scattering table.
+
+=============  ====================================================================
+``tally``      :class:`BakeSpec` (what to tabulate, how) and :class:`Tally` (the sums)
+``scene``      :class:`BundleScene`: the fibers as Mitsuba cylinders, 2D ray casts
+``baker``      :class:`Baker`: the tracer (the fast estimator, the thesis baseline)
+=============  ====================================================================
+"""
+
+from .baker import Baker
+from .scene import BundleScene
+from .tally import EXITS, BakeSpec, Tally
+
+__all__ = ["Baker", "BakeSpec", "BundleScene", "EXITS", "Tally"]

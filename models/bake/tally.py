@@ -1,0 +1,118 @@
+"""What a bake tabulates and what it sums: :class:`BakeSpec` and :class:`Tally`.
+
+A bake is a list of batches whose tallies add (in a fixed order, so that a sharded bake
+is the serial one bit for bit); ``pipeline.stages.bake`` turns the sum into a
+:class:`~models.bundle_table.BundleTable`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..grid import bin_solid_angle, cell
+
+# exit models: where scattered light leaves a fiber
+EXITS = ("uniform", "entry", "lobe")
+
+
+@dataclass
+class BakeSpec:
+    """What to tabulate and how. Angles in radians, wavelengths from the fiber table."""
+
+    theta_i: np.ndarray                # incident longitudes (nodes)
+    phi_i: np.ndarray                  # incident azimuths (nodes)
+    n_theta_o: int = 36                # bins over [-pi/2, pi/2]
+    n_phi_o: int = 72                  # bins over [-pi, pi)
+    relative_phi: bool = True          # tabulate phi_o - phi_i (rotation-invariant bundles)
+    estimator: str = "fast"
+    max_bounces: int = 1000
+    rr_start: int = 8                  # fast: Russian roulette from this bounce on
+    exit: str = "uniform"              # where scattered light leaves a fiber (module docstring)
+
+    def __post_init__(self):
+        self.theta_i = np.atleast_1d(np.asarray(self.theta_i, dtype=np.float64))
+        self.phi_i = np.atleast_1d(np.asarray(self.phi_i, dtype=np.float64))
+        if self.estimator not in ("fast", "thesis"):
+            raise ValueError(f"estimator {self.estimator!r}: use 'fast' or 'thesis'")
+        if self.exit not in EXITS:
+            raise ValueError(f"exit {self.exit!r}: use one of {', '.join(EXITS)}")
+        if self.exit != "uniform" and self.estimator != "fast":
+            raise ValueError(f"exit {self.exit!r} needs the fast estimator (the thesis baseline leaves uniformly)")
+        if self.max_bounces < 1:
+            raise ValueError(f"the bounce cap must be at least 1 (got {self.max_bounces})")
+        if np.any(np.abs(self.theta_i) > np.pi / 2):
+            raise ValueError("theta_i must lie in [-pi/2, pi/2] radians")
+
+    @property
+    def theta_o_edges(self):
+        return np.linspace(-np.pi / 2, np.pi / 2, self.n_theta_o + 1)
+
+    @property
+    def phi_o_edges(self):
+        return np.linspace(-np.pi, np.pi, self.n_phi_o + 1)
+
+    def bin_solid_angle(self):
+        """Solid angle of each (phi_o, theta_o) bin: [n_phi_o, n_theta_o]."""
+        return bin_solid_angle(self.phi_o_edges, self.theta_o_edges)
+
+
+@dataclass
+class Tally:
+    """Running sums of one bake; adding two tallies merges batches.
+
+    ``paths`` and ``passthrough`` count every path of an incident azimuth; a path of the
+    parallel bake carries every ``theta_i`` at once, one of the twisted bake a single
+    one, so the counts per ``theta_i`` node are kept too (``paths_theta``,
+    ``passthrough_theta``): the passthrough of a twisted ply depends on ``theta_i``.
+    """
+
+    sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
+    sum_sq: np.ndarray
+    absorbed: np.ndarray   # [phi_i, theta_i, lambda]
+    lost: np.ndarray
+    paths: np.ndarray      # [phi_i] paths launched (entering the bounding width)
+    passthrough: np.ndarray  # [phi_i]
+    paths_theta: np.ndarray  # [phi_i, theta_i] paths that carried each theta_i
+    passthrough_theta: np.ndarray  # [phi_i, theta_i]
+    vertices: int = 0
+    extra: dict = field(default_factory=dict)
+
+    SUMS = ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough", "paths_theta", "passthrough_theta")
+
+    @classmethod
+    def zeros(cls, spec: BakeSpec, n_lambda: int):
+        shape = (len(spec.phi_i), len(spec.theta_i))
+        return cls(np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
+                   np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
+                   np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
+                   np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)), np.zeros(shape), np.zeros(shape))
+
+    def count(self, phi_index: int, n_paths: int, passed: int) -> None:
+        """Paths launched and passed through at azimuth ``phi_index``, each carrying every theta_i."""
+        self.paths[phi_index] += n_paths
+        self.passthrough[phi_index] += passed
+        self.paths_theta[phi_index] += n_paths
+        self.passthrough_theta[phi_index] += passed
+
+    def add(self, other: "Tally") -> None:
+        for name in self.SUMS:
+            getattr(self, name).__iadd__(getattr(other, name))
+        self.vertices += other.vertices
+
+    def arrays(self) -> dict:
+        return {k: getattr(self, k) for k in self.SUMS} | {"vertices": np.array(self.vertices)}
+
+    @classmethod
+    def from_arrays(cls, a) -> "Tally":
+        return cls(*(np.array(a[k]) for k in cls.SUMS), int(a["vertices"]))
+
+
+def output_bin(spec: BakeSpec, phi, theta, phi_i, xp=np):
+    """The output bin (flat ``phi_o x theta_o`` index) of light leaving along azimuth ``phi``
+    at longitude ``theta``, for a path that arrived from ``phi_i`` (numpy or Dr.Jit)."""
+    phi = phi - phi_i if spec.relative_phi else phi
+    a, _ = cell(phi, -np.pi, 2 * np.pi, spec.n_phi_o, periodic=True, xp=xp)
+    b, _ = cell(theta, -np.pi / 2, np.pi, spec.n_theta_o, xp=xp)
+    return a * spec.n_theta_o + b

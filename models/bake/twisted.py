@@ -1,0 +1,326 @@
+"""Paths through a twisted ply, traced in 3D (the parallel bake's 2D shortcut no longer holds).
+
+The fibers of a :class:`~models.bundle.TwistedBundle` are helices, so a path's geometry
+depends on its longitude: each path carries one incident ``theta_i`` (and, as in the
+parallel bake, every wavelength). The ply repeats every ``|pitch|`` along its axis, so
+one period is built, as Mitsuba ``cylinder`` segments along each helix, and a ray that
+leaves the period through its top or bottom re-enters through the other side (the axis
+coordinate is wrapped). Cylinders rather than curves: Mitsuba 3.9's curve intersection
+reads past its segment array where fibers touch (``pipeline.scenes.explicit_scene``), and
+a chord of ``SEGMENTS`` per turn strays from the helix by ``rho (1 - cos(pi / SEGMENTS))``
+(0.08 um at ``rho`` = 260 um).
+
+At a hit the fiber is evaluated in its own frame: the tangent ``T`` is the segment's axis,
+``theta`` is measured from the plane normal to ``T`` and ``phi`` in that plane; the
+outgoing direction is importance-sampled from the fiber table at the local ``theta_in``
+and leaves from the fiber's surface as the parallel bake's ``uniform`` exit does (offset
+``h r`` along ``T x w_o``, ``h`` uniform). An escaping path is tallied in the ply's frame
+(``theta_o = asin(w_o . y)``, ``phi_o`` from ``+x``) into the parallel table's bins, per
+``theta_i`` node; the passthrough now depends on ``theta_i`` too.
+
+Rays enter across the bounding width ``2 R_b`` at a height uniform over one period and,
+for a circle (statistically rotation invariant: a turn is a shift along the axis), from
+an azimuth stratified over the circle, binned at ``phi_o - phi_i``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi  # its types resolve to the variant chosen at the entry point, at call time
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..bundle import TwistedBundle
+from ..fiber import lobes
+from ..fiber.base import FiberTable
+from ..fiber.sampling import FiberSampler
+from ..fiber.sampling_drjit import DrJitFiber
+from ..jit import to_drjit
+from .tally import BakeSpec, Tally, output_bin
+
+ESCAPED, CAPPED, STOPPED = 1, 2, 3
+SEGMENTS = 128          # cylinders per turn of a helix
+MAX_WRAPS = 10_000      # crossings of the period's ends one path may make (steep rays make many)
+
+
+class TwistedScene:
+    """One period of the twisted ply as Mitsuba cylinders (segments of the helices)."""
+
+    def __init__(self, ply: TwistedBundle, segments: int = SEGMENTS):
+        b = ply.bundle
+        self.ply, self.period = ply, ply.period
+        r_max = float(b.radii.max())
+        # a margin so that every fiber's surface inside the period is whole: a tube leaning
+        # by `lean` reaches r / cos(lean) along the axis past its centre line's end
+        margin = r_max / np.cos(ply.max_lean) + r_max
+        n_seg = int(np.ceil(segments * (self.period + 2 * margin) / self.period))
+        y = np.linspace(-margin, self.period + margin, n_seg + 1)
+        c = ply.centers_at(y)                                     # [n_seg + 1, fibers, 2]
+        shapes, fiber_of, axis = {}, [], []
+        for k, r in enumerate(b.radii):
+            for m in range(n_seg):
+                p0 = [float(c[m, k, 0]), float(y[m]), float(c[m, k, 1])]
+                p1 = [float(c[m + 1, k, 0]), float(y[m + 1]), float(c[m + 1, k, 1])]
+                shapes[f"s{len(fiber_of):06d}"] = {"type": "cylinder", "p0": p0, "p1": p1, "radius": float(r)}
+                fiber_of.append(k)
+                d = np.subtract(p1, p0)
+                axis.append(d / np.linalg.norm(d))
+        # a cylinder's frame, built from p0 and p1 in float32, is orthogonal only to rounding:
+        # Mitsuba calls that shearing and warns once per segment
+        level = mi.Thread.thread().logger().log_level()
+        mi.Thread.thread().logger().set_log_level(mi.LogLevel.Error)
+        try:
+            self.scene = mi.load_dict({"type": "scene", **shapes})
+        finally:
+            mi.Thread.thread().logger().set_log_level(level)
+        # Mitsuba numbers shapes in the order it stores them: map each back by its bounding box's
+        # centre, the segment's midpoint
+        mid = np.array([np.add(v["p0"], v["p1"]) * 0.5 for v in shapes.values()])
+        centres = []
+        for shape in self.scene.shapes():
+            bb = shape.bbox()
+            centres.append([(bb.min.x + bb.max.x) / 2, (bb.min.y + bb.max.y) / 2, (bb.min.z + bb.max.z) / 2])
+        _, order = cKDTree(mid).query(np.array(centres, np.float64).reshape(-1, 3))
+        self.fiber_of = np.asarray(fiber_of, np.uint32)[order]
+        self.axis = np.asarray(axis, np.float64)[order]
+        self.radii = b.radii
+
+
+@dataclass
+class TwistedPaths:
+    """Per-path state of the 3D loop (Dr.Jit arrays, one lane a path)."""
+
+    o: Any           # ray origin (Point3f), its y within [0, period)
+    d: Any           # ray direction (Vector3f)
+    B: list          # spectral weight, per wavelength
+    R: list          # weight absorbed (expected value), per wavelength
+    depth: Any       # fiber events so far
+    wraps: Any       # crossings of the period's ends
+    status: Any
+    bin: Any
+    active: Any
+    pid: Any
+    phi_i: Any       # incident azimuth (for relative binning)
+    steps: Any       # segments traced in this round
+
+    RESULTS = ("B", "R", "depth", "status", "bin")
+
+    def gather(self, index) -> "TwistedPaths":
+        """The lanes ``index`` (compaction between rounds), with a new round's step count."""
+        take = lambda v: [dr.gather(type(x), x, index) for x in v] if isinstance(v, list) \
+            else dr.gather(type(v), v, index)  # noqa: E731
+        out = TwistedPaths(**{f.name: take(getattr(self, f.name)) for f in fields(self)})
+        out.steps = dr.zeros(type(self.steps), dr.width(index))
+        return out
+
+
+@dataclass
+class _Upload:
+    scene: Any
+    fiber_of: Any
+    axis: list       # three Floats: each segment's unit axis
+    radii: Any
+    seed: Any
+
+
+class TwistedBaker:
+    """Traces batches of paths through a twisted ply; ``trace(phi_index, n_paths, seed)``
+    returns a :class:`Tally` as :class:`~models.bake.baker.Baker`'s does (each path one
+    ``theta_i`` node, in turn: ``paths_theta`` and ``passthrough_theta`` count them)."""
+
+    ROUND = 16         # segments per round of the loop before compaction
+    TAIL_LANES = 4096  # with this few paths left, the last round runs to the end
+
+    def __init__(self, ply: TwistedBundle, fiber: FiberTable, spec: BakeSpec):
+        if spec.estimator != "fast" or spec.exit != "uniform":
+            raise ValueError("a twisted ply is traced with the fast estimator and the uniform exit "
+                             f"(got estimator {spec.estimator!r}, exit {spec.exit!r})")
+        self.ply, self.fiber, self.spec = ply, fiber, spec
+        self.geometry = TwistedScene(ply)
+        self.twin = DrJitFiber(fiber, FiberSampler(fiber), mi.Float)
+        self.n_lambda = len(fiber.wavelength)
+
+    # -- entry -----------------------------------------------------------------------
+    def trace(self, phi_index: int, n_paths: int, seed) -> Tally:
+        spec, L = self.spec, self.n_lambda
+        rng = np.random.default_rng(seed)
+        Rb, P = self.ply.bundle.bounding_radius, self.geometry.period
+        n_ti = len(spec.theta_i)
+        # stratified offsets across 2 R_b, heights over a period, theta_i nodes in turn
+        t = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
+        y0 = P * rng.permutation((np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths)
+        j = (rng.integers(n_ti) + np.arange(n_paths)) % n_ti
+        phi_i = np.full(n_paths, spec.phi_i[phi_index])
+        if spec.relative_phi:
+            phi_i = phi_i + 2 * np.pi * rng.permutation((np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths)
+        theta_i = spec.theta_i[j]
+        # light from w_i travels along d = -w_i; it enters the bounding cylinder at offset t
+        d = -np.stack([np.cos(theta_i) * np.cos(phi_i), np.sin(theta_i), np.cos(theta_i) * np.sin(phi_i)], -1)
+        dh = np.stack([np.cos(phi_i + np.pi), np.sin(phi_i + np.pi)], -1)   # horizontal travel
+        side = np.stack([-dh[:, 1], dh[:, 0]], -1)
+        o_h = -np.sqrt(np.maximum(Rb**2 - t**2, 0.0))[:, None] * dh + t[:, None] * side
+        origin = np.stack([o_h[:, 0], y0, o_h[:, 1]], -1)
+        count = np.bincount(j, minlength=n_ti)
+        weight = n_paths / np.maximum(count, 1)   # each node normalized by its own paths
+
+        out = self._loop(origin, d, phi_i, int(rng.integers(2**62)))
+        status, bins = out["status"], out["bin"]
+        tally = Tally.zeros(spec, L)
+        tally.vertices = out["vertices"]
+        passed = (out["depth"] == 0) & (status == ESCAPED)
+        tally.paths[phi_index] = n_paths
+        tally.passthrough[phi_index] = np.sum(passed)
+        tally.paths_theta[phi_index] = count
+        tally.passthrough_theta[phi_index] = np.bincount(j[passed], minlength=n_ti)
+        n_bins = spec.n_phi_o * spec.n_theta_o
+        W = np.stack([b.numpy() for b in out["B"]], -1).astype(np.float64) * weight[j][:, None]  # [path, lambda]
+        W[status == STOPPED] = 0.0
+        esc = (status == ESCAPED) & ~passed
+        flat = j[esc] * n_bins + bins[esc]
+        for l in range(L):
+            tally.sum[phi_index, ..., l] += np.bincount(flat, W[esc, l], n_ti * n_bins).reshape(
+                n_ti, spec.n_phi_o, spec.n_theta_o)
+            tally.sum_sq[phi_index, ..., l] += np.bincount(flat, W[esc, l] ** 2, n_ti * n_bins).reshape(
+                n_ti, spec.n_phi_o, spec.n_theta_o)
+        capped = status == CAPPED
+        R = np.stack([r.numpy() for r in out["R"]], -1).astype(np.float64) * weight[j][:, None]
+        for l in range(L):
+            tally.lost[phi_index, :, l] += np.bincount(j[capped], W[capped, l], n_ti)
+            tally.absorbed[phi_index, :, l] += np.bincount(j, R[:, l], n_ti)
+        return tally
+
+    # -- the loop --------------------------------------------------------------------
+    def _loop(self, origin, d, phi_i, seed) -> dict:
+        Float, UInt = mi.Float, mi.UInt32
+        n, L, g = len(d), self.n_lambda, self.geometry
+        up = _Upload(scene=g.scene, fiber_of=UInt(g.fiber_of), axis=[Float(g.axis[:, k].astype(np.float32))
+                                                                      for k in range(3)],
+                     radii=Float(g.radii.astype(np.float32)), seed=dr.opaque(mi.UInt64, seed % 2**63))
+        paths = TwistedPaths(
+            o=mi.Point3f(*(to_drjit(Float, origin[:, k]) for k in range(3))),
+            d=mi.Vector3f(*(to_drjit(Float, d[:, k]) for k in range(3))),
+            B=[dr.full(Float, 1.0, n) for _ in range(L)], R=[dr.zeros(Float, n) for _ in range(L)],
+            depth=dr.zeros(UInt, n), wraps=dr.zeros(UInt, n), status=dr.zeros(UInt, n), bin=dr.zeros(UInt, n),
+            active=dr.full(mi.Bool, True, n), pid=dr.arange(UInt, n), phi_i=to_drjit(Float, phi_i),
+            steps=dr.zeros(UInt, n))
+        # Rounds, as the parallel bake's loop: a SIMD packet iterates until its longest path
+        # ends, so after `ROUND` segments the unfinished lanes are compacted and continue; the
+        # last round (few lanes) runs to the end. Results go to per-path outputs by id.
+        out = {"B": [dr.zeros(Float, n) for _ in range(L)], "R": [dr.zeros(Float, n) for _ in range(L)],
+               **{k: dr.zeros(UInt, n) for k in ("depth", "status", "bin")}}
+        while True:
+            last = dr.width(paths.pid) <= self.TAIL_LANES
+            limit = dr.opaque(UInt, 0xFFFFFFFF if last else self.ROUND)  # one compiled kernel
+            paths = self._run(paths, up, limit)
+            for name in TwistedPaths.RESULTS:
+                targets, values = out[name], getattr(paths, name)
+                for o, v in zip(targets, values) if isinstance(values, list) else [(targets, values)]:
+                    dr.scatter(o, v, paths.pid)
+            if last:
+                dr.eval(out)
+                break
+            dr.eval(out, paths)
+            keep = dr.compress(paths.active)
+            if dr.width(keep) == 0:
+                break
+            paths = paths.gather(keep)
+        depth = out["depth"].numpy()
+        return {"status": out["status"].numpy(), "bin": out["bin"].numpy().astype(np.int64), "B": out["B"],
+                "R": out["R"], "depth": depth, "vertices": int(depth.astype(np.int64).sum())}
+
+    @dr.syntax
+    def _run(self, paths: TwistedPaths, up: _Upload, limit) -> TwistedPaths:
+        while dr.hint(paths.active & (paths.steps < limit), label="bake_twisted"):
+            paths = self._step(paths, up)
+        return paths
+
+    def _step(self, p: TwistedPaths, up: _Upload) -> TwistedPaths:
+        """One segment of every active path: to the next fiber, the period's end, or out."""
+        p.steps = p.steps + 1
+        spec, L, Rb, P = self.spec, self.n_lambda, self.ply.bundle.bounding_radius, self.geometry.period
+        Float, UInt = mi.Float, mi.UInt32
+
+        # Phase 1: how far the ray may go: out of the bounding cylinder, or to the period's end
+        dx, dz = p.d.x, p.d.z
+        a = dx * dx + dz * dz
+        bq = p.o.x * dx + p.o.z * dz
+        c = p.o.x * p.o.x + p.o.z * p.o.z - Rb * Rb
+        t_out = dr.select(a > 1e-12, (-bq + dr.safe_sqrt(bq * bq - a * c)) / dr.maximum(a, 1e-12), dr.inf)
+        t_out = dr.maximum(t_out, 0.0)
+        t_end = dr.select(p.d.y > 0, (P - p.o.y) / p.d.y, dr.select(p.d.y < 0, -p.o.y / p.d.y, dr.inf))
+        t_max = dr.minimum(t_out, t_end)
+        ray = mi.Ray3f(mi.Ray3f(p.o, p.d), t_max)
+        pi = up.scene.ray_intersect_preliminary(ray, coherent=False, active=p.active)
+        hit = p.active & pi.is_valid()
+
+        # Phase 2: no fiber before the end of the period: wrap around it; before the bound: escape
+        wrap = p.active & ~hit & (t_end < t_out)
+        escaped = p.active & ~hit & ~wrap
+        p.status = dr.select(escaped, ESCAPED, p.status)
+        phi = dr.atan2(p.d.z, p.d.x)
+        theta = dr.safe_asin(p.d.y)
+        p.bin = dr.select(escaped, output_bin(spec, phi, theta, p.phi_i, xp=dr), p.bin)
+        wrapped = p.o + p.d * t_end
+        wrapped.y = dr.select(p.d.y > 0, 0.0, P)
+        p.wraps = dr.select(wrap, p.wraps + 1, p.wraps)
+        p.status = dr.select(wrap & (p.wraps > MAX_WRAPS), CAPPED, p.status)
+        p.o = dr.select(wrap, wrapped, p.o)
+
+        # Phase 3: a fiber event, in the fiber's frame (T its axis)
+        capped = hit & (p.depth >= spec.max_bounces)
+        p.status = dr.select(capped, CAPPED, p.status)
+        go = hit & ~capped
+        p.depth = dr.select(go, p.depth + 1, p.depth)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, go)
+        T = mi.Vector3f(*(dr.gather(Float, ax, pi.shape_index, go) for ax in up.axis))
+        k = dr.gather(UInt, up.fiber_of, pi.shape_index, go)
+        r = dr.gather(Float, up.radii, k, go)
+        n = dr.normalize(si.n - T * dr.dot(si.n, T))
+        centre = si.p - r * n
+        # (e1, e2, T) as the fiber frame's (x, z, y): for T = +y, e1 = x and e2 = z
+        e1 = dr.normalize(dr.select(dr.abs(T.z) > 0.999, dr.cross(mi.Vector3f(1.0, 0.0, 0.0), T),
+                                    dr.cross(T, mi.Vector3f(0.0, 0.0, 1.0))))
+        e2 = dr.cross(e1, T)
+        wi = -p.d
+        theta_in = dr.safe_asin(dr.dot(wi, T))
+        phi_wi = dr.atan2(dr.dot(wi, e2), dr.dot(wi, e1))
+
+        rng = mi.PCG32()
+        rng.seed(up.seed + mi.UInt64(p.depth), mi.UInt64(p.pid))
+        u = [rng.next_float32() for _ in range(5)]
+        x6, x7 = rng.next_float32(), rng.next_float32()
+        fib = self.twin
+        theta_out, dphi = fib.sample(theta_in, u)
+        pdf = fib.pdf(theta_in, theta_out, dphi)
+        f = fib.eval_spectrum(theta_in, theta_out, dphi)
+        alb = fib.albedo(theta_in)
+        scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
+        valid = go & (pdf > 0)
+        p.R = [dr.select(go, p.R[l] + p.B[l] * (1 - alb[l]), p.R[l]) for l in range(L)]
+        p.B = [dr.select(go, p.B[l] * f[l] * scale, p.B[l]) for l in range(L)]
+        roulette = p.depth > spec.rr_start
+        q = p.B[0]
+        for l in range(1, L):
+            q = dr.maximum(q, p.B[l])
+        q = dr.minimum(q, 1.0)
+        survive = ~roulette | (x6 < q)
+        p.B = [dr.select(go & roulette, p.B[l] / dr.maximum(q, 1e-30), p.B[l]) for l in range(L)]
+        p.status = dr.select(go & ~(valid & survive), STOPPED, p.status)
+        alive = go & valid & survive
+        h_u = dr.select(roulette, x7, x6)
+
+        # Phase 4: leave the fiber's surface on the outgoing side (the uniform exit)
+        phi_wo = phi_wi + dphi
+        s_o, c_o = dr.sincos(phi_wo)
+        ex, ez = lobes.leave_uniform(0.0, 0.0, r, 2 * h_u - 1, c_o, s_o, dr)
+        exit_point = centre + e1 * ex + e2 * ez
+        wo = e1 * (dr.cos(theta_out) * c_o) + e2 * (dr.cos(theta_out) * s_o) + T * dr.sin(theta_out)
+        # an exit point beyond the period's ends is the same point a period away
+        exit_point.y = exit_point.y - P * dr.floor(exit_point.y * (1.0 / P))
+        p.o = dr.select(alive, exit_point, p.o)
+        p.d = dr.select(alive, dr.normalize(wo), p.d)
+        p.active = p.active & (p.status == 0)
+        return p

@@ -1,0 +1,228 @@
+"""Twisted plies: the helical arrangement and the 3D bake, against independent references.
+
+- geometry: a positive pitch makes right-handed helices (positive torsion, computed by
+  finite differences), fibers lean ``atan(2 pi rho / |pitch|)``, and the closest approach
+  of two fibers is the one dense 3D sampling of both helices finds;
+- an arrangement whose leaning fibers intersect is refused with the amount;
+- ``pitch -> infinity`` reproduces the parallel (2D) bake within Monte Carlo error;
+- a single tilted fiber reproduces the fiber model rotated into the ply frame, averaged
+  over the fiber's turn (hit fraction ``r cos theta' / (R_b cos lean cos theta_i)``);
+- a lossless twisted ply loses nothing: scattered + passthrough = 1 for every theta_i;
+- the reduction the twisted bake uses, rotation invariance of a circular ply (a turn of
+  the ply is a shift along its axis), holds: absolute tables at two incident azimuths
+  agree once shifted.
+"""
+
+import numpy as np
+import pytest
+
+from models.bake import Baker, BakeSpec
+from models.bake.twisted import TwistedBaker
+from models.bundle import Bundle, TwistedBundle, poisson
+from models.fiber.patterns import PatternFiber
+from models.fiber.ray import RayFiber
+from pipeline.stages.bake import tally_to_table
+
+WL = np.array([450.0, 650.0])
+NODES = np.deg2rad(np.arange(0, 91, 5.0))
+RELATIVE = {"theta_i": None, "phi_i": None, "phi_o": "relative"}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _variant(mi_llvm):
+    return mi_llvm
+
+
+@pytest.fixture(scope="module")
+def ray_fiber():
+    return RayFiber(WL, [1.56, 1.54], [0.6, 0.05], 0.25, 0.35, 0.0, n_h=64).tabulate(NODES)
+
+
+def table_of(tally, spec, fiber, reductions=RELATIVE):
+    return tally_to_table(tally, spec, fiber, reductions)
+
+
+def agree(got, ref, err, rel=0.02, floor=2e-3):
+    """|got - ref| within ``rel`` of ref plus 3.5 standard errors, plus 0.2% of the peak (a bin
+    no path reached has no error estimate)."""
+    tol = rel * np.abs(ref) + 3.5 * err + floor * np.abs(ref).max()
+    return np.abs(got - ref) <= tol
+
+
+# -- geometry ------------------------------------------------------------------------
+
+def test_positive_pitch_is_a_right_handed_helix_leaning_as_expected():
+    ply = TwistedBundle(Bundle(np.array([[60.0, 0.0]]), 10.0, (80.0, 80.0)), 900.0)
+    y = np.linspace(0, 300, 3001)
+    c = ply.centers_at(y)[:, 0]
+    p = np.stack([c[:, 0], y, c[:, 1]], -1)
+    d1, d2 = np.gradient(p, y, axis=0), np.gradient(np.gradient(p, y, axis=0), y, axis=0)
+    d3 = np.gradient(d2, y, axis=0)
+    torsion = np.einsum("ij,ij->i", np.cross(d1, d2), d3)[10:-10]
+    assert np.all(torsion > 0)                                     # right-handed
+    assert np.all(TwistedBundle(ply.bundle, -900.0).centers_at(y)[:, 0, 1] * c[:, 1] <= 1e-9)  # mirror
+    lean = np.arccos(d1[10:-10, 1] / np.linalg.norm(d1[10:-10], axis=1))
+    assert np.allclose(lean, np.arctan(2 * np.pi * 60.0 / 900.0), atol=1e-5)
+    assert np.isclose(ply.max_lean, np.arctan(2 * np.pi * 60.0 / 900.0))
+    assert np.allclose(ply.centers_at(y + 900.0), ply.centers_at(y), atol=1e-9)  # the period
+
+
+def test_closest_approach_is_the_sampled_minimum():
+    b = Bundle(np.array([[50.0, 0.0], [50.0 * np.cos(1.0), 50.0 * np.sin(1.0)]]), 20.0, (75.0, 75.0))
+    ply = TwistedBundle(b, 600.0)
+    gap, i, j = ply.closest_approach()
+    # brute force: every pair of points 0.2 um apart along the two centre lines, a period and more
+    y0, y1 = np.linspace(0, 600, 3001), np.linspace(-100, 700, 4001)
+    c0, c1 = ply.centers_at(y0)[:, 0], ply.centers_at(y1)[:, 1]
+    p0, p1 = np.stack([c0[:, 0], y0, c0[:, 1]], -1), np.stack([c1[:, 0], y1, c1[:, 1]], -1)
+    d = np.sqrt(((p0[:, None, :] - p1[None, :, :]) ** 2).sum(-1))
+    assert {i, j} == {0, 1}
+    assert abs(gap - (d.min() - 40.0)) < 0.01
+
+
+def test_leaning_fibers_that_intersect_are_refused_with_the_amount():
+    b = poisson((200.0, 200.0), 20.0, seed=1)
+    TwistedBundle(b, 5000.0)  # leans 13 deg: these fibers still clear each other
+    with pytest.raises(ValueError, match=r"intersect by \d+(\.\d+)? um") as e:
+        TwistedBundle(b, 2000.0)
+    assert "bundle.gap_um" in str(e.value)
+    with pytest.raises(ValueError, match="pitch must be a finite, non-zero"):
+        TwistedBundle(b, 0.0)
+    with pytest.raises(ValueError, match="only circular"):
+        TwistedBundle(poisson((200.0, 120.0), 20.0, seed=1), 5000.0)
+
+
+# -- the 3D bake ---------------------------------------------------------------------
+
+def test_untwisted_limit_is_the_parallel_bake(ray_fiber):
+    b = poisson((100.0, 100.0), 20.0, seed=1)
+    spec = BakeSpec(np.deg2rad([0.0, 30.0, 60.0]), [0.0], 12, 24, relative_phi=True)
+    flat = table_of(Baker(b, ray_fiber, spec).trace(0, 200_000, 1), spec, ray_fiber)
+    tw = TwistedBaker(TwistedBundle(b, 1e8), ray_fiber, spec).trace(0, 300_000, 2)
+    twisted = table_of(tw, spec, ray_fiber)
+    err = np.sqrt(flat.stderr**2 + twisted.stderr**2)
+    ok = agree(twisted.values, flat.values, err)
+    assert ok.mean() > 0.995 and np.abs(twisted.values - flat.values).max() < 0.1 * flat.values.max()
+    p_theta = tw.passthrough_theta[0] / tw.paths_theta[0]
+    assert np.allclose(p_theta, flat.passthrough[0], atol=4 * np.sqrt(flat.passthrough[0] / 1e5))
+    assert np.allclose(twisted.scattered, flat.scattered, rtol=0.01)
+    assert np.allclose(twisted.absorbed, flat.absorbed, rtol=0.02, atol=1e-4)
+
+
+def test_single_tilted_fiber_is_the_fiber_model_rotated(ray_fiber):
+    rho, r, Rb, pitch = 60.0, 20.0, 80.0, 1500.0
+    ply = TwistedBundle(Bundle(np.array([[rho, 0.0]]), r, (Rb, Rb)), pitch)
+    spec = BakeSpec(np.deg2rad([0.0, 30.0, 50.0]), [0.0], 12, 24, relative_phi=True)
+    table = table_of(TwistedBaker(ply, ray_fiber, spec).trace(0, 400_000, 2), spec, ray_fiber)
+
+    # the fiber's frame at its azimuth psi about the axis (tangent of the helix)
+    psi = (np.arange(48) + 0.5) / 48 * 2 * np.pi
+    T = np.stack([-rho * ply.omega * np.sin(psi), np.ones_like(psi), rho * ply.omega * np.cos(psi)], -1)
+    T /= np.linalg.norm(T, axis=-1, keepdims=True)
+    e1 = np.cross(T, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    e2 = np.cross(e1, T)
+
+    def local(w, k):
+        return (np.arctan2(np.sum(w * e2[k], -1), np.sum(w * e1[k], -1)),
+                np.arcsin(np.clip(np.sum(w * T[k], -1), -1, 1)))
+
+    n_sub = 6
+    pe, te = table.phi_o_edges, table.theta_o_edges
+    fp = (pe[:-1, None] + (np.arange(n_sub) + 0.5) / n_sub * np.diff(pe)[:, None]).ravel()
+    s0, s1 = np.sin(te[:-1]), np.sin(te[1:])
+    ft = np.arcsin(s0[:, None] + (np.arange(n_sub) + 0.5) / n_sub * (s1 - s0)[:, None]).ravel()
+    P, Q = np.meshgrid(fp, ft, indexing="ij")
+    wo = np.stack([np.cos(Q) * np.cos(P), np.sin(Q), np.cos(Q) * np.sin(P)], -1)
+    for j, ti in enumerate(spec.theta_i):
+        wi = np.array([np.cos(ti), np.sin(ti), 0.0])        # phi_i = 0, outgoing phi relative to it
+        ref = 0.0
+        for k in range(len(psi)):
+            phi_il, th_il = local(wi, k)
+            hit = r * np.cos(th_il) / (Rb * np.cos(ply.max_lean) * np.cos(ti))
+            phi_ol, th_ol = local(wo, k)
+            ref = ref + hit * ray_fiber.eval(phi_i=phi_il, theta_i=th_il, phi_o=phi_ol, theta_o=th_ol,
+                                             wavelength=650.0) / len(psi)
+        ref = ref.reshape(len(pe) - 1, n_sub, len(te) - 1, n_sub).mean(axis=(1, 3))
+        got, err = table.values[0, j, :, :, 1], table.stderr[0, j, :, :, 1]
+        # light that leaves steeply can meet the same fiber a turn further on: not in the reference
+        shallow = np.abs(table.theta_o)[None, :] < np.deg2rad(60) + 0 * got
+        bad = ~agree(got, ref, err) & shallow
+        assert not bad.any(), (np.rad2deg(ti), np.argwhere(bad), got[bad], ref[bad], err[bad], ref.max())
+        assert np.isclose((got * table.solid_angle)[shallow].sum(), (ref * table.solid_angle)[shallow].sum(),
+                          rtol=0.01)
+
+
+def test_lossless_twisted_ply_conserves_energy():
+    fiber = PatternFiber(WL, "isotropic").tabulate(NODES)
+    ply = TwistedBundle(poisson((100.0, 100.0), 20.0, gap=2.0, seed=4), 1800.0)
+    assert np.degrees(ply.max_lean) > 15
+    spec = BakeSpec(np.deg2rad([-60.0, 0.0, 40.0, 75.0]), [0.0], 12, 24, relative_phi=True, max_bounces=2000)
+    tally = TwistedBaker(ply, fiber, spec).trace(0, 40_000, 5)
+    table = table_of(tally, spec, fiber)
+    p_theta = tally.passthrough_theta[0] / tally.paths_theta[0]
+    total = table.scattered[0] + p_theta[:, None] + table.absorbed[0] + table.lost[0]
+    assert np.allclose(total, 1.0, atol=1e-3), total  # a lossless path's weight stays 1: no noise
+    assert np.all(table.absorbed < 1e-5) and np.all(table.lost < 1e-3)
+    assert np.all(np.isfinite(table.values)) and np.all(table.values >= 0)
+
+
+def test_a_turn_of_a_twisted_ply_is_a_shift_along_its_axis(ray_fiber):
+    """Rotation invariance (the relative-phi reduction of circular plies) is exact for a
+    twisted ply whose entry heights cover a period: absolute tables at phi_i = 0 and 75 deg
+    agree once the second is turned back by 75 deg."""
+    ply = TwistedBundle(poisson((120.0, 120.0), 20.0, gap=2.0, seed=2), 3000.0)
+    phis = np.deg2rad([0.0, 75.0])  # 75 deg: five bins of 15 deg
+    spec = BakeSpec(np.deg2rad([20.0]), phis, 12, 24, relative_phi=False)
+    baker = TwistedBaker(ply, ray_fiber, spec)
+    t0, t1 = baker.trace(0, 150_000, 7), baker.trace(1, 150_000, 8)
+    t0.add(t1)
+    table = table_of(t0, spec, ray_fiber, {"theta_i": None, "phi_i": None, "phi_o": "absolute"})
+    a, b = table.values[0, 0], np.roll(table.values[1, 0], -5, axis=0)
+    err = np.sqrt(table.stderr[0, 0] ** 2 + np.roll(table.stderr[1, 0], -5, axis=0) ** 2)
+    assert agree(a, b, err, rel=0.03).mean() > 0.99
+    # but not without the shift: the light does depend on where it comes from
+    assert agree(a, table.values[1, 0], err, rel=0.03).mean() < 0.9
+
+
+# -- the config ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("twist,message", [
+    ("{pitch_um: 0}", "non-zero length"),
+    ("{pitch_um: 3000, yarn: Cotton 1}", "either pitch_um"),
+    ("{}", "either pitch_um"),
+    ("{pitch_um: .nan}", "finite"),
+    ("{yarn: Wool 9}", "not in"),
+])
+def test_a_bad_twist_is_refused_naming_the_key(twist, message):
+    from pipeline.build import build_ply
+    from pipeline.config import ConfigError, load_config
+
+    with pytest.raises((ConfigError, ValueError), match=message):
+        build_ply(load_config("configs/default.yaml", [f"bundle.twist={twist}"]))
+
+
+def test_a_twist_needs_a_circle_and_the_uniform_exit():
+    from pipeline.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError, match="circular cross-section"):
+        load_config("configs/thesis_ellipse.yaml", ["bundle.twist={pitch_um: 3000}"])
+    with pytest.raises(ConfigError, match="uniform exit"):
+        load_config("configs/ray_ply.yaml", ["bundle.twist={pitch_um: 3000}", "bake.exit=lobe"])
+
+
+def test_a_zhao_yarn_gives_its_lean_and_the_spec_keeps_every_theta_i_but_the_poles():
+    from pipeline.build import build_ply, make_spec
+    from pipeline.config import load_config
+
+    cfg = load_config("configs/default.yaml", ["bundle.twist={yarn: Cotton 1}", "bundle.radius_um=260"])
+    ply = build_ply(cfg)
+    # Cotton 1: alpha = -0.369 cm on a ply of e_X = 0.026 cm: the rim leans atan(2 pi 260 / 3690) = 23.9 deg
+    assert ply.pitch < 0 and np.isclose(abs(ply.pitch), 3690.0, rtol=1e-6)
+    rim = np.arctan(2 * np.pi * 260.0 / 3690.0)
+    assert np.degrees(rim) == pytest.approx(23.9, abs=0.1) and ply.max_lean <= rim
+    fiber = PatternFiber(WL, "isotropic").tabulate(NODES)
+    spec, reductions = make_spec(cfg, ply, fiber)
+    assert np.allclose(np.rad2deg(spec.theta_i), np.arange(-80, 81, 10))
+    assert reductions == {"theta_i": None, "phi_i": "rotation", "phi_o": "relative"}
+    assert spec.exit == "uniform" and spec.relative_phi
