@@ -326,7 +326,8 @@ def plot(far_field: dict, explicit: dict, path, title="") -> None:
     ax2.axhspan(-0.02, 0.02, color="0.9", zorder=0)
     ax2.set(xlabel="(theta_i node, output bin) beside the specular cone", ylabel="explicit fibers / bake - 1",
             title="explicit fibers against the bake (1 sigma: bake and render)")
-    ax2.legend(fontsize=7)
+    if explicit:
+        ax2.legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()

@@ -58,6 +58,7 @@ from ..fiber.sampling import FiberSampler
 from ..fiber.sampling_drjit import DrJitFiber
 from ..jit import to_drjit
 from .scene import BundleScene
+from . import weights
 from .tally import BakeSpec, Tally, output_bin
 
 # how a path of the fast estimator ended
@@ -348,7 +349,7 @@ class Baker:
 
     def _bounce(self, paths: "Paths", scene: "_LoopScene") -> "Paths":
         """One bounce of every active path: ray cast, tally or scatter, roulette, exit point."""
-        spec, L = self.spec, self.n_lambda
+        spec = self.spec
         exit_model = spec.exit
         Float, UInt = mi.Float, mi.UInt32
         p = paths
@@ -390,19 +391,9 @@ class Baker:
             alb = fib.albedo(theta_in)
 
         # Phase 3: the weight (B carries f cos / pdf, R the expected absorption) and roulette
-        scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
-        valid = go & (pdf > 0)
-        p.R = [dr.select(go, p.R[l] + p.B[l] * (1 - alb[l]), p.R[l]) for l in range(L)]
-        p.B = [dr.select(go, p.B[l] * f[l] * scale, p.B[l]) for l in range(L)]
-        roulette = p.depth > spec.rr_start
-        q = p.B[0]
-        for l in range(1, L):
-            q = dr.maximum(q, p.B[l])
-        q = dr.minimum(q, 1.0)
-        survive = ~roulette | (x6 < q)
-        p.B = [dr.select(go & roulette, p.B[l] / dr.maximum(q, 1e-30), p.B[l]) for l in range(L)]
-        p.status = dr.select(go & ~(valid & survive), STOPPED, p.status)
-        alive = go & valid & survive
+        p.B, p.R, kept, roulette = weights.scatter(p.B, p.R, f, alb, theta_out, pdf, go, p.depth, spec.rr_start, x6)
+        p.status = dr.select(go & ~kept, STOPPED, p.status)
+        alive = go & kept
         h_u = dr.select(roulette, x7, x6)
 
         # Phase 4: where the scattered light leaves the fiber (the exit model)

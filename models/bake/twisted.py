@@ -39,6 +39,7 @@ from ..fiber.base import FiberTable
 from ..fiber.sampling import FiberSampler
 from ..fiber.sampling_drjit import DrJitFiber
 from ..jit import to_drjit
+from . import weights
 from .tally import BakeSpec, Tally, output_bin
 
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
@@ -240,7 +241,7 @@ class TwistedBaker:
     def _step(self, p: TwistedPaths, up: _Upload) -> TwistedPaths:
         """One segment of every active path: to the next fiber, the period's end, or out."""
         p.steps = p.steps + 1
-        spec, L, Rb, P = self.spec, self.n_lambda, self.ply.bundle.bounding_radius, self.geometry.period
+        spec, Rb, P = self.spec, self.ply.bundle.bounding_radius, self.geometry.period
         Float, UInt = mi.Float, mi.UInt32
 
         # Phase 1: how far the ray may go: out of the bounding cylinder, or to the period's end
@@ -297,19 +298,9 @@ class TwistedBaker:
         pdf = fib.pdf(theta_in, theta_out, dphi)
         f = fib.eval_spectrum(theta_in, theta_out, dphi)
         alb = fib.albedo(theta_in)
-        scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
-        valid = go & (pdf > 0)
-        p.R = [dr.select(go, p.R[l] + p.B[l] * (1 - alb[l]), p.R[l]) for l in range(L)]
-        p.B = [dr.select(go, p.B[l] * f[l] * scale, p.B[l]) for l in range(L)]
-        roulette = p.depth > spec.rr_start
-        q = p.B[0]
-        for l in range(1, L):
-            q = dr.maximum(q, p.B[l])
-        q = dr.minimum(q, 1.0)
-        survive = ~roulette | (x6 < q)
-        p.B = [dr.select(go & roulette, p.B[l] / dr.maximum(q, 1e-30), p.B[l]) for l in range(L)]
-        p.status = dr.select(go & ~(valid & survive), STOPPED, p.status)
-        alive = go & valid & survive
+        p.B, p.R, kept, roulette = weights.scatter(p.B, p.R, f, alb, theta_out, pdf, go, p.depth, spec.rr_start, x6)
+        p.status = dr.select(go & ~kept, STOPPED, p.status)
+        alive = go & kept
         h_u = dr.select(roulette, x7, x6)
 
         # Phase 4: leave the fiber's surface on the outgoing side (the uniform exit)

@@ -27,11 +27,11 @@ import numpy as np
 import yaml
 
 
-def median_rel_error(tally, spec, bins=None, fraction=0.9):
+def median_rel_error(tally, spec, fiber, bins=None, fraction=0.9):
     from pipeline.stages.bake import tally_to_table
     from pipeline.stages.train import energy_bins
 
-    t = tally_to_table(tally, spec, _FIBER, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
+    t = tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
     v = t.values.astype(float)
     e = t.stderr.astype(float)
     if bins is None:
@@ -115,7 +115,7 @@ def main(argv=None):
     ref = Tally.zeros(spec, len(wl))
     for k in range(4):
         ref.add(baker.trace(0, 65536, 100 + k))
-    _, bins = median_rel_error(ref, spec)
+    _, bins = median_rel_error(ref, spec, _FIBER)
     print(f"efficiency: median relative standard error over the {len(bins)} bins holding 90% of the "
           f"scattered energy; target {args.target:.0%}; budget {args.budget:.0f} s per estimator")
     results = {}
@@ -131,7 +131,7 @@ def main(argv=None):
             tally.add(baker.trace(0, batch, np.random.SeedSequence([7, k])))
             elapsed += time.perf_counter() - t0
             k += 1
-            err, _ = median_rel_error(tally, spec, bins)
+            err, _ = median_rel_error(tally, spec, _FIBER, bins)
             if err <= args.target:
                 break
         reached = err <= args.target

@@ -1,0 +1,31 @@
+"""A path's weight at a fiber event, shared by the parallel and the twisted tracers.
+
+``B[lambda]`` carries ``f cos(theta_out) / pdf`` over the path's events (``pdf`` per
+``d theta_out d phi``, the fiber's importance sampler), ``R[lambda]`` the weight absorbed on
+the way (the expected loss ``B (1 - albedo)`` at each event); Russian roulette from
+``rr_start`` events on keeps a path with probability ``min(1, max_lambda B)`` and divides
+its weight by it, so the estimate stays unbiased.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+
+
+def scatter(B: list, R: list, f: list, albedo: list, theta_out, pdf, go, depth, rr_start: int, u_rr):
+    """The weights after one event of the lanes ``go``: ``(B, R, kept, roulette)``; ``kept``
+    is false where the sample was invalid or the roulette stopped the path, ``roulette``
+    where it played (its uniform ``u_rr`` is spent there)."""
+    L = len(B)
+    scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
+    valid = go & (pdf > 0)
+    R = [dr.select(go, R[l] + B[l] * (1 - albedo[l]), R[l]) for l in range(L)]
+    B = [dr.select(go, B[l] * f[l] * scale, B[l]) for l in range(L)]
+    roulette = depth > rr_start
+    q = B[0]
+    for l in range(1, L):
+        q = dr.maximum(q, B[l])
+    q = dr.minimum(q, 1.0)
+    survive = ~roulette | (u_rr < q)
+    B = [dr.select(go & roulette, B[l] / dr.maximum(q, 1e-30), B[l]) for l in range(L)]
+    return B, R, valid & survive, roulette
