@@ -16,6 +16,8 @@ from models.bake import Baker, BakeSpec
 from models.bake.twisted import TwistedBaker
 from models.fiber.base import FiberTable
 
+from .config import theta_nodes
+
 
 def build_bundle(cfg) -> bundles.Bundle:
     """The cross-section (of a twisted ply: at height 0, spaced so that its leaning fibers clear)."""
@@ -76,12 +78,7 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     twisted = isinstance(bundle, bundles.TwistedBundle)
     bundle = cross_section(bundle)
     mirror_theta = bool(fiber.meta.get("mirror_symmetric", True)) and not twisted
-    step = np.deg2rad(c.theta_i_step_deg)
-    # clipped: the last node of the arange can exceed pi/2 by a rounding error
-    theta_i = np.clip(np.arange(0 if mirror_theta else -np.pi / 2, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2)
-    if twisted:
-        theta_i = np.arange(0, np.pi / 2 - 1e-6, step)
-        theta_i = np.concatenate([-theta_i[:0:-1], theta_i])
+    theta_i = theta_nodes(c.theta_i_step_deg, negative=not mirror_theta, poles=not twisted)
     if bundle.is_circle:
         phi_i, phi_reduction = np.zeros(1), "rotation"
     else:

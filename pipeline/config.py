@@ -15,6 +15,7 @@ import os
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
+import numpy as np
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -138,8 +139,21 @@ class Fiber(Strict):
         return self
 
 
+def theta_nodes(step_deg: float, negative: bool = False, poles: bool = True) -> np.ndarray:
+    """A bake's incident longitudes (radians) every ``step_deg``: ``0..90`` deg, or
+    ``-90..90`` with ``negative``; ``poles=False`` leaves out +-90 deg (a twisted ply's)."""
+    step = np.deg2rad(step_deg)
+    # clipped: the last node of the arange can exceed pi/2 by a rounding error
+    nodes = np.clip(np.arange(-np.pi / 2 if negative else 0.0, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2)
+    return nodes if poles else nodes[np.abs(nodes) < np.pi / 2 - 1e-9]
+
+
 class Tabulate(Strict):
     theta_i_step_deg: float = Field(5.0, gt=0.0, le=90.0)
+
+    def theta_i(self) -> np.ndarray:
+        """The single-fiber table's incident longitudes (radians), 0..90 deg."""
+        return np.deg2rad(np.arange(0.0, 90.0 + 1e-9, self.theta_i_step_deg))
 
     @field_validator("theta_i_step_deg")
     @classmethod
@@ -456,11 +470,13 @@ class Config(Strict):
 
     def incidences(self, expanded: bool = False) -> tuple[int, int]:
         """``(n_phi_i, n_theta_i)`` of the bake: a circle is one azimuth (rotation), other
-        bundles ``0..90`` deg; theta_i ``0..90`` deg, or ``-90..90`` once expanded."""
+        bundles ``0..90`` deg; theta_i ``0..90`` deg, or ``-90..90`` once expanded (a twisted
+        ply: ``-90..90`` without the poles, :func:`pipeline.build.make_spec`)."""
         b = self.bake
         circle = self.bundle.shape == "circle" and self.bundle.arrangement != "zhao2016"
         n_phi_i = 1 if circle else int(round(90 / b.phi_i_step_deg)) + 1
-        return n_phi_i, int(round((180 if expanded else 90) / b.theta_i_step_deg)) + 1
+        twisted = self.bundle.twist is not None
+        return n_phi_i, len(theta_nodes(b.theta_i_step_deg, negative=expanded or twisted, poles=not twisted))
 
     @model_validator(mode="after")
     def _render_model_is_trained(self):

@@ -62,7 +62,7 @@ def main(argv=None):
     cfg = load_config(args.config)
     mi.set_variant(cfg.bake.variant)
     wl = cfg.wavelengths.grid()
-    theta_nodes = np.deg2rad(np.arange(0.0, 90.0 + 1e-9, cfg.tabulate.theta_i_step_deg))
+    theta_nodes = cfg.tabulate.theta_i()
     _FIBER = fiber_models.build(cfg.fiber, wl).tabulate(theta_nodes)
     bundle = build_bundle(cfg)
     print(f"config {args.config}: {len(bundle.radii)} fibers, bound {bundle.semi_axes} um, "

@@ -40,7 +40,7 @@ def main(argv=None):
                        ("ray, configs/fiber_ray.yaml", "configs/fiber_ray.yaml")):
         cfg = load_config(path)
         wl = cfg.wavelengths.grid()
-        theta_i = np.deg2rad(np.arange(0.0, 90.0 + 1e-9, cfg.tabulate.theta_i_step_deg))
+        theta_i = cfg.tabulate.theta_i()
         model = fiber_models.build(cfg.fiber, wl)
         times, table = _time(lambda: model.tabulate(theta_i), args.repeat)
         shape = "x".join(str(s) for s in table.lobes[0].azimuthal.shape)

@@ -46,7 +46,7 @@ def main(argv=None):
     mi.set_variant(cfg.bake.variant)
     wl = cfg.wavelengths.grid()
     fiber = fiber_models.build(cfg.fiber, wl).tabulate(
-        np.deg2rad(np.arange(0.0, 90.0 + 1e-9, cfg.tabulate.theta_i_step_deg)))
+        cfg.tabulate.theta_i())
     bundle = build_bundle(cfg)
     print(f"config {args.config}: {len(bundle.radii)} fibers of {cfg.fiber.radius_um} um in {bundle.semi_axes} um "
           f"(packing {bundle.packing_fraction:.3f}), {len(wl)} wavelengths, {cfg.fiber.model} fiber; "

@@ -35,7 +35,7 @@ from models.io import atomic_path, clear_torn, write_text
 from .. import cluster
 from ..artifacts import load_fiber_table, stage_dir
 from ..build import batch_seed, build_ply, code_version, cross_section, make_spec, tracer
-from ..config import BAKE_SECTIONS
+from ..config import BAKE_SECTIONS, theta_nodes
 from ..metrics import write_metrics
 from ..plots import save_figure, spectral_image
 
@@ -248,8 +248,7 @@ def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50
     """
     c, spec = cfg.bake, baker.spec
     probe_paths = min(probe_paths, c.paths_per_phi_i, c.batch_paths)
-    step = np.deg2rad(c.theta_i_step_deg)
-    full = BakeSpec(np.clip(np.arange(-np.pi / 2, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2),
+    full = BakeSpec(theta_nodes(c.theta_i_step_deg, negative=True),
                     np.deg2rad(np.arange(0, 360 - 1e-9, c.phi_i_step_deg)), c.n_theta_o, c.n_phi_o,
                     relative_phi=False, estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start)
 

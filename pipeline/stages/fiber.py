@@ -32,7 +32,7 @@ from ..artifacts import stage_dir
 def run(cfg, out_root="artifacts") -> Path:
     out = stage_dir(cfg, "fiber", out_root)
     wl = cfg.wavelengths.grid()
-    theta_i = np.deg2rad(np.arange(0.0, 90.0 + 1e-9, cfg.tabulate.theta_i_step_deg))
+    theta_i = cfg.tabulate.theta_i()
 
     # -- Tabulate ---------------------------------------------------------
     t0 = time.perf_counter()
