@@ -79,10 +79,7 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     bundle = cross_section(bundle)
     mirror_theta = bool(fiber.meta.get("mirror_symmetric", True)) and not twisted
     theta_i = theta_nodes(c.theta_i_step_deg, negative=not mirror_theta, poles=not twisted)
-    if bundle.is_circle:
-        phi_i, phi_reduction = np.zeros(1), "rotation"
-    else:
-        phi_i, phi_reduction = np.deg2rad(np.arange(0, 90 + 1e-9, c.phi_i_step_deg)), "mirror_xz"
+    phi_i, phi_reduction = c.phi_i(bundle.is_circle), "rotation" if bundle.is_circle else "mirror_xz"
     spec = BakeSpec(theta_i, phi_i, c.n_theta_o, c.n_phi_o, relative_phi=bundle.is_circle,
                     estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
                     exit=exit_model(c.exit, fiber, c.estimator, twisted))

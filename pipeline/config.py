@@ -276,6 +276,19 @@ class BakeCfg(Strict):
             raise ValueError(f"must divide 90 evenly (got {v})")
         return v
 
+    @property
+    def n_batches(self) -> int:
+        """Batches per incident azimuth (the last one holds the remainder)."""
+        return -(-self.paths_per_phi_i // self.batch_paths)
+
+    def batch_size(self, k: int) -> int:
+        return min(self.batch_paths, self.paths_per_phi_i - k * self.batch_paths)
+
+    def phi_i(self, circle: bool) -> np.ndarray:
+        """Incident azimuths (radians): one for a circle (rotation), else 0..90 deg (the
+        ellipse's mirrors give the rest)."""
+        return np.zeros(1) if circle else np.deg2rad(np.arange(0, 90 + 1e-9, self.phi_i_step_deg))
+
     @field_validator("n_theta_o", "n_phi_o")
     @classmethod
     def _even(cls, v):
@@ -474,7 +487,7 @@ class Config(Strict):
         ply: ``-90..90`` without the poles, :func:`pipeline.build.make_spec`)."""
         b = self.bake
         circle = self.bundle.shape == "circle" and self.bundle.arrangement != "zhao2016"
-        n_phi_i = 1 if circle else int(round(90 / b.phi_i_step_deg)) + 1
+        n_phi_i = len(b.phi_i(circle))
         twisted = self.bundle.twist is not None
         return n_phi_i, len(theta_nodes(b.theta_i_step_deg, negative=expanded or twisted, poles=not twisted))
 
@@ -529,7 +542,7 @@ class Config(Strict):
                 raise ValueError(f"the bundle would hold about {fibers:,.0f} fibers (its semi-axes {a:g} x {c:g} um "
                                  f"over fibers of {self.fiber.radius_um:g} um), at most {MAX_FIBERS:,}: a smaller "
                                  "bundle.radius_um or larger fibers")
-        batches = -(-b.paths_per_phi_i // b.batch_paths) * n_phi_i
+        batches = b.n_batches * n_phi_i
         if batches > 1_000_000:
             raise ValueError(f"bake.paths_per_phi_i / bake.batch_paths makes {batches:,} batches (at most "
                              "1,000,000): raise bake.batch_paths or lower bake.paths_per_phi_i")

@@ -87,9 +87,8 @@ class Bake:
         self.bundle = cross_section(self.ply)           # its cross-section (a twisted one's at height 0)
         self.spec, self.reductions = make_spec(cfg, self.ply, self.fiber)
         c = cfg.bake
-        n_batches = int(np.ceil(c.paths_per_phi_i / c.batch_paths))
-        self.work = [(a, k) for a in range(len(self.spec.phi_i)) for k in range(n_batches)]
-        self.sizes = [min(c.batch_paths, c.paths_per_phi_i - k * c.batch_paths) for _, k in self.work]
+        self.work = [(a, k) for a in range(len(self.spec.phi_i)) for k in range(c.n_batches)]
+        self.sizes = [c.batch_size(k) for _, k in self.work]
         self.key = cfg.hash(*BAKE_SECTIONS)
         # a checkpoint resumes only with the code that wrote it: batches of two codes never mix
         self.code = cluster.code_digest(cfg)
