@@ -16,8 +16,9 @@ from models.bundle_table import BundleTable, bin_slopes, cell_offsets, cone_look
 
 
 class DrJitTable:
-    """An expanded bundle table uploaded as Dr.Jit arrays: the Dr.Jit reader of
-    :func:`models.bundle_table.cone_lookup` (the algorithm, shared with numpy)."""
+    """An expanded bundle table uploaded as Dr.Jit arrays, looked up by
+    :func:`models.bundle_table.cone_lookup` (the algorithm numpy's lookup runs too) through a
+    per-call :class:`_Reader`."""
 
     def __init__(self, table: BundleTable, Float):
         red = table.meta.get("reductions", {})
@@ -37,33 +38,40 @@ class DrJitTable:
         self.s_phi, self.s_u = (flat(a) for a in bin_slopes(table))
         self.nbytes = 3 * table.values.astype(np.float32).nbytes
 
-    def sin_theta_i(self, b):
-        return dr.gather(self.Float, self.sin_nodes, b)
-
-    def read(self, a, b, phi, u, weight):
-        """Add ``weight`` x node (a, b) at (phi, u): bin value plus the slopes' offsets."""
-        _, n_b, n_p, n_t = self.shape
-        kp, kt, dp = cell_offsets(self.phi_o0, n_p, n_t, phi, u, xp=dr)
-        base = (((a * n_b + b) * n_p + kp) * n_t + kt) * self.n_lambda
-        active = weight != 0.0
-        if not self._nearest:
-            du = u - 0.5 * (dr.gather(self.Float, self.u_edges, kt, active) +
-                            dr.gather(self.Float, self.u_edges, kt + 1, active))
-        for l in range(self.n_lambda):
-            v = dr.gather(self.Float, self.values, base + l, active)
-            if not self._nearest:
-                v = v + dr.gather(self.Float, self.s_phi, base + l, active) * dp \
-                    + dr.gather(self.Float, self.s_u, base + l, active) * du
-            self._out[l] = dr.fma(weight, v, self._out[l])
-
     def eval(self, phi_i, theta_i, phi_o, theta_o, mode: str = "linear") -> list:
         """``S`` at every table wavelength (a list of arrays) for Dr.Jit arrays of angles."""
         if mode not in ("nearest", "linear"):
             raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")
         if self.relative:
             phi_o = phi_o - phi_i
-        self._nearest = mode == "nearest"
-        self._out = [dr.zeros(self.Float, dr.width(theta_o)) for _ in range(self.n_lambda)]
-        cone_lookup(self, phi_i, theta_i, phi_o, theta_o, self._nearest, xp=dr)
-        out, self._out = self._out, None
-        return out
+        reader = _Reader(self, mode == "nearest", dr.width(theta_o))
+        cone_lookup(reader, phi_i, theta_i, phi_o, theta_o, reader.nearest, xp=dr)
+        return reader.out
+
+
+class _Reader:
+    """One lookup's reader of an uploaded table for :func:`cone_lookup`, accumulating ``S``
+    per wavelength in ``out`` (the numpy twin: ``models.bundle_table._NumpyReader``)."""
+
+    def __init__(self, table: DrJitTable, nearest: bool, width: int):
+        self.t, self.nearest = table, nearest
+        self.phi_i, self.theta_i = table.phi_i, table.theta_i
+        self.out = [dr.zeros(table.Float, width) for _ in range(table.n_lambda)]
+
+    def sin_theta_i(self, b):
+        return dr.gather(self.t.Float, self.t.sin_nodes, b)
+
+    def read(self, a, b, phi, u, weight):
+        """Add ``weight`` x node (a, b) at (phi, u): bin value plus the slopes' offsets."""
+        t, Float = self.t, self.t.Float
+        _, n_b, n_p, n_t = t.shape
+        kp, kt, dp = cell_offsets(t.phi_o0, n_p, n_t, phi, u, xp=dr)
+        base = (((a * n_b + b) * n_p + kp) * n_t + kt) * t.n_lambda
+        active = weight != 0.0
+        if not self.nearest:
+            du = u - 0.5 * (dr.gather(Float, t.u_edges, kt, active) + dr.gather(Float, t.u_edges, kt + 1, active))
+        for l in range(t.n_lambda):
+            v = dr.gather(Float, t.values, base + l, active)
+            if not self.nearest:
+                v = v + dr.gather(Float, t.s_phi, base + l, active) * dp + dr.gather(Float, t.s_u, base + l, active) * du
+            self.out[l] = dr.fma(weight, v, self.out[l])

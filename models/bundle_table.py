@@ -316,9 +316,9 @@ def cone_lookup(reader, phi_i, theta_i, phi_o, theta_o, nearest: bool, xp=np):
 
 
 def cell_offsets(phi_o0, n_phi, n_theta, phi, u, xp=np):
-    """The output cell of ``(phi, u = sin theta_o)``, ``(kp, kt)``, and the offsets from its
-    centre in ``phi`` and ``u`` that the limited slopes multiply (``u_edges``: sin of the
-    ``theta_o`` edges; returned as a function of the gathered edges)."""
+    """``(kp, kt, dp)``: the output cell of ``(phi, u = sin theta_o)`` in ``phi_o`` and
+    ``theta_o``, and the offset from the cell's centre in ``phi`` that the limited slope
+    multiplies (a reader takes the offset in ``u`` from its own ``theta_o`` edges)."""
     kp, t = cell(phi, phi_o0, 2 * np.pi, n_phi, periodic=True, tie=TIE, xp=xp)
     kt, _ = cell(xp.arcsin(xp.clip(u, -1.0, 1.0)) if xp is np else xp.safe_asin(xp.clip(u, -1.0, 1.0)),
                  -np.pi / 2, np.pi, n_theta, tie=TIE, xp=xp)
@@ -349,7 +349,8 @@ def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "line
 
 
 class _NumpyReader:
-    """The table in numpy for :func:`cone_lookup`, accumulating ``S`` in ``out``."""
+    """The table in numpy for :func:`cone_lookup`, accumulating ``S`` in ``out`` (the Dr.Jit
+    twin: ``mitsuba_ext.table._Reader``)."""
 
     def __init__(self, table: BundleTable, nearest: bool, slopes, shape):
         self.table, self.nearest = table, nearest

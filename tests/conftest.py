@@ -27,6 +27,18 @@ def mi_llvm():
     return mi
 
 
+@pytest.fixture(scope="session")
+def ray_fiber():
+    """The bake tests' ray fiber: two wavelengths, absorbing in blue, tabulated every 5 deg,
+    untilted (so that the theta mirror reduction is valid)."""
+    import numpy as np
+
+    from models.fiber.ray import RayFiber
+
+    return RayFiber(np.array([450.0, 650.0]), [1.56, 1.54], [0.6, 0.05], 0.25, 0.35, 0.0,
+                    n_h=64).tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
+
+
 @pytest.fixture
 def mi_plugins():
     """llvm_ad_rgb with the project's plugins registered, set for every test: other

@@ -26,12 +26,6 @@ def _variant(mi_llvm):
 
 
 @pytest.fixture(scope="module")
-def ray_fiber():
-    # untilted so that the theta mirror reduction is valid; absorbing in blue
-    return RayFiber(WL, [1.56, 1.54], [0.6, 0.05], 0.25, 0.35, 0.0, n_h=64).tabulate(NODES)
-
-
-@pytest.fixture(scope="module")
 def grid_fiber():
     return PatternFiber(WL, "grid", n_stripes_theta=6, n_stripes_phi=8, albedo=0.9).tabulate(NODES)
 

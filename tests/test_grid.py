@@ -72,7 +72,6 @@ def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, rel
     they agree to float32 rounding on random directions and on every direction where a
     backend's trigonometry decides the bin (the cone at a theta_i node lies on a theta_o
     edge; dphi = 0 and pi lie on phi_o edges; the poles)."""
-    import drjit as dr
 
     from mitsuba_ext.table import DrJitTable
     from models.bundle_table import BundleTable

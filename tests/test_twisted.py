@@ -20,7 +20,6 @@ from models.bake import Baker, BakeSpec
 from models.bake.twisted import TwistedBaker
 from models.bundle import Bundle, TwistedBundle, poisson
 from models.fiber.patterns import PatternFiber
-from models.fiber.ray import RayFiber
 from pipeline.stages.bake import tally_to_table
 
 WL = np.array([450.0, 650.0])
@@ -31,11 +30,6 @@ RELATIVE = {"theta_i": None, "phi_i": None, "phi_o": "relative"}
 @pytest.fixture(scope="module", autouse=True)
 def _variant(mi_llvm):
     return mi_llvm
-
-
-@pytest.fixture(scope="module")
-def ray_fiber():
-    return RayFiber(WL, [1.56, 1.54], [0.6, 0.05], 0.25, 0.35, 0.0, n_h=64).tabulate(NODES)
 
 
 def table_of(tally, spec, fiber, reductions=RELATIVE):

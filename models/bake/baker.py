@@ -43,7 +43,7 @@ single azimuth would describe one orientation of the ply, not the ply.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import drjit as dr
@@ -57,6 +57,7 @@ from ..fiber.base import FiberTable
 from ..fiber.sampling import FiberSampler
 from ..fiber.sampling_drjit import DrJitFiber
 from ..jit import to_drjit
+from .rounds import LoopState, in_rounds
 from .scene import BundleScene
 from . import weights
 from .tally import BakeSpec, Tally, output_bin
@@ -70,7 +71,7 @@ ESCAPED, CAPPED, STOPPED = 1, 2, 3
 # ------------------------------------------------------------------------------
 
 @dataclass
-class Paths:
+class Paths(LoopState):
     """The per-path state of the fast estimator's bounce loop (Dr.Jit arrays, one lane a
     path). A lane that has ended (``active`` false) keeps its state, so the state after the
     loop is the per-path result."""
@@ -88,22 +89,6 @@ class Paths:
     pid: Any           # the path's index in the batch (its output row and its random stream)
     phi_i: Any         # its incident azimuth (a circle's paths enter from their own)
     steps: Any         # bounces in this round
-
-    RESULTS = ("B", "R", "depth", "status", "bin")
-
-    @staticmethod
-    def outputs(n: int, L: int) -> dict:
-        """Zeroed per-path outputs of the :attr:`RESULTS`."""
-        return {"B": [dr.zeros(mi.Float, n) for _ in range(L)], "R": [dr.zeros(mi.Float, n) for _ in range(L)],
-                **{k: dr.zeros(mi.UInt32, n) for k in ("depth", "status", "bin")}}
-
-    def gather(self, index) -> "Paths":
-        """The lanes ``index`` (compaction between rounds), with a new round's step count."""
-        take = lambda v: [dr.gather(type(x), x, index) for x in v] if isinstance(v, list) \
-            else dr.gather(type(v), v, index)  # noqa: E731
-        out = Paths(**{f.name: take(getattr(self, f.name)) for f in fields(self)})
-        out.steps = dr.zeros(type(self.steps), dr.width(index))
-        return out
 
 
 @dataclass
@@ -316,28 +301,10 @@ class Baker:
             phi_i=to_drjit(Float, phi_i) if np.ndim(phi_i) else Float(np.asarray(phi_i, np.float32)),
             steps=dr.zeros(UInt, n))
 
-        # Rounds: a SIMD packet of lanes iterates until its longest path ends, so after a
-        # round of `ROUND` bounces the unfinished lanes are compacted and continue; the
-        # last round (few lanes) runs to the end. Results go to per-path outputs by id.
-        out = Paths.outputs(n, L)
-        while True:
-            last = dr.width(paths.ox) <= self.TAIL_LANES
-            limit = dr.opaque(UInt, self.spec.max_bounces + 2 if last else self.ROUND)  # one compiled kernel
-            paths = self._bounce_round(paths, scene, limit)
-            for name in Paths.RESULTS:
-                targets, values = out[name], getattr(paths, name)
-                for o, v in zip(targets, values) if isinstance(values, list) else [(targets, values)]:
-                    dr.scatter(o, v, paths.pid)
-            if last:
-                dr.eval(out)
-                break
-            dr.eval(out, paths)  # one kernel for all
-            keep = dr.compress(paths.active)
-            if dr.width(keep) == 0:
-                break
-            paths = paths.gather(keep)
-        return {"status": out["status"].numpy(), "bin": out["bin"].numpy().astype(np.int64), "B": out["B"],
-                "R": out["R"], "vertices": int(out["depth"].numpy().astype(np.int64).sum())}
+        out = in_rounds(paths, lambda p, limit: self._bounce_round(p, scene, limit), self.ROUND,
+                        self.spec.max_bounces + 2, self.TAIL_LANES)
+        out["vertices"] = int(out["depth"].astype(np.int64).sum())
+        return out
 
     @dr.syntax
     def _bounce_round(self, paths: "Paths", scene: "_LoopScene", limit) -> "Paths":
@@ -384,11 +351,7 @@ class Baker:
             path, theta_out, dphi, pdf = lob.sample(theta_in, h_in, u[:4])
             f, alb = lob.eval_spectrum(theta_in, h_in, path, theta_out, dphi)
         else:
-            fib = self._drjit_fiber()
-            theta_out, dphi = fib.sample(theta_in, u)
-            pdf = fib.pdf(theta_in, theta_out, dphi)
-            f = fib.eval_spectrum(theta_in, theta_out, dphi)
-            alb = fib.albedo(theta_in)
+            theta_out, dphi, pdf, f, alb = self._drjit_fiber().event(theta_in, u)
 
         # Phase 3: the weight (B carries f cos / pdf, R the expected absorption) and roulette
         p.B, p.R, kept, roulette = weights.scatter(p.B, p.R, f, alb, theta_out, pdf, go, p.depth, spec.rr_start, x6)

@@ -25,7 +25,7 @@ an azimuth stratified over the circle, binned at ``phi_o - phi_i``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import drjit as dr
@@ -40,6 +40,7 @@ from ..fiber.sampling import FiberSampler
 from ..fiber.sampling_drjit import DrJitFiber
 from ..jit import to_drjit
 from . import weights
+from .rounds import LoopState, in_rounds
 from .tally import BakeSpec, Tally, output_bin
 
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
@@ -91,7 +92,7 @@ class TwistedScene:
 
 
 @dataclass
-class TwistedPaths:
+class TwistedPaths(LoopState):
     """Per-path state of the 3D loop (Dr.Jit arrays, one lane a path)."""
 
     o: Any           # ray origin (Point3f), its y within [0, period)
@@ -106,16 +107,6 @@ class TwistedPaths:
     pid: Any
     phi_i: Any       # incident azimuth (for relative binning)
     steps: Any       # segments traced in this round
-
-    RESULTS = ("B", "R", "depth", "status", "bin")
-
-    def gather(self, index) -> "TwistedPaths":
-        """The lanes ``index`` (compaction between rounds), with a new round's step count."""
-        take = lambda v: [dr.gather(type(x), x, index) for x in v] if isinstance(v, list) \
-            else dr.gather(type(v), v, index)  # noqa: E731
-        out = TwistedPaths(**{f.name: take(getattr(self, f.name)) for f in fields(self)})
-        out.steps = dr.zeros(type(self.steps), dr.width(index))
-        return out
 
 
 @dataclass
@@ -178,7 +169,6 @@ class TwistedBaker:
         tally.passthrough_theta[phi_index] = np.bincount(j[passed], minlength=n_ti)
         n_bins = spec.n_phi_o * spec.n_theta_o
         W = np.stack([b.numpy() for b in out["B"]], -1).astype(np.float64) * weight[j][:, None]  # [path, lambda]
-        W[status == STOPPED] = 0.0
         esc = (status == ESCAPED) & ~passed
         flat = j[esc] * n_bins + bins[esc]
         for l in range(L):
@@ -207,30 +197,9 @@ class TwistedBaker:
             depth=dr.zeros(UInt, n), wraps=dr.zeros(UInt, n), status=dr.zeros(UInt, n), bin=dr.zeros(UInt, n),
             active=dr.full(mi.Bool, True, n), pid=dr.arange(UInt, n), phi_i=to_drjit(Float, phi_i),
             steps=dr.zeros(UInt, n))
-        # Rounds, as the parallel bake's loop: a SIMD packet iterates until its longest path
-        # ends, so after `ROUND` segments the unfinished lanes are compacted and continue; the
-        # last round (few lanes) runs to the end. Results go to per-path outputs by id.
-        out = {"B": [dr.zeros(Float, n) for _ in range(L)], "R": [dr.zeros(Float, n) for _ in range(L)],
-               **{k: dr.zeros(UInt, n) for k in ("depth", "status", "bin")}}
-        while True:
-            last = dr.width(paths.pid) <= self.TAIL_LANES
-            limit = dr.opaque(UInt, 0xFFFFFFFF if last else self.ROUND)  # one compiled kernel
-            paths = self._run(paths, up, limit)
-            for name in TwistedPaths.RESULTS:
-                targets, values = out[name], getattr(paths, name)
-                for o, v in zip(targets, values) if isinstance(values, list) else [(targets, values)]:
-                    dr.scatter(o, v, paths.pid)
-            if last:
-                dr.eval(out)
-                break
-            dr.eval(out, paths)
-            keep = dr.compress(paths.active)
-            if dr.width(keep) == 0:
-                break
-            paths = paths.gather(keep)
-        depth = out["depth"].numpy()
-        return {"status": out["status"].numpy(), "bin": out["bin"].numpy().astype(np.int64), "B": out["B"],
-                "R": out["R"], "depth": depth, "vertices": int(depth.astype(np.int64).sum())}
+        out = in_rounds(paths, lambda p, limit: self._run(p, up, limit), self.ROUND, 0xFFFFFFFF, self.TAIL_LANES)
+        out["vertices"] = int(out["depth"].astype(np.int64).sum())
+        return out
 
     @dr.syntax
     def _run(self, paths: TwistedPaths, up: _Upload, limit) -> TwistedPaths:
@@ -293,17 +262,15 @@ class TwistedBaker:
         rng.seed(up.seed + mi.UInt64(p.depth), mi.UInt64(p.pid))
         u = [rng.next_float32() for _ in range(5)]
         x6, x7 = rng.next_float32(), rng.next_float32()
-        fib = self.twin
-        theta_out, dphi = fib.sample(theta_in, u)
-        pdf = fib.pdf(theta_in, theta_out, dphi)
-        f = fib.eval_spectrum(theta_in, theta_out, dphi)
-        alb = fib.albedo(theta_in)
+        theta_out, dphi, pdf, f, alb = self.twin.event(theta_in, u)
+
+        # Phase 4: the weight (B carries f cos / pdf, R the expected absorption) and roulette
         p.B, p.R, kept, roulette = weights.scatter(p.B, p.R, f, alb, theta_out, pdf, go, p.depth, spec.rr_start, x6)
         p.status = dr.select(go & ~kept, STOPPED, p.status)
         alive = go & kept
         h_u = dr.select(roulette, x7, x6)
 
-        # Phase 4: leave the fiber's surface on the outgoing side (the uniform exit)
+        # Phase 5: leave the fiber's surface on the outgoing side (the uniform exit)
         phi_wo = phi_wi + dphi
         s_o, c_o = dr.sincos(phi_wo)
         ex, ez = lobes.leave_uniform(0.0, 0.0, r, 2 * h_u - 1, c_o, s_o, dr)

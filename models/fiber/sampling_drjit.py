@@ -225,6 +225,13 @@ class DrJitFiber:
             out = [o_ + M * a_ for o_, a_ in zip(out, acc)]
         return out
 
+    def event(self, theta_in, u) -> tuple:
+        """One scattering event of light at longitude ``theta_in`` (``u``: five uniforms):
+        the sampled ``(theta_out, dphi)``, its pdf, ``f`` at every wavelength and the albedo."""
+        theta_out, dphi = self.sample(theta_in, u)
+        return (theta_out, dphi, self.pdf(theta_in, theta_out, dphi), self.eval_spectrum(theta_in, theta_out, dphi),
+                self.albedo(theta_in))
+
     def albedo(self, theta_i) -> list:
 
         i0, i1, w = self._nodes(dr.abs(theta_i))
