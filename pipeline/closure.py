@@ -31,6 +31,8 @@ Example::
 
 from __future__ import annotations
 
+import textwrap
+
 import numpy as np
 
 AXIS = np.array([0.0, 1.0, 0.0])   # the fibers' direction (bundle frame +y)
@@ -301,9 +303,10 @@ def cone_cases(table, phi_bins, beside: bool = True) -> list:
     return cases
 
 
-def plot(far_field: dict, explicit: dict, path, title="") -> None:
+def plot(far_field: dict, explicit: dict, path, title="", note: str = "") -> None:
     """Left: rendered / predicted - 1 per direction pair and backend; right: explicit
-    fibers / bake - 1 per bin with 1-sigma error bars, per (fiber, ply)."""
+    fibers / bake - 1 per bin with 1-sigma error bars, per (fiber, ply), or ``note`` where
+    there are none."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -328,6 +331,9 @@ def plot(far_field: dict, explicit: dict, path, title="") -> None:
             title="explicit fibers against the bake (1 sigma: bake and render)")
     if explicit:
         ax2.legend(fontsize=7)
+    elif note:
+        ax2.text(0.5, 0.5, textwrap.fill(note, 48), ha="center", va="center", transform=ax2.transAxes, fontsize=9,
+                 bbox={"facecolor": "white", "edgecolor": "0.6"})
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()

@@ -333,7 +333,8 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
         result["explicit_note"] = ("twisted ply: the explicit-fiber checks (bins and the ply scene) are not "
                                    "built for helical fibers yet; the far field is checked")
         closure.plot(far, {}, out / "closure.png",
-                     f"{cfg.name}: rendered against what each renderer was given ({wl:.0f} nm)")
+                     f"{cfg.name}: rendered against what each renderer was given ({wl:.0f} nm)",
+                     note=result["explicit_note"])
         print(f"[render] closure: far field only ({result['explicit_note']})")
         return result
     # the explicit fibers leave their fibers as the bake did (closure compares like with like)
