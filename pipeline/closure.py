@@ -145,6 +145,47 @@ def explicit_shapes(bundle, fiber_bsdf: dict, turn: float, half_length: float, u
     return shapes
 
 
+def helix_control_points(ply, half_length: float, unit: float = 1e-3, per_turn: int = 64) -> list:
+    """The fibers of a :class:`~models.bundle.TwistedBundle` as uniform cubic B-splines
+    (Mitsuba's ``bsplinecurve``) from ``y = -half_length`` to ``+half_length`` (scene
+    units): one ``[n, 4]`` array of control points ``x y z r`` per fiber.
+
+    Control points sit on the helix every ``1 / per_turn`` of a turn, pushed out by
+    ``6 / (4 + 2 cos delta)`` (``delta`` the turn between them): a uniform B-spline passes
+    through ``(p_{k-1} + 4 p_k + p_{k+1}) / 6``, which for points on a circle lies inside it
+    by that factor, so the curve passes through the helix at every knot and strays from it
+    between knots by about ``rho delta^4 / 400`` (0.00006 um at ``rho`` = 260 um and 64 per
+    turn; ``tests/test_twisted.py`` evaluates the spline). One control point beyond each end, so the curve spans the length asked.
+    """
+    L = half_length / unit
+    n = int(np.ceil(2 * L / ply.period * per_turn))         # knot intervals over [-L, L]
+    step = 2 * L / n
+    y = -L + step * np.arange(-1, n + 2)                    # one control point beyond each end
+    delta = abs(ply.omega) * step
+    c = ply.centers_at(y) * (6.0 / (4.0 + 2.0 * np.cos(delta)))
+    return [np.stack([c[:, k, 0], y, c[:, k, 1], np.full(len(y), r)], -1) * unit
+            for k, r in enumerate(np.asarray(ply.bundle.radii, float))]
+
+
+def write_curves(curves, path) -> None:
+    """Mitsuba's curve file: ``x y z r`` per control point, a blank line between curves.
+    A scratch file that a render reads (not an artifact): written in place."""
+    text = "\n\n".join("\n".join(" ".join(f"{v:.9g}" for v in p) for p in c) for c in curves) + "\n"
+    with open(path, "w") as f:
+        f.write(text)
+
+
+def explicit_twisted_shapes(curve_file, fiber_bsdf: dict, turn: float) -> dict:
+    """A twisted ply's fibers (``curve_file`` from :func:`helix_control_points`) as one
+    ``bsplinecurve``, turned by ``turn`` (radians) about the axis: for a twisted ply a
+    turn is a shift along the axis, so evenly spaced turns average over its period."""
+    import mitsuba as mi
+
+    return {"ply": {"type": "bsplinecurve", "filename": str(curve_file), "bsdf": fiber_bsdf,
+                    # Mitsuba's rotation about +y turns z towards x: -turn in phi = atan2(z, x)
+                    "to_world": mi.ScalarTransform4f().rotate([0.0, 1.0, 0.0], -float(np.rad2deg(turn)))}}
+
+
 def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, resolution: int = 48,
                        unit: float = 1e-3, turns: bool = True):
     """Intensity per unit length of the explicit fibers lit from ``w_i``, averaged over
@@ -152,18 +193,33 @@ def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, 
     ``views[k]`` (one direction, or directions spread over a table bin: the average is
     then the bin average of the rotation average, which is what a circle's bake holds).
     ``turns=False`` keeps the arrangement as it is (an ellipse's bake is not rotated).
+    ``bundle``: a :class:`~models.bundle.Bundle` (parallel cylinders) or a
+    :class:`~models.bundle.TwistedBundle` (every fiber a ``bsplinecurve`` along its helix,
+    over many periods: :func:`helix_control_points`).
 
     Returns the mean and an error estimate: half the difference of the even and the odd
     turns' means (each turn its own seed), which holds the render noise and the rule's.
     """
-    Rb = bundle.bounding_radius * unit
-    hs = 1.2 * Rb
+    import tempfile
+    from pathlib import Path
+
+    from models.bundle import TwistedBundle
+
+    twisted = isinstance(bundle, TwistedBundle)
+    section = bundle.bundle if twisted else bundle
+    hs = 1.2 * section.bounding_radius * unit
+    half_length = 40 * hs
     values = []
-    for k, w_o in enumerate(views):
-        turn = 2 * np.pi * k / len(views) if turns else 0.0
-        shapes = explicit_shapes(bundle, fiber_bsdf, turn, 40 * hs, unit)
-        sc = scene(mi, shapes, w_i, w_o, hs, resolution=resolution, spp=spp, seed=k)
-        values.append(rendered_intensity(mi, sc, w_o, hs))
+    with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
+        curve_file = Path(tmp) / "helices.txt"
+        if twisted:
+            write_curves(helix_control_points(bundle, half_length, unit), curve_file)
+        for k, w_o in enumerate(views):
+            turn = 2 * np.pi * k / len(views) if turns else 0.0
+            shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, turn) if twisted
+                      else explicit_shapes(bundle, fiber_bsdf, turn, half_length, unit))
+            sc = scene(mi, shapes, w_i, w_o, hs, resolution=resolution, spp=spp, seed=k)
+            values.append(rendered_intensity(mi, sc, w_o, hs))
     values = np.array(values)
     return float(values.mean()), float(abs(values[0::2].mean() - values[1::2].mean()) / 2)
 
@@ -279,10 +335,11 @@ def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: f
             continue
         ti = table.theta_i[j]
         views = bin_views(table, phi_i, k_phi, k_theta)
+        section = getattr(bundle, "bundle", bundle)  # a twisted ply's cross-section
         I, se = explicit_intensity(mi, bundle, fiber_bsdf, direction(phi_i, ti), views, spp=spp,
-                                   resolution=resolution, unit=unit, turns=bundle.is_circle)
+                                   resolution=resolution, unit=unit, turns=section.is_circle)
         S, S_err = table.values[a, j, k_phi, k_theta, lam], table.stderr[a, j, k_phi, k_theta, lam]
-        predicted = predicted_intensity(1.0, bundle.bounding_radius * unit, ti, S)
+        predicted = predicted_intensity(1.0, section.bounding_radius * unit, ti, S)
         rows.append({"theta_i": float(np.rad2deg(ti)), "phi_o": float(np.rad2deg(table.phi_o[k_phi])),
                      "theta_o": float(np.rad2deg(table.theta_o[k_theta])), "ratio": float(I / predicted),
                      "sigma": float(np.hypot(S_err / S, se / I))})

@@ -80,20 +80,38 @@ def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) ->
 
 
 def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, turn: float = 0.0,
-                   plugin: str = "fiber_table") -> dict:
-    """The same ply, every fiber its own cylinder with the fiber model (``plugin``:
+                   plugin: str = "fiber_table", curve_file=None) -> dict:
+    """The same ply, every fiber its own shape with the fiber model (``plugin``:
     ``fiber_table``, or ``fiber_ray`` for a bake with the h-resolved exit), the
     arrangement turned by ``turn`` (radians) about the ply's axis.
 
-    Cylinders, not one ``bsplinecurve`` of all fibers: rays that leave a fiber next to
-    a touching neighbour made Mitsuba 3.9's curve intersection read past its segment
-    array (seen with Dr.Jit's debug mode), and cylinders need no curve end caps.
+    Parallel fibers (a :class:`~models.bundle.Bundle`) are cylinders, not one
+    ``bsplinecurve`` of all fibers: rays that leave a fiber next to a touching neighbour
+    made Mitsuba 3.9's curve intersection read past its segment array (seen with Dr.Jit's
+    debug mode), and cylinders need no curve end caps. A twisted ply's fibers
+    (a :class:`~models.bundle.TwistedBundle`, spaced so that they never touch) are one
+    ``bsplinecurve`` along their helices (``pipeline.closure.helix_control_points``),
+    written to ``curve_file``; for them a turn is a shift along the axis.
     """
+    from models.bundle import TwistedBundle
+
+    from .closure import helix_control_points, write_curves
+
     L = ply_length(cfg)
     scene = _base(mi, cfg, 0.5 * L, spp, seed)
     fiber = {"type": plugin, "filename": str(fiber_table_path)}
     # the bundle frame (x, t, z) of ply_scene without twist is (y, x, -z) of the scene;
     # the fibers run past the image edges so that their ends stay out of view
+    if isinstance(bundle, TwistedBundle):
+        if curve_file is None:
+            raise ValueError("explicit_scene: a twisted ply's helices need a curve_file to be written to")
+        write_curves(helix_control_points(bundle, 0.6 * L, UM), curve_file)
+        T = mi.ScalarTransform4f
+        to_scene = T([[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]])  # (x, y, z) -> (y, x, -z): a rotation
+        # turned by +turn in phi = atan2(z, x) of the bundle frame: -turn about the scene's x
+        scene["fibers"] = {"type": "bsplinecurve", "filename": str(curve_file), "bsdf": fiber,
+                           "to_world": T().rotate([1.0, 0.0, 0.0], -float(np.rad2deg(turn))) @ to_scene}
+        return scene
     c, s = np.cos(turn), np.sin(turn)
     centers = np.asarray(bundle.centers, float) @ np.array([[c, s], [-s, c]])  # (x, z) turned by +turn
     for k, ((cx, cz), r) in enumerate(zip(centers * UM, bundle.radii * UM)):

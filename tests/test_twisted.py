@@ -255,3 +255,24 @@ def test_a_twisted_bake_resumes_and_is_the_serial_one_on_a_cluster(tmp_path):
     assert a.meta["reductions"] == {"theta_i": None, "phi_i": "rotation", "phi_o": "relative"}
     assert np.allclose(np.rad2deg(a.theta_i), [-60, -30, 0, 30, 60])
     assert np.allclose(a.energy_balance()["total"], 1.0, atol=0.03)
+
+
+# -- closure: explicit helical fibers against the twisted bake ------------------------
+
+def test_helix_curves_follow_the_helix():
+    """The B-spline control points of ``closure.helix_control_points``: the spline itself
+    (evaluated here with the uniform cubic basis) stays within 0.001 um of the helix."""
+    from pipeline import closure
+
+    ply = TwistedBundle(Bundle(np.array([[260.0, 0.0], [0.0, -100.0]]), 10.0, (280.0, 280.0)), -2000.0)
+    curves = closure.helix_control_points(ply, 3.0, unit=1e-3, per_turn=64)
+    assert len(curves) == 2 and np.allclose(curves[0][:, 3], 10e-3)
+    t = np.linspace(0.0, 1.0, 40)[:, None]
+    basis = [(1 - t) ** 3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3]
+    for k, c in enumerate(curves):
+        P = c[:, :3] / 1e-3
+        pts = np.concatenate([sum(b * P[m + i] for i, b in enumerate(basis)) / 6 for m in range(len(P) - 3)])
+        on = ply.centers_at(pts[:, 1])[:, k]
+        assert np.abs(pts[:, [0, 2]] - on).max() < 1e-3
+        assert np.isclose(pts[0, 1], -3000.0) and np.isclose(pts[-1, 1], 3000.0)  # the length asked
+

@@ -72,12 +72,12 @@ class TwistedScene:
                 axis.append(d / np.linalg.norm(d))
         # a cylinder's frame, built from p0 and p1 in float32, is orthogonal only to rounding:
         # Mitsuba calls that shearing and warns once per segment
-        level = mi.Thread.thread().logger().log_level()
-        mi.Thread.thread().logger().set_log_level(mi.LogLevel.Error)
+        level = mi.logger().log_level()
+        mi.logger().set_log_level(mi.LogLevel.Error)
         try:
             self.scene = mi.load_dict({"type": "scene", **shapes})
         finally:
-            mi.Thread.thread().logger().set_log_level(level)
+            mi.logger().set_log_level(level)
         # Mitsuba numbers shapes in the order it stores them: map each back by its bounding box's
         # centre, the segment's midpoint
         mid = np.array([np.add(v["p0"], v["p1"]) * 0.5 for v in shapes.values()])

@@ -352,13 +352,12 @@ def render_section(cfg, root: Path, out: Path) -> str:
                  f"{e['wavelength_nm']:.0f} nm): rendered / predicted "
                  + ", ".join(f"{k} {v.min():.4f} .. {v.max():.4f}" for k, v in ff.items())
                  + f" over {len(next(iter(ff.values())))} direction pairs.")
-        if "explicit_note" in e:  # a twisted ply: no explicit helical fibers yet
-            body += f" {e['explicit_note']}.</p>"
-            return body + img_tag(out, root / "render" / "closure.png", "closure: far field")
         bins = e["explicit_bins"]
+        twisted = "parallel" in e
         within = np.mean([abs(b["ratio"] - 1) <= 0.02 + 3 * b["sigma"] for b in bins])
+        shape = "a B-spline curve along its helix" if twisted else "a cylinder"
         body += (f" The bake's own {e['fibers']} fibers, "
-                 f"each rendered as a cylinder with the fiber model and averaged over the bin and 16 turns of the "
+                 f"each rendered as {shape} with the fiber model and averaged over the bin and 16 turns of the "
                  f"arrangement, against the bake: {within:.0%} of {len(bins)} bins within 3 standard errors + 2% "
                  f"(right, error bars 1 sigma of bake and render).</p>")
         body += img_tag(out, root / "render" / "closure.png", "closure: far field and explicit fibers against the bake")
@@ -371,6 +370,19 @@ def render_section(cfg, root: Path, out: Path) -> str:
                  + " (the explicit fibers are resolved, the bundle is its far field).</p>")
         body += img_tag(out, root / "render" / "explicit_vs_bundle.png",
                      "explicit fibers (16 turns) against the bundle with the table and the MLP")
+        if twisted:
+            par = e["parallel"]
+            body += ("<h3>What the parallel table misses</h3><p>The twisted ply's explicit helical fibers against "
+                     "its own table and against the table of the same cross-section baked with parallel fibers "
+                     f"(baked here in {par['parallel_bake_seconds']:.0f} s): "
+                     + "; ".join(f"{k}: mean radiance x{v['mean_vs_explicit']:.3f}, highlight at "
+                                 f"{v['highlight_deg']:+.1f} deg of view, {v['highlight_fwhm_deg']:.1f} deg wide"
+                                 + (f", FLIP {v['flip_vs_explicit']:.3f}" if "flip_vs_explicit" in v else "")
+                                 for k, v in par.items() if isinstance(v, dict))
+                     + ". The camera sweeps the view by +-30 deg along the ply, so the highlight's position and "
+                       "width along it are the specular cone's, tilted and broadened by the twist.</p>")
+            body += img_tag(out, root / "render" / "twisted_vs_parallel.png",
+                            "explicit helical fibers, the twisted table, the parallel table; the highlight along the ply")
     return body
 
 
