@@ -26,6 +26,7 @@ import contextlib
 import os
 import sys
 import time
+from pathlib import Path
 from .artifacts import config_dir
 
 EPILOG = """\
@@ -205,6 +206,11 @@ def _run(args, cfg) -> None:
         with contextlib.nullcontext() if stage == "sweep" else journal(config_dir(cfg, args.artifacts)):
             _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
         graph.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0, work=estimate.work(stage, cfg))
+    shipped = Path(args.config).resolve() == graph.ROOT / "configs" / f"{cfg.name}.yaml"
+    if args.command == "run" and shipped and not args.overrides \
+            and Path(args.artifacts).resolve() == graph.ROOT / "artifacts":
+        # one notion of up to date for both tools: what DVC's lock would hold after `dvc repro`
+        print(f"[run] {graph.record_dvc_lock(stages, cfg)}")
 
 
 def _applies(stage: str, cfg) -> bool:

@@ -122,3 +122,41 @@ def up_to_date(stage: str, cfg, root="artifacts") -> tuple[bool, str]:
         if digest([Path(root) / out], Path(root)) != d:
             return False, f"{out} changed since the stage wrote it"
     return True, ""
+
+
+def dvc_stage(stage: str, cfg) -> str | None:
+    """DVC's name for ``stage`` of this config (``report@default``), or ``None`` where
+    ``dvc.yaml`` does not list the config for that stage."""
+    name = template(stage, cfg)
+    try:
+        entry = yaml.safe_load(DVC_YAML.read_text())
+        items = entry["stages"][name]["foreach"]
+        if isinstance(items, str):  # ${configs}: a list among the vars
+            key = items.strip("${} ")
+            items = next(v[key] for v in entry.get("vars", []) if isinstance(v, dict) and key in v)
+    except (OSError, KeyError, TypeError, StopIteration, yaml.YAMLError):
+        return None
+    return f"{name}@{cfg.name}" if cfg.name in items else None
+
+
+def record_dvc_lock(stages, cfg) -> str:
+    """Record ``stages`` of this config in ``dvc.lock`` as DVC's own ``dvc commit`` does
+    (hashes of their deps, params and outputs; the outputs go to DVC's cache), so that after
+    ``bcsdf run`` ``dvc status`` agrees that they are up to date. For the shipped configs
+    under the repository's ``artifacts/`` only (``bcsdf run`` calls it when the run had no
+    ``--set`` and the default artifacts root). Returns what it did, in words."""
+    targets = [t for t in (dvc_stage(s, cfg) for s in stages) if t]
+    if not targets:
+        return f"dvc.lock: {cfg.name} is not among dvc.yaml's configs; nothing recorded"
+    try:
+        from dvc.repo import Repo
+    except ImportError:
+        return ("dvc.lock not updated: DVC is not installed (`make setup` installs it; then `bcsdf run` "
+                "again records the lock without re-running anything)")
+    import logging
+
+    logging.getLogger("dvc").setLevel(logging.WARNING)
+    with Repo(str(ROOT)) as repo:
+        for target in targets:
+            repo.commit(target, force=True)
+    return f"dvc.lock: recorded {len(targets)} stages ({', '.join(targets)})"

@@ -150,6 +150,17 @@ def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
     r = subprocess.run([sys.executable, "-c", probe, *STAGES], cwd=repo, env=env, capture_output=True, text=True)
     assert set(json.loads(r.stdout)) == expected, r.stderr
 
+    # -- and the other way: `bcsdf run` records DVC's lock, so that DVC agrees it is up to date
+    r = subprocess.run(bcsdf, cwd=repo, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and "[run] train: its code, config or inputs changed" in r.stdout, r.stdout + r.stderr
+    assert "dvc.lock: recorded" in r.stdout, r.stdout
+    assert _stale(run) == set()
+    # a run with --set is not what dvc.yaml's params say: it records nothing
+    r = subprocess.run(bcsdf + ["--set", "train.epochs=7"], cwd=repo, env=env, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0 and "dvc.lock" not in r.stdout, r.stdout + r.stderr
+    assert "train" in _stale(run)  # its outputs are no longer what the lock recorded
+
 
 def test_shipped_configs_match_dvc_yaml():
     """Every config is a DVC stage; each spells out the sections its stages track."""
@@ -174,3 +185,4 @@ def test_shipped_configs_match_dvc_yaml():
             for entry in spec["do"].get("params", []):
                 tracked = {key.split(".")[0] for key in next(iter(entry.values()))}
                 assert tracked <= keys, f"{path} lacks {set(tracked) - keys}, which stage {stage} tracks"
+
