@@ -283,6 +283,32 @@ def test_explicit_fibers_of_a_straight_ply_keep_the_arrangement_scaled():
     assert max(np.ptp(o) for o in offsets) < 1e-9    # parallel to the ply, as the bake assumes
 
 
+
+@pytest.mark.parametrize("pitch_um", [1500.0, -2838.0])
+def test_explicit_fibers_of_a_twisted_ply_are_helices_of_its_handedness_and_lean(pitch_um):
+    """A twisted ply's explicit fibers along a straight ply: helices about it whose torsion
+    has the pitch's sign (> 0 right-handed, as the bake's: ``models.bundle.TwistedBundle``),
+    at a constant distance from the axis, leaning ``atan(2 pi rho / |pitch|)`` as in the
+    bake (lengths scale with the ply, angles do not)."""
+    from models.cloth.curves import bspline_samples, interpolate_bspline
+    from models.cloth.fibers import explicit_fibers
+
+    z = np.linspace(0, 10, 21)
+    ply = interpolate_bspline(np.stack([np.zeros_like(z), 0.3 * np.ones_like(z), z], -1), closed=False)
+    centres, radii = np.array([[120.0, 0.0], [0.0, -90.0]]), np.full(2, 20.0)
+    curves, _ = explicit_fibers([ply], 0.5, centres, radii, R_b=200.0, pitch_um=pitch_um)
+    for cv, rho in zip(curves, (120.0, 90.0)):
+        p = bspline_samples(cv, 8)[40:-40]
+        rho_scene = rho * 0.5 / 200.0
+        assert np.allclose(np.hypot(p[:, 0], p[:, 1] - 0.3), rho_scene, rtol=1e-3)
+        d1 = np.gradient(p, axis=0)
+        d2 = np.gradient(d1, axis=0)
+        d3 = np.gradient(d2, axis=0)
+        torsion = np.einsum("ij,ij->i", np.cross(d1, d2), d3)[5:-5]
+        assert np.all(np.sign(torsion) == np.sign(pitch_um))
+        lean = np.arccos(np.abs(d1[:, 2]) / np.linalg.norm(d1, axis=1))[5:-5]
+        assert np.allclose(lean, np.arctan(2 * np.pi * rho / abs(pitch_um)), atol=2e-3)
+
 def test_patch_cuts_runs_inside_the_sphere():
     from models.cloth.fibers import patch
 

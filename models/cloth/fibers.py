@@ -3,9 +3,14 @@ and patches of a model (a few stitches) small enough to render them.
 
 A ply's fibers are the bake's arrangement (``centres[n, 2]``, ``radii[n]`` in the ply's
 cross-section, bounding radius ``R_b``) scaled to the ply's radius and carried along the
-ply's centre line in its rotation-minimizing frame: parallel to the ply, as the bake
-assumes (the twisted-ply bake is another issue's). Each fiber is a uniform cubic B-spline
-through its samples, as the plies are.
+ply's centre line in its rotation-minimizing frame: parallel to the ply, or, for a twisted
+ply (``pitch_um``, signed as :class:`~models.bundle.TwistedBundle`'s), turned along it as
+the twisted bake's helices are, the pitch scaled with the cross-section so that the fibers
+lean as in the bake. Each fiber is a uniform cubic B-spline through its samples, as the
+plies are.
+
+The bundle frame ``(x, y = axis, z)`` maps onto the ply's frame ``(n, t, -b)`` (``b = t x
+n``): a rotation, so that a right-handed helix of the bake stays right-handed along the ply.
 """
 
 from __future__ import annotations
@@ -16,19 +21,31 @@ from .bcc import Curve, CurveCollection
 from .curves import bspline_samples, interpolate_bspline
 from .plies import transport_frames
 
+SAMPLES_PER_TURN = 32   # of a twisted ply's helices: the B-spline strays ~1e-4 of rho from each
+
 
 def explicit_fibers(plies: list[np.ndarray], r_ply: float, centres, radii, R_b: float,
-                    per_segment: int = 2) -> tuple[list[np.ndarray], np.ndarray]:
+                    per_segment: int = 2, pitch_um: float | None = None) -> tuple[list[np.ndarray], np.ndarray]:
     """``(curves, radius per curve)``: the fibers of every ply (B-spline control points in
-    Mitsuba's layout; open plies only: patches are cut open)."""
-    centres = np.asarray(centres, float) * (r_ply / R_b)
-    radii = np.asarray(radii, float) * (r_ply / R_b)
+    Mitsuba's layout; open plies only: patches are cut open). ``pitch_um``: the twisted
+    ply's signed pitch in the cross-section's units (``None``: parallel fibers)."""
+    scale = r_ply / R_b
+    centres = np.asarray(centres, float) * scale
+    radii = np.asarray(radii, float) * scale
+    omega = None if pitch_um is None else -2 * np.pi / (float(pitch_um) * scale)  # turn per scene unit
     curves, r_out = [], []
     for C in plies:
-        p = bspline_samples(C, per_segment)
+        m = per_segment
+        if omega is not None:  # enough samples along the ply for every turn of the helices
+            step = np.linalg.norm(np.diff(bspline_samples(C, 1), axis=0), axis=1).max()
+            m = max(m, int(np.ceil(step * abs(omega) * SAMPLES_PER_TURN / (2 * np.pi))))
+        p = bspline_samples(C, m)
         f = transport_frames(p, closed=False)
+        a = np.zeros(len(p)) if omega is None else omega * f.s
+        c, s = np.cos(a)[:, None], np.sin(a)[:, None]
         for (x, z), r in zip(centres, radii):
-            curves.append(interpolate_bspline(p + x * f.n + z * f.b, closed=False))
+            # the cross-section at arc length s turned by omega s (phi from x towards z)
+            curves.append(interpolate_bspline(p + (c * x - s * z) * f.n - (s * x + c * z) * f.b, closed=False))
             r_out.append(r)
     return curves, np.array(r_out)
 

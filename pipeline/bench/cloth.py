@@ -133,8 +133,10 @@ def child_explicit(config, root, which, ply_px, spp, out):
         fiber = closure.explicit_fiber(fiber_table_path(cfg, root), table.meta.get("exit", "uniform"), 550.0)
         fiber.pop("wavelength")
         fiber.pop("up")
+        twist = cfg.bundle.twist
         curves, radii = explicit_fibers(g.curves, g.radius, bundle.centers, bundle.radii, bundle.bounding_radius,
-                                        per_segment=1)
+                                        per_segment=1,
+                                        pitch_um=None if twist is None else twist.pitch(bundle.bounding_radius))
         # one file per fiber radius (a Poisson arrangement has one)
         shapes = {}
         for k, r in enumerate(np.unique(radii)):

@@ -15,8 +15,10 @@ Phases:
    (the bake's table; the ``render.model`` MLP), under Mitsuba's ``sunsky`` on a floor,
    ``bundle_path`` integrator; FLIP of every neural image against the table's.
 
-The ply's table is the bake of this config's ``bundle`` (parallel fibers: the twisted-ply
-bake is not there yet; the summary says so). Outputs in ``artifacts/<name>/cloth/``.
+The ply's table is the bake of this config's ``bundle``: the twisted-ply bake where it has
+``bundle.twist`` (its fibers then should turn against the plies' winding, as in real yarn:
+a warning otherwise), the parallel-fiber bake without; the summary says which.
+Outputs in ``artifacts/<name>/cloth/``.
 """
 
 from __future__ import annotations
@@ -91,6 +93,20 @@ def check_fits(collection, c, yarn) -> None:
                          "a larger cloth.ply_pitch_mm, or a smaller model")
 
 
+def ply_table(cfg, yarn) -> str:
+    """Which table the plies carry, in words; warns where a twisted ply's fibers turn the
+    same way as the plies are wound (real yarn twists them against each other)."""
+    twist = cfg.bundle.twist
+    if twist is None:
+        return "parallel fibers (bundle.twist not set)"
+    pitch = twist.pitch(cfg.bundle.bounding_radius_um())
+    if np.sign(pitch) == np.sign(yarn.pitch):
+        warnings.warn(f"cloth: the fibers' twist (pitch {pitch:+.0f} um) turns the same way as the plies' winding "
+                      f"(pitch {yarn.pitch:+.3g} mm); real yarn twists them against each other: flip the sign of "
+                      "bundle.twist.pitch_um", stacklevel=2)
+    return f"twisted ply (fiber pitch {pitch:+.0f} um at a {cfg.bundle.bounding_radius_um():.0f} um ply)"
+
+
 def build(cfg, out: Path) -> tuple[dict, object]:
     """Phases 1 and 2: write ``plies.txt``; return the geometry's summary and the plies."""
     from models.cloth.yarn import build_plies, write_curves
@@ -115,8 +131,7 @@ def build(cfg, out: Path) -> tuple[dict, object]:
             "centre_deviation_yarn_radii": geometry.centre_deviation / yarn.radius,
             "closest_yarns_mm": geometry.closest_yarns, "overlapping_length": geometry.overlapping,
             "overlap_warning": warning, "bbox_mm": [pts.min(0).tolist(), pts.max(0).tolist()],
-            "build_seconds": time.perf_counter() - t0,
-            "ply_table": "parallel fibers (the twisted-ply bake is not there yet)"}
+            "build_seconds": time.perf_counter() - t0, "ply_table": ply_table(cfg, yarn)}
     print(f"[cloth] {info['yarn_curves']} yarns -> {info['ply_curves']} plies, {info['control_points']:,} control "
           f"points, centre lines within {100 * info['centre_deviation_yarn_radii']:.2f}% of a yarn radius, "
           f"built in {info['build_seconds']:.1f} s")
