@@ -150,3 +150,18 @@ def test_render_refuses_models_from_other_settings(exported, tmp_path, capsys):
     other = write_config(tmp_path, name="ply", train={"epochs": 21})  # same name, other training
     assert cli(["--artifacts", str(art), "render", str(other)]) == 2
     assert "trained with different settings" in capsys.readouterr().err
+
+
+def test_highlight_position_and_width_of_a_known_profile():
+    """``render.highlight``: a Gaussian bump (in degrees of view) on a floor, its peak and
+    full width at half maximum (2 sqrt(2 ln 2) sigma), within a column's width."""
+    from pipeline.stages.render import highlight, view_angle
+
+    a = view_angle(512)
+    assert np.isclose(a[0], -a[-1]) and abs(a[-1]) < 30.0 and a[-1] > 29.9
+    for mu, sigma in ((7.0, 3.0), (-12.0, 1.5)):
+        profile = 0.2 + np.exp(-0.5 * ((a - mu) / sigma) ** 2)
+        pos, width = highlight(profile)
+        column = np.max(np.diff(a))
+        assert abs(pos - mu) <= column
+        assert abs(width - 2 * np.sqrt(2 * np.log(2)) * sigma) <= 2.5 * column

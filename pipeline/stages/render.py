@@ -446,21 +446,29 @@ def view_angle(n: int) -> np.ndarray:
 
 
 def highlight(profile: np.ndarray) -> tuple[float, float]:
-    """Position (deg of view) of a brightness profile's peak, lightly smoothed, and its full
-    width at half its height above the profile's floor (the whole view where it never falls
-    to half)."""
+    """Position (deg of view) of a brightness profile's peak and its full width at half its
+    height above the profile's floor (the whole view where it never falls to half). The
+    profile is smoothed over a few columns (Monte Carlo noise) and the half-height crossings
+    interpolated between columns."""
     angle = view_angle(len(profile))
-    k = max(1, len(profile) // 64)
-    smooth = np.convolve(profile, np.ones(2 * k + 1) / (2 * k + 1), mode="same")
-    peak = int(np.argmax(smooth[k:-k]) + k) if len(smooth) > 2 * k else int(np.argmax(smooth))
+    k = max(1, len(profile) // 128)
+    smooth = np.convolve(np.pad(profile, k, mode="edge"), np.ones(2 * k + 1) / (2 * k + 1), mode="valid")
+    peak = int(np.argmax(smooth))
     floor = smooth.min()
-    above = smooth >= floor + 0.5 * (smooth[peak] - floor)
+    half = floor + 0.5 * (smooth[peak] - floor)
     lo, hi = peak, peak
-    while lo > 0 and above[lo - 1]:
+    while lo > 0 and smooth[lo - 1] >= half:
         lo -= 1
-    while hi < len(smooth) - 1 and above[hi + 1]:
+    while hi < len(smooth) - 1 and smooth[hi + 1] >= half:
         hi += 1
-    return float(angle[peak]), float(angle[hi] - angle[lo])
+
+    def crossing(inside, outside):  # where the line between two columns meets the half height
+        if outside < 0 or outside >= len(smooth):
+            return angle[inside]
+        w = (smooth[inside] - half) / (smooth[inside] - smooth[outside])
+        return angle[inside] + w * (angle[outside] - angle[inside])
+
+    return float(angle[peak]), float(crossing(hi, hi + 1) - crossing(lo, lo - 1))
 
 
 def plot_parallel_misses(images: dict, profiles: dict, result: dict, exposure: float, path: Path, name: str) -> None:
