@@ -346,6 +346,49 @@ def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: f
     return rows
 
 
+def theta_cut(mi, ply, fiber_bsdf: dict, theta_i: float, dphi: float, theta_o, turns: int = 8, spp: int = 8,
+              resolution: int = 32, unit: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """The explicit fibers' far field along one cut through the highlight: ``S`` (1/sr) at
+    ``theta_o`` (radians, an array) for light from ``(0, theta_i)`` seen at azimuth
+    ``dphi``, each point ``I / (E 2 R_b cos theta_i)`` of :func:`explicit_intensity` over
+    ``turns`` turns of the ply. Returns ``S`` and its 1-sigma error."""
+    section = getattr(ply, "bundle", ply)
+    R = section.bounding_radius * unit
+    S, err = [], []
+    for to in np.asarray(theta_o, float):
+        I, se = explicit_intensity(mi, ply, fiber_bsdf, direction(0.0, theta_i), [direction(dphi, to)] * turns,
+                                   spp=spp, resolution=resolution, unit=unit, turns=section.is_circle)
+        norm = predicted_intensity(1.0, R, theta_i, 1.0)
+        S.append(I / norm)
+        err.append(se / norm)
+    return np.array(S), np.array(err)
+
+
+def peak_and_width(x, y, smooth: int = 0) -> tuple[float, float]:
+    """Where ``y(x)`` peaks and its full width at half its height above its floor (the
+    half-height crossings interpolated between samples; the whole range where it never
+    falls to half). ``smooth``: a moving average over ``2 smooth + 1`` samples first
+    (Monte Carlo noise)."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if smooth:
+        y = np.convolve(np.pad(y, smooth, mode="edge"), np.ones(2 * smooth + 1) / (2 * smooth + 1), mode="valid")
+    peak = int(np.argmax(y))
+    half = y.min() + 0.5 * (y[peak] - y.min())
+    lo, hi = peak, peak
+    while lo > 0 and y[lo - 1] >= half:
+        lo -= 1
+    while hi < len(y) - 1 and y[hi + 1] >= half:
+        hi += 1
+
+    def crossing(inside, outside):  # where the line between two samples meets the half height
+        if outside < 0 or outside >= len(y):
+            return x[inside]
+        w = (y[inside] - half) / (y[inside] - y[outside])
+        return x[inside] + w * (x[outside] - x[inside])
+
+    return float(x[peak]), float(abs(crossing(hi, hi + 1) - crossing(lo, lo - 1)))
+
+
 def cone_cases(table, phi_bins, beside: bool = True) -> list:
     """``(theta_i index, phi bin, theta bin)``: for each node the bin just beside its
     specular cone (and, with ``beside``, the one two bins further), at ``phi_bins``."""

@@ -37,10 +37,16 @@ def _fiber_work(cfg) -> float:
     return nodes * cfg.wavelengths.count * per
 
 
-def _bake_work(cfg) -> float:
+# a twisted ply's path costs this many parallel ones (3D casts against helix segments, wraps
+# of the period): `make bench-twisted`, docs/BENCHMARKS.md "Twisted plies" (5.6x measured)
+TWISTED_PATH = 5.6
+
+
+def _bake_work(cfg, twisted=None) -> float:
     n_phi_i, _ = cfg.incidences()
     chord = cfg.bundle.bounding_radius_um() / cfg.fiber.radius_um  # a path's length in fibers, roughly
-    return cfg.bake.paths_per_phi_i * n_phi_i * chord
+    twisted = cfg.bundle.twist is not None if twisted is None else twisted
+    return cfg.bake.paths_per_phi_i * n_phi_i * chord * (TWISTED_PATH if twisted else 1.0)
 
 
 def _train_work(cfg) -> float:
@@ -67,6 +73,15 @@ def _render_work(cfg) -> float:
         work += r.mono_check_size[0] * r.mono_check_size[1] * r.mono_check_spp * (cfg.wavelengths.count + 1)
     if r.explicit:
         work += pixels * r.explicit_spp * 4
+        if cfg.bundle.twist is not None:
+            # beyond a parallel ply's closure (in the rate): the twisted closure's explicit bins
+            # (16 nodes x 4 azimuths x 16 views of 32 x 32 pixels, 8 spp; the scenes' loads and
+            # kernels dominate, ~30x the pixels), the parallel table's 2D bake (a bake unit in
+            # render units) and the highlight's cut (41 points x 8 views)
+            _, n_theta_i = cfg.incidences()
+            per_view = 32 * 32 * 8 * 30
+            work += ((n_theta_i // 2) * 4 * 16 + 41 * 8) * per_view
+            work += _bake_work(cfg, twisted=False) * REFERENCE["bake"] / REFERENCE["render"]
     return float(work)
 
 

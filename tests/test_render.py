@@ -153,15 +153,18 @@ def test_render_refuses_models_from_other_settings(exported, tmp_path, capsys):
 
 
 def test_highlight_position_and_width_of_a_known_profile():
-    """``render.highlight``: a Gaussian bump (in degrees of view) on a floor, its peak and
-    full width at half maximum (2 sqrt(2 ln 2) sigma), within a column's width."""
-    from pipeline.stages.render import highlight, view_angle
+    """``closure.peak_and_width``: a Gaussian bump on a floor, on the ply scene's view angles
+    and on a coarse theta_o grid: its peak and its full width at half maximum
+    (2 sqrt(2 ln 2) sigma), within a sample's spacing (smoothed) or a tenth of it."""
+    from pipeline.closure import peak_and_width
+    from pipeline.stages.render import view_angle
 
     a = view_angle(512)
-    assert np.isclose(a[0], -a[-1]) and abs(a[-1]) < 30.0 and a[-1] > 29.9
-    for mu, sigma in ((7.0, 3.0), (-12.0, 1.5)):
-        profile = 0.2 + np.exp(-0.5 * ((a - mu) / sigma) ** 2)
-        pos, width = highlight(profile)
-        column = np.max(np.diff(a))
-        assert abs(pos - mu) <= column
-        assert abs(width - 2 * np.sqrt(2 * np.log(2)) * sigma) <= 2.5 * column
+    assert np.isclose(a[0], -a[-1]) and 29.9 < a[-1] < 30.0
+    for x, smooth, tol in ((a, 2, 1.0), (np.arange(-80.0, 80.1, 4.0), 0, 0.1)):
+        step = np.max(np.diff(x))
+        for mu, sigma in ((7.0, 6.0), (-12.0, 9.0)):
+            y = 0.2 + np.exp(-0.5 * ((x - mu) / sigma) ** 2)
+            pos, width = peak_and_width(x, y, smooth)
+            assert abs(pos - mu) <= step / 2 + 1e-9
+            assert abs(width - 2 * np.sqrt(2 * np.log(2)) * sigma) <= tol * step + 0.02 * sigma, (width, sigma)

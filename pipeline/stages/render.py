@@ -392,13 +392,20 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
 def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Path, explicit_img, out: Path) -> dict:
     """A twisted ply's explicit fibers against its own (twisted) table and against the table
     of the same cross-section baked with parallel fibers (here, with the bake's settings:
-    a 2D bake is some 30x cheaper): mean radiance over the ply, FLIP, and the highlight,
-    the peak of the ply's brightness along its length (the perspective sweeps the view by
-    +-30 deg along it), its position and full width at half maximum in degrees of view.
+    a 2D bake is some 30x cheaper):
+
+    * **the ply scene**: mean radiance over the ply, FLIP, and the brightness along the ply
+      (the perspective sweeps the view by +-30 deg along it), its relative L1 difference;
+    * **the highlight**: the far field along a cut through it (``closure.theta_cut``: light
+      at ``theta_i`` = 30 deg, seen sideways, ``theta_o`` from -80 to 80 deg), the explicit
+      helices rendered in the closure scene against both tables' lookups; its peak's
+      position and its full width at half maximum.
+
     Writes ``parallel_table.npz`` and ``twisted_vs_parallel.png``."""
+    from models.bundle_table import BundleTable, lookup
     from models.fiber.base import FiberTable
 
-    from .. import scenes
+    from .. import closure, scenes
     from ..build import make_spec
     from .bake import bake_unreduced
 
@@ -410,31 +417,50 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
     parallel = bake_unreduced(ply_model.bundle, fiber, spec, cfg.bake.paths_per_phi_i, seed=cfg.bake.seed)
     t_bake = time.perf_counter() - t0
     parallel.save(out / "parallel_table.npz")
-    mi.set_variant(r.variant)
+    tables = {"twisted table": table_props["table"], "parallel table": out / "parallel_table.npz"}
     import mitsuba_ext
 
+    # -- the highlight: a cut through the far field, explicit helices against both lookups
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    lam_nm = float(fiber.wavelength[np.argmin(np.abs(fiber.wavelength - 550.0))])
+    theta_i, dphi = np.deg2rad(30.0), np.deg2rad(90.0)
+    theta_o = np.deg2rad(np.arange(-80.0, 80.1, 4.0))
+    bsdf = closure.explicit_fiber(fiber_table, "uniform", lam_nm)
+    S_explicit, S_err = closure.theta_cut(mi, ply_model, bsdf, theta_i, dphi, theta_o)
+    cut = {"theta_i_deg": 30.0, "dphi_deg": 90.0, "wavelength_nm": lam_nm, "theta_o_deg": np.rad2deg(theta_o).tolist(),
+           "explicit helical fibers": S_explicit.tolist(), "explicit_sigma": S_err.tolist()}
+    for name, path in tables.items():
+        t = BundleTable.load(path, expand=True)
+        k = int(np.argmin(np.abs(t.wavelength - lam_nm)))
+        cut[name] = lookup(t, 0.0, theta_i, dphi, theta_o)[..., k].tolist()
+
+    # -- the ply scene ----------------------------------------------------------------
+    mi.set_variant(r.variant)
     mitsuba_ext.register()
     rows = scenes.ply_rows(cfg, explicit_img.shape[0])
     expo = exposure_of(explicit_img)
     images = {"explicit helical fibers": explicit_img}
-    for name, table in (("twisted table", table_props["table"]), ("parallel table", out / "parallel_table.npz")):
+    for name, table in tables.items():
         images[name], _, _ = render_timed(mi, scenes.ply_scene(mi, cfg, {**table_props, "table": str(table)},
                                                                r.spp, 0, twist_turns=0.0))
-    result = {"parallel_bake_seconds": t_bake}
+    result = {"parallel_bake_seconds": t_bake, "cut": cut}
     ref = explicit_img[rows].reshape(-1, explicit_img.shape[-1]).mean(0).sum()
+    ref_profile = explicit_img[rows].sum(-1).mean(0)
     profiles = {}
     for name, img in images.items():
-        prof = img[rows].sum(-1).mean(0)
-        profiles[name] = prof
-        pos, width = highlight(prof)
+        profiles[name] = img[rows].sum(-1).mean(0)
+        pos, width = closure.peak_and_width(np.rad2deg(theta_o), cut[name], smooth=0)
         entry = {"mean_vs_explicit": float(img[rows].reshape(-1, img.shape[-1]).mean(0).sum() / ref),
-                 "highlight_deg": pos, "highlight_fwhm_deg": width}
+                 "profile_l1_vs_explicit": float(np.abs(profiles[name] - ref_profile).mean() / ref_profile.mean()),
+                 "highlight_deg": pos, "highlight_fwhm_deg": width, "highlight_peak": float(np.max(cut[name]))}
         if name != "explicit helical fibers":
             entry["flip_vs_explicit"] = flip_and_psnr(explicit_img, img, expo)[0]
         result[name] = entry
-        print(f"[render] twisted ply, {name}: mean radiance / explicit {entry['mean_vs_explicit']:.3f}, "
-              f"highlight at {pos:+.1f} deg, FWHM {width:.1f} deg"
-              + (f", FLIP {entry['flip_vs_explicit']:.3f}" if "flip_vs_explicit" in entry else ""))
+        print(f"[render] twisted ply, {name}: mean radiance / explicit {entry['mean_vs_explicit']:.3f}, brightness "
+              f"along the ply off by {entry['profile_l1_vs_explicit']:.1%}; highlight (theta_i 30 deg, sideways) at "
+              f"theta_o {pos:+.0f} deg, {width:.0f} deg wide, peak {entry['highlight_peak']:.3g} /sr"
+              + (f"; FLIP {entry['flip_vs_explicit']:.3f}" if "flip_vs_explicit" in entry else ""))
     plot_parallel_misses(images, profiles, result, expo, out / "twisted_vs_parallel.png", cfg.name)
     return result
 
@@ -445,56 +471,45 @@ def view_angle(n: int) -> np.ndarray:
     return np.rad2deg(np.arctan(u * np.tan(np.radians(30.0))))
 
 
-def highlight(profile: np.ndarray) -> tuple[float, float]:
-    """Position (deg of view) of a brightness profile's peak and its full width at half its
-    height above the profile's floor (the whole view where it never falls to half). The
-    profile is smoothed over a few columns (Monte Carlo noise) and the half-height crossings
-    interpolated between columns."""
-    angle = view_angle(len(profile))
-    k = max(1, len(profile) // 128)
-    smooth = np.convolve(np.pad(profile, k, mode="edge"), np.ones(2 * k + 1) / (2 * k + 1), mode="valid")
-    peak = int(np.argmax(smooth))
-    floor = smooth.min()
-    half = floor + 0.5 * (smooth[peak] - floor)
-    lo, hi = peak, peak
-    while lo > 0 and smooth[lo - 1] >= half:
-        lo -= 1
-    while hi < len(smooth) - 1 and smooth[hi + 1] >= half:
-        hi += 1
-
-    def crossing(inside, outside):  # where the line between two columns meets the half height
-        if outside < 0 or outside >= len(smooth):
-            return angle[inside]
-        w = (smooth[inside] - half) / (smooth[inside] - smooth[outside])
-        return angle[inside] + w * (angle[outside] - angle[inside])
-
-    return float(angle[peak]), float(crossing(hi, hi + 1) - crossing(lo, lo - 1))
-
-
 def plot_parallel_misses(images: dict, profiles: dict, result: dict, exposure: float, path: Path, name: str) -> None:
-    """The three renders, labelled, and their brightness along the ply."""
+    """The three renders, labelled; their brightness along the ply; the highlight's cut."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = len(images)
-    fig, axes = plt.subplots(n + 1, 1, figsize=(8, 1.9 * n + 3.0), gridspec_kw={"height_ratios": [1] * n + [1.6]})
-    for ax, (label, img) in zip(axes, images.items()):
+    fig = plt.figure(figsize=(12, 2.0 * n + 1.0))
+    grid = fig.add_gridspec(n, 2, width_ratios=[1.1, 1.0])
+    for k, (label, img) in enumerate(images.items()):
+        ax = fig.add_subplot(grid[k, 0])
         ax.imshow(to_srgb(img, exposure))
         e = result[label]
-        extra = f", FLIP {e['flip_vs_explicit']:.3f}" if "flip_vs_explicit" in e else ""
-        ax.set_title(f"{label}: mean {e['mean_vs_explicit']:.3f} of explicit{extra}", fontsize=9)
+        extra = (f", FLIP {e['flip_vs_explicit']:.3f}, along the ply off by {e['profile_l1_vs_explicit']:.1%}"
+                 if "flip_vs_explicit" in e else "")
+        ax.set_title(f"{label}: mean {e['mean_vs_explicit']:.3f} of explicit{extra}", fontsize=8)
         ax.axis("off")
-    ax = axes[-1]
+    ax = fig.add_subplot(grid[: n // 2 + 1 if n > 2 else 1, 1])
     for label, prof in profiles.items():
-        e = result[label]
-        ax.plot(view_angle(len(prof)), prof, label=f"{label} (peak {e['highlight_deg']:+.1f} deg, "
-                f"FWHM {e['highlight_fwhm_deg']:.1f} deg)")
+        ax.plot(view_angle(len(prof)), prof, label=label)
     ax.set(xlabel="view angle along the ply (deg; the camera's 60 deg sweep)",
-           ylabel="radiance over the ply (sum of RGB)", title="the highlight along the ply")
-    ax.legend(fontsize=8)
-    fig.suptitle(f"{name}: a twisted ply, its own table, and the parallel fibers' table", fontsize=10)
+           ylabel="radiance (sum of RGB)", title="the ply scene: brightness along the ply")
+    ax.legend(fontsize=7)
+    ax = fig.add_subplot(grid[n // 2 + 1 if n > 2 else 1:, 1])
+    cut = result["cut"]
+    to = np.array(cut["theta_o_deg"])
+    ax.errorbar(to, cut["explicit helical fibers"], yerr=cut["explicit_sigma"], fmt="o", ms=3, capsize=2,
+                label=f"explicit helical fibers (peak {result['explicit helical fibers']['highlight_deg']:+.0f} deg, "
+                      f"FWHM {result['explicit helical fibers']['highlight_fwhm_deg']:.0f} deg)")
+    for label in ("twisted table", "parallel table"):
+        ax.plot(to, cut[label], label=f"{label} (peak {result[label]['highlight_deg']:+.0f} deg, "
+                                       f"FWHM {result[label]['highlight_fwhm_deg']:.0f} deg)")
+    ax.set(xlabel="theta_o (deg)", ylabel="S (1/sr)",
+           title=f"the highlight: theta_i {cut['theta_i_deg']:.0f} deg, dphi {cut['dphi_deg']:.0f} deg, "
+                 f"{cut['wavelength_nm']:.0f} nm")
+    ax.legend(fontsize=7)
+    fig.suptitle(f"{name}: a twisted ply's explicit fibers, its own table, and the parallel fibers' table",
+                 fontsize=10)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
