@@ -598,8 +598,8 @@ def _format_errors(err: ValidationError) -> str:
             msg = "unknown key (check the spelling; see configs/default.yaml for the keys)"
         elif e["type"] == "missing":
             msg = "required key is missing"
-        elif "input" in e and not isinstance(e["input"], (dict, list)):
-            msg += f" (got {e['input']!r})"
+        elif "input" in e and not isinstance(e["input"], (dict, list)) and "(got " not in msg:
+            msg += f" (got {e['input']!r})"  # unless the check already said what it got
         lines.append(f"  {key or '<top level>'}: {msg}")
     return "\n".join(lines)
 
