@@ -73,14 +73,8 @@ def scene(mi, shapes: dict, w_i, w_o, half_size, *, irradiance=1.0, resolution=6
     behind the bundle (the passthrough test); no environment otherwise.
     """
     w_i, w_o = np.asarray(w_i, float), np.asarray(w_o, float)
-    up = AXIS - np.dot(AXIS, w_o) * w_o
-    if np.linalg.norm(up) < 1e-3:
-        raise ValueError("closure scene: w_o is parallel to the fiber axis; the axis would not cross the film")
-    up /= np.linalg.norm(up)
-    distance = 100.0 * half_size
+    up, distance, to_world = _camera(mi, w_o, half_size)
     T = mi.ScalarTransform4f
-    to_world = T().look_at(origin=(distance * w_o).tolist(), target=[0, 0, 0], up=up.tolist()) @ \
-        T().scale([half_size, half_size, 1.0])
     sc = {
         "type": "scene",
         "integrator": {"type": "bundle_path", "max_depth": max_depth},
@@ -104,6 +98,26 @@ def scene(mi, shapes: dict, w_i, w_o, half_size, *, irradiance=1.0, resolution=6
                                                   up=up.tolist()) @ T().scale([size, size, 1.0]),
                           "emitter": {"type": "area", "radiance": {"type": "spectrum", "value": float(background)}}}
     return sc
+
+
+def _camera(mi, w_o, half_size):
+    """``(up, distance, to_world)`` of the closure scene's orthographic camera along ``-w_o``."""
+    w_o = np.asarray(w_o, float)
+    up = AXIS - np.dot(AXIS, w_o) * w_o
+    if np.linalg.norm(up) < 1e-3:
+        raise ValueError("closure scene: w_o is parallel to the fiber axis; the axis would not cross the film")
+    up /= np.linalg.norm(up)
+    distance = 100.0 * half_size
+    T = mi.ScalarTransform4f
+    to_world = T().look_at(origin=(distance * w_o).tolist(), target=[0, 0, 0], up=up.tolist()) @ \
+        T().scale([half_size, half_size, 1.0])
+    return up, distance, to_world
+
+
+def _sun(mi, w_i):
+    """The ``to_world`` Mitsuba's ``directional`` emitter builds for light arriving from ``w_i``."""
+    emitter = mi.load_dict({"type": "directional", "direction": (-np.asarray(w_i, float)).tolist()})
+    return mi.traverse(emitter)["to_world"]
 
 
 def render_image(mi, scene_dict) -> np.ndarray:
@@ -198,8 +212,17 @@ def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, 
     over many periods: :func:`helix_control_points`).
 
     Returns the mean and an error estimate: half the difference of the even and the odd
-    turns' means (each turn its own seed), which holds the render noise and the rule's.
+    turns' means, which holds the render noise and the rule's.
     """
+    return explicit_intensities(mi, bundle, fiber_bsdf, [(w_i, views)], spp, resolution, unit, turns)[0]
+
+
+def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, resolution: int = 48,
+                         unit: float = 1e-3, turns: bool = True) -> list:
+    """:func:`explicit_intensity` for many ``(w_i, views)`` at once (every ``views`` as
+    long): each turn of the arrangement is loaded once, and the sun and the camera are
+    moved between requests (``mi.traverse``), as a fresh scene would place them; the
+    scenes' loads and kernels, not their pixels, are what explicit fibers cost here."""
     import tempfile
     from pathlib import Path
 
@@ -209,19 +232,33 @@ def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, 
     section = bundle.bundle if twisted else bundle
     hs = 1.2 * section.bounding_radius * unit
     half_length = 40 * hs
-    values = []
+    n_views = len(requests[0][1])
+    if any(len(views) != n_views for _, views in requests):
+        raise ValueError("explicit_intensities: every request needs as many views")
+    values = np.zeros((len(requests), n_views))
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
         curve_file = Path(tmp) / "helices.txt"
         if twisted:
             write_curves(helix_control_points(bundle, half_length, unit), curve_file)
-        for k, w_o in enumerate(views):
-            turn = 2 * np.pi * k / len(views) if turns else 0.0
+        for k in range(n_views):
+            turn = 2 * np.pi * k / n_views if turns else 0.0
             shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, turn) if twisted
                       else explicit_shapes(bundle, fiber_bsdf, turn, half_length, unit))
-            sc = scene(mi, shapes, w_i, w_o, hs, resolution=resolution, spp=spp, seed=k)
-            values.append(rendered_intensity(mi, sc, w_o, hs))
-    values = np.array(values)
-    return float(values.mean()), float(abs(values[0::2].mean() - values[1::2].mean()) / 2)
+            w_i0, views0 = requests[0]
+            loaded = mi.load_dict(scene(mi, shapes, w_i0, views0[k], hs, resolution=resolution, spp=spp, seed=k))
+            params = mi.traverse(loaded)
+            for r, (w_i, views) in enumerate(requests):
+                if r:
+                    params["sensor.to_world"] = _camera(mi, views[k], hs)[2]
+                    params["sun.to_world"] = _sun(mi, w_i)
+                    params.update()
+                img = np.asarray(mi.render(loaded), np.float64)
+                img = img[..., 0] if img.ndim == 3 else img
+                if not np.all(np.isfinite(img)):
+                    raise FloatingPointError("closure render holds NaN or Inf")
+                theta_o = np.arcsin(np.clip(np.asarray(views[k], float)[1], -1, 1))
+                values[r, k] = img.sum() * (2.0 * hs / img.shape[0]) ** 2 / visible_length(hs, theta_o)
+    return [(float(v.mean()), float(abs(v[0::2].mean() - v[1::2].mean()) / 2)) for v in values]
 
 
 def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
@@ -330,14 +367,17 @@ def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: f
     Bins the bake found dark (below 1e-3 of the brightest bin of their row) are left out."""
     rows = []
     a = int(np.argmin(np.abs(np.angle(np.exp(1j * (table.phi_i - phi_i))))))
-    for j, k_phi, k_theta in cases:
-        if not table.values[a, j, k_phi, k_theta, lam] > 1e-3 * table.values[a, j, ..., lam].max():
-            continue
+    cases = [(j, k_phi, k_theta) for j, k_phi, k_theta in cases
+             if table.values[a, j, k_phi, k_theta, lam] > 1e-3 * table.values[a, j, ..., lam].max()]
+    if not cases:
+        return rows
+    section = getattr(bundle, "bundle", bundle)  # a twisted ply's cross-section
+    measured = explicit_intensities(mi, bundle, fiber_bsdf,
+                                    [(direction(phi_i, table.theta_i[j]), bin_views(table, phi_i, k_phi, k_theta))
+                                     for j, k_phi, k_theta in cases],
+                                    spp=spp, resolution=resolution, unit=unit, turns=section.is_circle)
+    for (j, k_phi, k_theta), (I, se) in zip(cases, measured):
         ti = table.theta_i[j]
-        views = bin_views(table, phi_i, k_phi, k_theta)
-        section = getattr(bundle, "bundle", bundle)  # a twisted ply's cross-section
-        I, se = explicit_intensity(mi, bundle, fiber_bsdf, direction(phi_i, ti), views, spp=spp,
-                                   resolution=resolution, unit=unit, turns=section.is_circle)
         S, S_err = table.values[a, j, k_phi, k_theta, lam], table.stderr[a, j, k_phi, k_theta, lam]
         predicted = predicted_intensity(1.0, section.bounding_radius * unit, ti, S)
         rows.append({"theta_i": float(np.rad2deg(ti)), "phi_o": float(np.rad2deg(table.phi_o[k_phi])),
@@ -353,15 +393,12 @@ def theta_cut(mi, ply, fiber_bsdf: dict, theta_i: float, dphi: float, theta_o, t
     ``dphi``, each point ``I / (E 2 R_b cos theta_i)`` of :func:`explicit_intensity` over
     ``turns`` turns of the ply. Returns ``S`` and its 1-sigma error."""
     section = getattr(ply, "bundle", ply)
-    R = section.bounding_radius * unit
-    S, err = [], []
-    for to in np.asarray(theta_o, float):
-        I, se = explicit_intensity(mi, ply, fiber_bsdf, direction(0.0, theta_i), [direction(dphi, to)] * turns,
-                                   spp=spp, resolution=resolution, unit=unit, turns=section.is_circle)
-        norm = predicted_intensity(1.0, R, theta_i, 1.0)
-        S.append(I / norm)
-        err.append(se / norm)
-    return np.array(S), np.array(err)
+    norm = predicted_intensity(1.0, section.bounding_radius * unit, theta_i, 1.0)
+    measured = explicit_intensities(mi, ply, fiber_bsdf,
+                                    [(direction(0.0, theta_i), [direction(dphi, to)] * turns)
+                                     for to in np.asarray(theta_o, float)],
+                                    spp=spp, resolution=resolution, unit=unit, turns=section.is_circle)
+    return np.array([I / norm for I, _ in measured]), np.array([se / norm for _, se in measured])
 
 
 def peak_and_width(x, y, smooth: int = 0) -> tuple[float, float]:

@@ -257,11 +257,11 @@ def test_explicit_ply_renders_its_bake(mono, tmp_path, plugin, exit_model):
     cases = cases[:24]
     assert len(cases) >= 20
     res = []
-    for j, k_phi, k_theta in cases:
+    measured = closure.explicit_intensities(mi, bundle, bsdf, [(closure.direction(0.0, table.theta_i[j]),
+                                                               closure.bin_views(table, 0.0, k_phi, k_theta))
+                                                              for j, k_phi, k_theta in cases], spp=8, resolution=32)
+    for (j, k_phi, k_theta), (I, se) in zip(cases, measured):
         ti = table.theta_i[j]
-        w_i = closure.direction(0.0, ti)
-        views = closure.bin_views(table, 0.0, k_phi, k_theta)
-        I, se = closure.explicit_intensity(mi, bundle, bsdf, w_i, views, spp=8, resolution=32)
         S, S_err = table.values[0, j, k_phi, k_theta, lam], table.stderr[0, j, k_phi, k_theta, lam]
         predicted = closure.predicted_intensity(1.0, bundle.bounding_radius * 1e-3, ti, S)
         res.append((I / predicted - 1, np.hypot(S_err / S, se / I)))
