@@ -151,15 +151,18 @@ def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
     assert set(json.loads(r.stdout)) == expected, r.stderr
 
     # -- and the other way: `bcsdf run` records DVC's lock, so that DVC agrees it is up to date
+    # (an edit of the cloth section: only the cloth and the report run again, the cheap end)
+    (repo / "configs" / "tiny.yaml").write_text(TINY.replace("spp: 2, max_depth", "spp: 3, max_depth"))
+    assert _stale(run) == {"cloth"}
     r = subprocess.run(bcsdf, cwd=repo, env=env, capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0 and "[run] train: its code, config or inputs changed" in r.stdout, r.stdout + r.stderr
-    assert "dvc.lock: recorded" in r.stdout, r.stdout
+    assert r.returncode == 0 and "[run] cloth: its code, config or inputs changed" in r.stdout, r.stdout + r.stderr
+    assert "[run] train: up to date, skipped" in r.stdout and "dvc.lock: recorded" in r.stdout, r.stdout
     assert _stale(run) == set()
     # a run with --set is not what dvc.yaml's params say: it records nothing
-    r = subprocess.run(bcsdf + ["--set", "train.epochs=7"], cwd=repo, env=env, capture_output=True, text=True,
+    r = subprocess.run(bcsdf + ["--set", "cloth.spp=4"], cwd=repo, env=env, capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0 and "dvc.lock" not in r.stdout, r.stdout + r.stderr
-    assert "train" in _stale(run)  # its outputs are no longer what the lock recorded
+    assert "cloth" in _stale(run)  # its outputs are no longer what the lock recorded
 
 
 def test_shipped_configs_match_dvc_yaml():
