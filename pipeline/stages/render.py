@@ -391,8 +391,8 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
 
 def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Path, explicit_img, out: Path) -> dict:
     """A twisted ply's explicit fibers against its own (twisted) table and against the table
-    of the same cross-section baked with parallel fibers (here, with the bake's settings:
-    a 2D bake is some 30x cheaper):
+    of the same cross-section baked with parallel fibers (here, with the bake's settings,
+    its theta_i nodes and paths: BENCHMARKS, "What the parallel table misses", for its cost):
 
     * **the ply scene**: mean radiance over the ply, FLIP, and the brightness along the ply
       (the perspective sweeps the view by +-30 deg along it), its relative L1 difference;
