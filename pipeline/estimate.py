@@ -81,7 +81,7 @@ def _render_work(cfg) -> float:
             _, n_theta_i = cfg.incidences()
             per_view = 32 * 32 * 8 * 30
             work += ((n_theta_i // 2) * 4 * 16 + 41 * 8) * per_view
-            work += _bake_work(cfg, twisted=False) * REFERENCE["bake"] / REFERENCE["render"]
+            work += _bake_work(cfg, twisted=False) / n_theta_i * REFERENCE["bake"] / REFERENCE["render"]
     return float(work)
 
 
