@@ -120,22 +120,27 @@ def _sun(mi, w_i):
     return mi.traverse(emitter)["to_world"]
 
 
-def render_image(mi, scene_dict) -> np.ndarray:
-    """The rendered image, one channel (a NaN or Inf is an error, not a pixel)."""
-    img = np.asarray(mi.render(mi.load_dict(scene_dict)), np.float64)
+def render_image(mi, scene) -> np.ndarray:
+    """The rendered image of a scene dict or a loaded scene, one channel (a NaN or Inf is an
+    error, not a pixel)."""
+    img = np.asarray(mi.render(mi.load_dict(scene) if isinstance(scene, dict) else scene), np.float64)
     img = img[..., 0] if img.ndim == 3 else img
     if not np.all(np.isfinite(img)):
         raise FloatingPointError("closure render holds NaN or Inf")
     return img
 
 
-def rendered_intensity(mi, scene_dict: dict, w_o, half_size) -> float:
-    """Render ``scene_dict`` and measure ``sum(pixels) pixel_area / visible_length``."""
-    img = render_image(mi, scene_dict)
-    n = img.shape[0]
-    pixel_area = (2.0 * half_size / n) ** 2
+def intensity(img: np.ndarray, w_o, half_size) -> float:
+    """The closure's measurement of an image seen along ``w_o``: ``sum(pixels) pixel_area /
+    visible_length``."""
+    pixel_area = (2.0 * half_size / img.shape[0]) ** 2
     theta_o = np.arcsin(np.clip(np.asarray(w_o, float)[1], -1, 1))
     return float(img.sum() * pixel_area / visible_length(half_size, theta_o))
+
+
+def rendered_intensity(mi, scene_dict: dict, w_o, half_size) -> float:
+    """Render ``scene_dict`` and measure ``sum(pixels) pixel_area / visible_length``."""
+    return intensity(render_image(mi, scene_dict), w_o, half_size)
 
 
 def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float) -> dict:
@@ -182,11 +187,12 @@ def helix_control_points(ply, half_length: float, unit: float = 1e-3, per_turn: 
 
 
 def write_curves(curves, path) -> None:
-    """Mitsuba's curve file: ``x y z r`` per control point, a blank line between curves.
-    A scratch file that a render reads (not an artifact): written in place."""
-    text = "\n\n".join("\n".join(" ".join(f"{v:.9g}" for v in p) for p in c) for c in curves) + "\n"
+    """A scratch curve file that a render reads (not an artifact: written in place) in
+    Mitsuba's format (``models.cloth.curves.write_mitsuba_curves``), at float32's precision."""
+    from models.cloth.curves import write_mitsuba_curves
+
     with open(path, "w") as f:
-        f.write(text)
+        write_mitsuba_curves(f, curves, fmt="%.9g")
 
 
 def explicit_twisted_shapes(curve_file, fiber_bsdf: dict, turn: float) -> dict:
@@ -236,6 +242,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     if any(len(views) != n_views for _, views in requests):
         raise ValueError("explicit_intensities: every request needs as many views")
     values = np.zeros((len(requests), n_views))
+    suns = [_sun(mi, w_i) for w_i, _ in requests]
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
         curve_file = Path(tmp) / "helices.txt"
         if twisted:
@@ -247,17 +254,12 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
             w_i0, views0 = requests[0]
             loaded = mi.load_dict(scene(mi, shapes, w_i0, views0[k], hs, resolution=resolution, spp=spp, seed=k))
             params = mi.traverse(loaded)
-            for r, (w_i, views) in enumerate(requests):
+            for r, (_, views) in enumerate(requests):
                 if r:
                     params["sensor.to_world"] = _camera(mi, views[k], hs)[2]
-                    params["sun.to_world"] = _sun(mi, w_i)
+                    params["sun.to_world"] = suns[r]
                     params.update()
-                img = np.asarray(mi.render(loaded), np.float64)
-                img = img[..., 0] if img.ndim == 3 else img
-                if not np.all(np.isfinite(img)):
-                    raise FloatingPointError("closure render holds NaN or Inf")
-                theta_o = np.arcsin(np.clip(np.asarray(views[k], float)[1], -1, 1))
-                values[r, k] = img.sum() * (2.0 * hs / img.shape[0]) ** 2 / visible_length(hs, theta_o)
+                values[r, k] = intensity(render_image(mi, loaded), views[k], hs)
     return [(float(v.mean()), float(abs(v[0::2].mean() - v[1::2].mean()) / 2)) for v in values]
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 UM = 1e-3  # micrometres in scene units (mm)
+FOV_DEG = 60.0  # the render stage's perspective camera, across the image
 
 
 def _lights(mi):
@@ -34,7 +35,7 @@ def _sensor(mi, r, half_width, spp, seed=0):
     same: the perspective sweeps the view along the ply by +-30 deg, so the picture
     shows the specular cone of the parallel fibers as a highlight.
     """
-    fov = 60.0
+    fov = FOV_DEG
     distance = half_width / np.tan(np.radians(fov / 2))
     return {"type": "perspective", "fov": fov, "fov_axis": "x",
             "to_world": mi.ScalarTransform4f().look_at([0, 0, distance], [0, 0, 0], [0, 1, 0]),

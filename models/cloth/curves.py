@@ -26,6 +26,15 @@ import numpy as np
 KINDS = ("catmull_rom", "bspline", "bezier", "polyline")
 
 
+
+def write_mitsuba_curves(file, curves, fmt: str = "%.6f") -> None:
+    """Mitsuba's curve text format into the open text ``file``: ``x y z r`` per control point
+    (``curves``: ``[n, 4]`` arrays), a blank line between curves."""
+    for k, C in enumerate(curves):
+        if k:
+            file.write("\n")
+        np.savetxt(file, np.asarray(C, float), fmt=fmt)
+
 # -- the four curve types --------------------------------------------------------------
 def _catmull_rom(P0, P1, P2, P3, t):
     t = t[:, None]

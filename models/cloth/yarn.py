@@ -17,7 +17,7 @@ import numpy as np
 
 from ..io import atomic_path
 from .bcc import CurveCollection
-from .curves import evaluate, interpolate_bspline, n_segments, to_bspline
+from .curves import evaluate, interpolate_bspline, n_segments, to_bspline, write_mitsuba_curves
 from .plies import nearest_other, transport_frames, wind_plies
 
 
@@ -134,9 +134,5 @@ def build_plies(collection: CurveCollection, scale: float, yarn: YarnSpec, tol_f
 def write_curves(path, geometry: PlyGeometry) -> None:
     """Mitsuba's curve text format: ``x y z r`` per control point, a blank line between curves."""
     r = geometry.radius
-    with atomic_path(path) as tmp:
-        with open(tmp, "w") as f:
-            for k, C in enumerate(geometry.curves):
-                if k:
-                    f.write("\n")
-                np.savetxt(f, np.column_stack([C, np.full(len(C), r)]), fmt="%.6f")
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
+        write_mitsuba_curves(f, (np.column_stack([C, np.full(len(C), r)]) for C in geometry.curves))

@@ -402,7 +402,6 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
       position and its full width at half maximum.
 
     Writes ``parallel_table.npz`` and ``twisted_vs_parallel.png``."""
-    from models.bundle_table import BundleTable, lookup
     from models.fiber.base import FiberTable
 
     from .. import closure, scenes
@@ -434,9 +433,8 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
     cut = {"theta_i_deg": 30.0, "dphi_deg": 90.0, "wavelength_nm": lam_nm, "theta_o_deg": np.rad2deg(theta_o).tolist(),
            "explicit helical fibers": S_explicit.tolist(), "explicit_sigma": S_err.tolist()}
     for name, path in tables.items():
-        t = BundleTable.load(path, expand=True)
-        k = int(np.argmin(np.abs(t.wavelength - lam_nm)))
-        cut[name] = lookup(t, 0.0, theta_i, dphi, theta_o)[..., k].tolist()
+        S = closure.evaluator(mi, "table", path, lam_nm)
+        cut[name] = [S(0.0, theta_i, dphi, to) for to in theta_o]
 
     # -- the ply scene ----------------------------------------------------------------
     mi.set_variant(r.variant)
@@ -469,9 +467,12 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
 
 
 def view_angle(n: int) -> np.ndarray:
-    """The view's angle along the ply (deg) at each of ``n`` image columns (the 60 deg camera)."""
+    """The view's angle along the ply (deg) at each of ``n`` image columns (the ply scene's
+    perspective camera, ``scenes.FOV_DEG`` across)."""
+    from ..scenes import FOV_DEG
+
     u = (np.arange(n) + 0.5) / n * 2 - 1
-    return np.rad2deg(np.arctan(u * np.tan(np.radians(30.0))))
+    return np.rad2deg(np.arctan(u * np.tan(np.radians(FOV_DEG / 2))))
 
 
 def plot_parallel_misses(images: dict, profiles: dict, result: dict, exposure: float, path: Path, name: str) -> None:
