@@ -8,38 +8,79 @@ import numpy as np
 
 from models.spectrum import spectrum_to_srgb
 
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # linear sRGB -> Y
 
-def tone_map(rgb: np.ndarray) -> np.ndarray:
-    """Log tone mapping on luminance, hue kept; sRGB-encoded in [0, 1]."""
+
+def log_scale(Y: np.ndarray) -> tuple[float, float]:
+    """``(Y0, Y_max)`` of the log tone map: its knee at the bright band (the 97th
+    percentile of the positive values, so the lobe tails do not set the exposure) and
+    its top (the peak)."""
+    positive = Y[Y > 0]
+    if positive.size == 0:
+        return 1.0, 1.0
+    Y_max = float(positive.max())
+    return max(float(np.percentile(positive, 97)), 1e-12 * Y_max), Y_max
+
+
+def log_map(Y, scale: tuple[float, float]):
+    """Luminance -> display value in [0, 1]: ``log(1 + Y / Y0) / log(1 + Y_max / Y0)``."""
+    Y0, Y_max = scale
+    return np.log1p(np.maximum(Y, 0.0) / Y0) / np.log1p(Y_max / Y0)
+
+
+def tone_map(rgb: np.ndarray, scale: tuple[float, float] | None = None) -> np.ndarray:
+    """Log tone mapping on luminance, hue kept; sRGB-encoded in [0, 1]. ``scale`` (from
+    :func:`log_scale`) shares one mapping between images that are compared."""
     import colour
 
     rgb = np.maximum(rgb, 0.0)
-    Y = rgb @ np.array([0.2126, 0.7152, 0.0722])
-    positive = Y[Y > 0]
-    if positive.size == 0:
-        return np.zeros_like(rgb)
-    # Exposure at the bright band (not the lobe tails), log above it for the peak
-    Y0 = max(np.percentile(positive, 97), 1e-12 * positive.max())
-    mapped = np.log1p(Y / Y0) / np.log1p(positive.max() / Y0)
+    Y = rgb @ LUMINANCE
+    scale = scale or log_scale(Y)
+    mapped = log_map(Y, scale)
     out = rgb * np.where(Y > 0, mapped / np.maximum(Y, 1e-300), 0.0)[..., None]
     return np.clip(colour.cctf_encoding(np.clip(out, 0, 1)), 0, 1)
 
 
 def spectral_image(f: np.ndarray, wavelength, path: Path, title: str,
                    xlabel="dphi = phi_o - phi_i [deg]  (0: back to the light, 180: forward)",
-                   extent=(0, 360, -90, 90)) -> None:
-    """``f[theta_o, phi_o, lambda]`` as an sRGB image (log tone map), theta_o upwards."""
+                   extent=(0, 360, -90, 90), unit="1/sr", scale=None) -> tuple[float, float]:
+    """``f[theta_o, phi_o, lambda]`` as an sRGB image (log tone map), theta_o upwards,
+    with a colour bar of its luminance in ``unit`` (a flat spectrum of value v has
+    luminance v). Returns the tone map's scale, so a compared image can share it."""
+    import colour
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import FuncNorm
 
-    img = tone_map(spectrum_to_srgb(f, wavelength))
+    rgb = spectrum_to_srgb(f, wavelength)
+    scale = scale or log_scale(np.maximum(rgb, 0.0) @ LUMINANCE)
     fig, ax = plt.subplots(figsize=(12, 4.2), dpi=120)
-    ax.imshow(img, origin="lower", aspect="auto", interpolation="nearest", extent=extent)
+    ax.imshow(tone_map(rgb, scale), origin="lower", aspect="auto", interpolation="nearest", extent=extent)
     ax.set_xticks(np.arange(extent[0], extent[1] + 1, 30))
     ax.set(xlabel=xlabel, ylabel="theta_o [deg]", title=title)
+    # The colour bar shows the tone map itself (with the sRGB encoding): the grey a pixel
+    # of that luminance has
+    Y0, Y_max = scale
+
+    def forward(y):
+        return colour.cctf_encoding(np.clip(log_map(y, scale), 0, 1))
+
+    def inverse(v):
+        return Y0 * np.expm1(colour.cctf_decoding(np.clip(v, 0, 1)) * np.log1p(Y_max / Y0))
+    norm = FuncNorm((forward, inverse), vmin=0.0, vmax=Y_max)
+    bar = fig.colorbar(ScalarMappable(norm, plt.get_cmap("gray")), ax=ax, pad=0.015, fraction=0.04)
+    ticks = [0.0]  # 0, the knee and its decades, the peak: those that are 6% of the bar apart
+    for t in [Y0 * 10.0 ** k for k in range(-1, 8)]:
+        if forward(ticks[-1]) + 0.06 < forward(t) < 0.94:
+            ticks.append(t)
+    ticks.append(Y_max)
+    bar.set_ticks(ticks, labels=[f"{t:.3g}" for t in ticks])
+    bar.set_label(f"luminance [{unit}]")
     fig.tight_layout()
     save_figure(fig, path)
+    return scale
 
 
 def save_figure(fig, path: Path) -> None:

@@ -44,6 +44,24 @@ def _sensor(mi, r, half_width, spp, seed=0):
             "sampler": {"type": "independent", "sample_count": spp, "seed": seed}}
 
 
+def describe(cfg, name: str) -> str:
+    """One sentence for the report: what the render stage's scene ``name`` shows, its
+    camera and its light."""
+    Rb = cfg.bundle.bounding_radius_um() * UM
+    sun = np.array(_lights(None)["sun"]["direction"])
+    sun_elevation = np.degrees(np.arcsin(-sun[2] / np.linalg.norm(sun)))
+    light = (f"a white sun {sun_elevation:.0f} deg above the image plane, from the upper right and in front, and a "
+             "dim grey sky (the colour is the fibers')")
+    camera = f"a perspective camera {FOV_DEG:.0f} deg across, looking down -z at the ply's side"
+    if name == "ply":
+        turns = cfg.render.twist_turns
+        return (f"One straight ply (radius {Rb:.3g} mm, {ply_length(cfg):.3g} mm long, along the image's x axis"
+                + (f", its cross-section turned {turns:g} times along it" if turns else "")
+                + f"), seen by {camera}, under {light}.")
+    return (f"Plies of this bundle wound into a yarn (Zhao et al. 2016's {cfg.render.yarn}: its ply count, "
+            f"radius and pitch), two turns of it along the image's x axis, seen by {camera}, under {light}.")
+
+
 def ply_length(cfg) -> float:
     return 16 * cfg.bundle.bounding_radius_um() * UM
 
@@ -139,8 +157,10 @@ def yarn_helices(cfg, row: dict, n_points: int = 64):
 
 
 def yarn_scene(mi, cfg, bsdf: dict, curve_path, row: dict, spp: int, seed: int = 0) -> dict:
+    from .closure import write_curves
+
     plies, L, R_ply = yarn_helices(cfg, row)
-    curve_path.write_text("\n\n".join("\n".join(" ".join(f"{v:.7f}" for v in p) for p in ply) for ply in plies))
+    write_curves(plies, curve_path)
     scene = _base(mi, cfg, 0.5 * L, spp, seed)
     scene["yarn"] = {"type": "bsplinecurve", "filename": str(curve_path),
                      "bsdf": {**bsdf, "radius": cfg.bundle.bounding_radius_um() * UM, "up": [1.0, 0.0, 0.0]}}

@@ -1,6 +1,15 @@
 import gc
+import os
 
 import pytest
+
+# Two xdist workers share the cores: torch's OpenMP threads, spinning at their barriers while
+# the other worker's Dr.Jit kernels hold the cores, made the training tests 5x slower
+# (tests/test_neural.py beside tests/test_closure.py: 143 s, with sleeping waiters 26 s).
+# Alone, sleeping waiters cost about 40% (22 s against 31 s), so only where there are
+# workers; the stages' subprocesses inherit it.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Modules whose tests load plugins in failing or evaluated-mode-only ways
 PLUGIN_MODULES = {"test_plugin", "test_closure", "test_render", "test_bad_input", "test_neural", "test_stability",

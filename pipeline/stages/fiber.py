@@ -102,10 +102,13 @@ def plot_energy(theta_i, wavelength, energy, ext, path, model_name) -> None:
     import matplotlib.pyplot as plt
 
     n = 2 if ext is not None else 1
-    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4), dpi=110, squeeze=False)
-    cmap = plt.get_cmap("turbo")
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    fig, axes = plt.subplots(1, n, figsize=(5.8 * n, 4), dpi=110, squeeze=False, layout="constrained")
+    cmap, norm = plt.get_cmap("turbo"), Normalize(float(np.min(wavelength)), float(np.max(wavelength)) + 1e-9)
     for j, lam in enumerate(wavelength):
-        c = cmap(j / max(1, len(wavelength) - 1))
+        c = cmap(norm(lam))
         axes[0, 0].plot(np.rad2deg(theta_i), energy[:, j], color=c, lw=1)
         if ext is not None:
             axes[0, 1].plot(np.rad2deg(theta_i), ext[:, j], color=c, lw=1)
@@ -115,5 +118,8 @@ def plot_energy(theta_i, wavelength, energy, ext, path, model_name) -> None:
         axes[0, 0].set_ylim(lo - 0.01, hi + 0.01)
     if ext is not None:
         axes[0, 1].set(xlabel="theta_i [deg]", ylabel="Q_ext / sin(zeta)", title="extinction per geometric hit")
-    fig.tight_layout()
+    if len(wavelength) > 1:  # one line per wavelength: the colour bar is their legend
+        fig.colorbar(ScalarMappable(norm, cmap), ax=axes[0, :], label="wavelength [nm]", pad=0.02)
+    else:
+        axes[0, 0].set_title(f"{model_name}: energy at {wavelength[0]:.0f} nm")
     save_figure(fig, path)

@@ -156,6 +156,8 @@ def run(cfg, out_root="artifacts") -> Path:
 
     import mitsuba_ext
 
+    from .. import scenes
+
     if cfg.bundle is None:
         raise ValueError("render: this config has no bundle; add a `bundle:` section")
     r = cfg.render
@@ -170,7 +172,7 @@ def run(cfg, out_root="artifacts") -> Path:
                "model": model_size(cfg) if set(r.backends) - {"table"} else None, "scenes": {}}
     bar = tqdm(total=len(r.scenes) * len(r.backends), desc="renders", unit="render")
     for name in r.scenes:
-        images, entry = {}, {}
+        images, entry = {}, {"description": scenes.describe(cfg, name)}
         for backend in r.backends:
             bar.update()
             scene = _scene(mi, cfg, name, props[backend], r.spp, out)
@@ -240,17 +242,29 @@ def side_by_side(images: dict, flip_maps: dict, entry: dict, path: Path, name: s
 
     from ..plots import save_figure
 
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
     cols = list(images)
-    fig, axes = plt.subplots(2, len(cols), figsize=(3.6 * len(cols), 4.2), squeeze=False)
+    h, w = next(iter(images.values())).shape[:2]
+    # each render at twice its pixel size (at least 4 in wide), so that noise and detail can be judged
+    width_in = max(4.0, 2 * w / 100)
+    fig, axes = plt.subplots(2, len(cols), figsize=(width_in * len(cols) + 1.2, 2 * width_in * h / w + 1.4),
+                             squeeze=False, dpi=100, layout="constrained")
     for k, b in enumerate(cols):
-        axes[0, k].imshow(to_srgb(images[b], entry["exposure"]))
-        axes[0, k].set_title(f"{b}: {entry[b]['seconds']:.2f} s", fontsize=9)
+        axes[0, k].imshow(to_srgb(images[b], entry["exposure"]), interpolation="nearest")
+        axes[0, k].set_title(f"{b}: {entry[b]['seconds']:.2f} s", fontsize=10)
         if b in flip_maps:
-            axes[1, k].imshow(np.clip(flip_maps[b], 0, 1))
-            axes[1, k].set_title(f"FLIP {entry[b]['flip']:.3f}, PSNR {entry[b]['psnr']:.1f} dB", fontsize=9)
+            axes[1, k].imshow(np.clip(flip_maps[b], 0, 1), interpolation="nearest")
+            axes[1, k].set_title(f"{b} against the table: FLIP {entry[b]['flip']:.3f}, PSNR {entry[b]['psnr']:.1f} dB",
+                                 fontsize=10)
         for row in range(2):
             axes[row, k].set_axis_off()
-    fig.suptitle(f"{name}: equal samples; FLIP against the table (bottom)", fontsize=10)
+    if flip_maps:  # the FLIP maps are magma-coloured: their scale
+        fig.colorbar(ScalarMappable(Normalize(0, 1), "magma"), ax=axes[1, :], shrink=0.8,
+                     label="FLIP error (0: the same)")
+    fig.suptitle(f"{name}: {w} x {h} pixels, equal samples, one exposure; FLIP against the table (bottom)",
+                 fontsize=11)
     save_figure(fig, path)
 
 

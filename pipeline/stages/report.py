@@ -196,11 +196,12 @@ def compare_slices(cfg, out_root, out) -> str:
     from mitsuba_ext.neural import DrJitMLP
     from models.neural import bin_average, table_cells
     from ..artifacts import load_bundle_table
+    from .render import model_size
 
     mi.set_variant(cfg.bake.variant)
     table, _ = load_bundle_table(cfg, out_root)
     relative = table.meta["reductions"]["phi_o"] == "relative"
-    name = list(cfg.train.models)[-1] if len(cfg.train.models) < 2 else list(cfg.train.models)[1]
+    name = model_size(cfg)  # the model the renders use
     mlp = DrJitMLP(stage_dir(cfg, "export", out_root) / name / "weights.npz")
     body = (f"<p>Table against model <b>{name}</b> (Dr.Jit evaluator), the model's bin averages (4 x 4 "
             "points per bin) as a table value is an average over its bin.</p>")
@@ -217,10 +218,12 @@ def compare_slices(cfg, out_root, out) -> str:
         tag = f"{int(target):02d}"
         extent = (0, 360, -90, 90) if relative else (-180, 180, -90, 90)
         roll = len(table.phi_o) // 2 if relative else 0
-        for label, data in (("table", ref), ("model", pred)):
-            spectral_image(np.roll(data.transpose(1, 0, 2), roll, axis=1), table.wavelength,
-                           out / f"compare_{label}_{tag}.png",
-                           f"{label}: theta_i = {np.rad2deg(table.theta_i[j]):.0f} deg", extent=extent)
+        scale = None  # the model's image on the table's tone map, so that their greys compare
+        for label, data in (("table", ref), (f"model {name}", pred)):
+            scale = spectral_image(np.roll(data.transpose(1, 0, 2), roll, axis=1), table.wavelength,
+                                   out / f"compare_{label.split()[0]}_{tag}.png",
+                                   f"{label}: S at theta_i = {np.rad2deg(table.theta_i[j]):.0f} deg, "
+                                   f"bin averages (tone map of the table)", extent=extent, scale=scale)
         err = np.abs(pred - ref).mean(-1) / max(ref.mean(-1).max(), 1e-30)
         fig, ax = plt.subplots(figsize=(12, 3.6), dpi=110)
         im = ax.imshow(np.roll(err.T, roll, axis=1), origin="lower", aspect="auto", extent=extent, cmap="magma")
@@ -335,8 +338,10 @@ def render_section(cfg, root: Path, out: Path) -> str:
                         f"<td>{flip}</td><td>{psnr}</td></tr>")
     body += ("<table><tr><th>scene</th><th>backend</th><th>render s</th><th>time / table</th><th>FLIP</th>"
              "<th>PSNR dB</th></tr>" + "".join(rows) + "</table>")
-    body += "".join(img_tag(out, root / "render" / f"{scene}_side_by_side.png", f"{scene}: table, neural, FLIP")
-                    for scene in s["scenes"])
+    for scene, entry in s["scenes"].items():
+        if "description" in entry:
+            body += f"<p><b>{html.escape(scene)}</b>: {html.escape(entry['description'])}</p>"
+        body += img_tag(out, root / "render" / f"{scene}_side_by_side.png", f"{scene}: table, neural, FLIP")
     if "mono_check" in s:
         m = s["mono_check"]
         body += (f"<p>Spectral variant against {m['n_wavelengths']} mono renders combined with CIE 1931 and D65 "
