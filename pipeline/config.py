@@ -371,6 +371,26 @@ class Swatch(Strict):
     wales: int = Field(6, ge=1, le=1000)
 
 
+class Flyaways(Strict):
+    """Hair-type flyaways about the plies (models/cloth/flyaways.py, Zhao et al. 2016): explicit
+    fibers with the single-fiber model, their fuzz. Loop-type flyaways are not drawn (see there)."""
+
+    yarn: Optional[str] = Field(None, description="row of zhao2016_table2.csv (default: cloth.yarn)")
+    density_scale: float = Field(1.0, ge=0.0, le=100.0, description="times the yarn's hairs per length")
+    seed: int = Field(0, ge=0)
+    share_check_scale: float = Field(0.25, gt=0.0, le=1.0,
+                                     description="image scale of the renders that measure the flyaways' "
+                                                 "share of the radiance (with, without, floor only)")
+
+    @field_validator("yarn")
+    @classmethod
+    def _known_yarn(cls, v):
+        from models.bundle import zhao2016_row
+        if v is not None:
+            zhao2016_row(v)  # names the yarns there are
+        return v
+
+
 class ClothCfg(Strict):
     """A yarn-level model rendered with the bundle BSDF (bcsdf cloth; pipeline/stages/cloth.py).
 
@@ -402,6 +422,7 @@ class ClothCfg(Strict):
     turbidity: float = Field(3.0, ge=1.0, le=10.0, description="of Mitsuba's sunsky emitter")
     ground: bool = Field(True, description="a diffuse floor under the model")
     ground_reflectance: float = Field(0.35, ge=0.0, le=1.0)
+    flyaways: Optional[Flyaways] = Field(None, description="hair flyaways about the plies (absent: none)")
 
     @model_validator(mode="after")
     def _one_source(self):

@@ -237,6 +237,75 @@ def test_degenerate_centre_lines_are_refused():
         build_plies(doubled, 1.0, yarn)
 
 
+# -- flyaways -------------------------------------------------------------------------------
+def test_hair_flyaways_follow_their_distributions_about_a_straight_ply():
+    """About a straight ply along x the ply's cylindrical frame is plain (r = |(y, z)|, s = x,
+    phi = atan2(z, y) up to a constant): each hair's ends, read off its B-spline, give its
+    start radius, radial, axial and azimuthal spans, against the spec's (mu, sigma / 2)."""
+    from models.cloth.curves import bspline_samples, interpolate_bspline
+    from models.cloth.flyaways import SIGMA_SCALE, HairSpec, hair_flyaways
+
+    L, r_ply = 4000.0, 1.0
+    x = np.linspace(0, L, 4001)
+    ply = interpolate_bspline(np.stack([x, 0 * x, 0 * x], -1), closed=False)
+    spec = HairSpec(density=0.5, r0=(0.6, 0.2), r_span=(0.5, 0.3), s_span=(0.1, 1.0), phi_span=(0.4, 0.3))
+    hairs = hair_flyaways([ply], r_ply, spec, seed=3)
+    assert len(hairs) == round(0.5 * L)
+    ends = np.array([bspline_samples(h, 1)[[0, -1]] for h in hairs])           # [n, 2, 3]
+    r = np.hypot(ends[..., 1], ends[..., 2])
+    phi = np.arctan2(ends[..., 2], ends[..., 1])
+    r0, r_span = r[:, 0], r[:, 1] - r[:, 0]
+    s_span = ends[:, 1, 0] - ends[:, 0, 0]
+    phi_span = np.angle(np.exp(1j * (phi[:, 1] - phi[:, 0])))
+    n = len(hairs)
+    for got, (mu, sd) in ((r0, spec.r0), (phi_span, spec.phi_span)):    # untruncated (r0 > 0 at 3 sigma)
+        assert abs(got.mean() - mu) < 4 * SIGMA_SCALE * sd / np.sqrt(n), (got.mean(), mu)
+        assert abs(got.std() / (SIGMA_SCALE * sd) - 1) < 0.1, (got.std(), sd)
+    assert r0.max() <= r_ply + 1e-9 and r_span.min() > 0            # from inside the ply, outwards
+    # the axial span: positive before its coin flip, so |s_span| is N(0.1, 0.5) truncated at 0
+    assert 0.4 < np.mean(s_span > 0) < 0.6 and np.abs(s_span).min() > 0
+    # E[X | X > 0] = mu + sigma pdf(a) / (1 - cdf(a)), a = -mu / sigma = -0.2: 0.4375
+    assert abs(np.abs(s_span).mean() - 0.4375) < 0.03
+    assert np.all(s_span.min() > -L) and ends[..., 0].min() >= 0 and ends[..., 0].max() <= L
+    # s0 and phi0 uniform: starts spread along the ply and round it
+    assert abs(np.mean(ends[:, 0, 0]) / L - 0.5) < 0.05
+    assert abs(np.mean(np.cos(phi[:, 0]))) < 0.1 and abs(np.mean(np.sin(phi[:, 0]))) < 0.1
+
+
+def test_hair_flyaways_round_a_closed_loop_stay_about_it():
+    """About a circular ply loop (radius 10, its B-spline closed as build_plies writes it), every
+    hair point lies within the drawn radii of the loop's centre circle (torus coordinates), and
+    the count is the density times the loop's length."""
+    from models.cloth.curves import bspline_samples, interpolate_bspline
+    from models.cloth.flyaways import HairSpec, hair_flyaways
+
+    loop = interpolate_bspline(circle(400), closed=True)
+    spec = HairSpec(density=5.0, r0=(0.3, 0.05), r_span=(0.2, 0.05), s_span=(1.5, 0.5), phi_span=(0.0, 0.5))
+    hairs = hair_flyaways([loop], 0.5, spec, seed=0)
+    assert abs(len(hairs) - 5.0 * 2 * np.pi * 10) <= 1
+    pts = np.concatenate([bspline_samples(h, 4) for h in hairs])
+    rho = np.hypot(np.hypot(pts[:, 0], pts[:, 1]) - 10.0, pts[:, 2])   # distance from the centre circle
+    assert rho.min() > 0.3 - 4 * 0.025 - 0.01 and rho.max() < 0.5 + 0.2 + 4 * 0.025 + 0.01
+    # hairs cross the loop's seam (angle 0) without a jump
+    a = np.arctan2(pts[:, 1], pts[:, 0])
+    assert np.any(np.abs(a) < 0.05)
+
+
+def test_zhao_flyaways_are_scaled_with_the_ply():
+    """The table's lengths are absolute (centimetres): at the ply's own size (e_X = 0.026 cm
+    = 0.26 mm, in scene millimetres) the hairs are the table's values times 10 and the
+    density per mm a tenth; a ply twice as large doubles the lengths and halves the density."""
+    from models.bundle import zhao2016_row
+    from models.cloth.flyaways import HairSpec
+
+    row = zhao2016_row("Cotton 1")
+    own = HairSpec.from_zhao(row, r_ply=0.26)
+    assert own.density == pytest.approx(3.377, rel=1e-3) and own.r0 == pytest.approx((0.20, 0.06))
+    assert own.r_span == pytest.approx((0.16, 0.09)) and own.phi_span == pytest.approx((0.377, 0.326))
+    big = HairSpec.from_zhao(row, r_ply=0.52, density_scale=2.0)
+    assert big.density == pytest.approx(own.density) and big.s_span == pytest.approx(tuple(2 * v for v in own.s_span))
+
+
 # -- the render: a ply built by the cloth path reproduces its far field ------------------
 def test_cloth_ply_curve_renders_the_far_field_of_its_table(mono, tmp_path):
     """A straight one-ply yarn from a BCC file, through the cloth path (read, B-spline, ply
@@ -335,6 +404,8 @@ def test_a_model_too_large_for_memory_is_refused_before_building():
     (["cloth.model=missing.bcc"], "cannot read"),
     (["cloth.swatch={courses: 2}"], "either cloth.model"),
     (["cloth.ply_pitch_mm=0"], "ply_pitch_mm"),
+    (["cloth.flyaways={yarn: Wool}"], "is not in"),
+    (["cloth.flyaways={density_scale: -1}"], "density_scale"),
 ])
 def test_bad_cloth_configs_are_refused_when_loaded(sets, says):
     from pipeline.config import ConfigError, load_config

@@ -37,6 +37,10 @@ def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
     assert "missing picture" not in page
     if cfg.bundle is not None:
         assert len(re.findall(r"<img ", page)) >= 8
+    if cfg.cloth is not None and cfg.cloth.flyaways is not None:  # the hairs were drawn, rendered, measured
+        import json
+        fly = json.loads((tmp_path / cfg.name / "cloth" / "summary.json").read_text())["flyaways"]
+        assert fly["hairs"] > 0 and -1 < fly["share"]["cloth_pixels"] < 1 and "Flyaways:" in page
     if cfg.sweep:
         family = (tmp_path / cfg.name / "sweep" / "index.html").read_text()
         assert "missing picture" not in family and 'href="../sweep/index.html"' in page

@@ -107,19 +107,23 @@ def interpolate_bspline(Q: np.ndarray, closed: bool) -> np.ndarray:
     three points appended (``len(Q)`` segments, the loop closed with no seam). Open: the same
     rows plus natural ends (``C_0 - 2 C_1 + C_2 = 0`` at both ends), so the curve starts at
     ``Q_0`` and ends at ``Q_-1`` (``len(Q) - 1`` segments).
+
+    ``Q`` may be ``[N, ..., 3]``: many curves of ``N`` samples each, solved together (one
+    factorization), ``C`` then ``[M, ..., 3]``.
     """
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
 
     Q = np.asarray(Q, np.float64)
-    N = len(Q)
+    N, tail = len(Q), Q.shape[1:]
+    Q = Q.reshape(N, -1)
     if closed:
         if N < 3:
             raise ValueError(f"a closed curve needs at least 3 distinct samples (got {N})")
         rows = np.repeat(np.arange(N), 3)
         cols = (rows + np.tile([-1, 0, 1], N)) % N
         A = sp.csr_matrix((np.tile([1 / 6, 4 / 6, 1 / 6], N), (rows, cols)), shape=(N, N))
-        C = np.asarray(spsolve(A.tocsc(), Q)).reshape(N, 3)
+        C = np.asarray(spsolve(A.tocsc(), Q)).reshape((N,) + tail)
         C = np.roll(C, 1, axis=0)  # segment j (C_j..C_j+3) then starts at Q_j
         return np.concatenate([C, C[:3]])
     if N < 2:
@@ -134,9 +138,9 @@ def interpolate_bspline(Q: np.ndarray, closed: bool) -> np.ndarray:
     c += [0, 1, 2, M - 3, M - 2, M - 1]
     v += [1, -2, 1, 1, -2, 1]
     A = sp.csr_matrix((v, (r, c)), shape=(M, M))
-    b = np.zeros((M, 3))
+    b = np.zeros((M, Q.shape[1]))
     b[1:-1] = Q
-    return np.asarray(spsolve(A.tocsc(), b)).reshape(M, 3)
+    return np.asarray(spsolve(A.tocsc(), b)).reshape((M,) + tail)
 
 
 def bspline_samples(C: np.ndarray, per_segment: int) -> np.ndarray:

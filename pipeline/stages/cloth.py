@@ -11,7 +11,11 @@ Phases:
    scaled to ``cloth.yarn_radius_mm``), in a rotation-minimizing frame; yarns that come
    nearer each other than a yarn diameter are reported with the amount (a warning: knitted
    models are compressed where yarns touch). One ``bsplinecurve`` file holds every ply.
-3. **Renders**: the plies carrying ``fiber_bundle`` with each backend of ``cloth.backends``
+3. **Flyaways** (``cloth.flyaways``): hair-type flyaways of the Zhao yarn about every ply
+   (``models.cloth.flyaways``), explicit fibers with the single-fiber model, scaled with the
+   ply as its fibers are; their share of the rendered radiance is measured on smaller renders
+   with, without and with no cloth at all (``share_check_scale``).
+4. **Renders**: the plies carrying ``fiber_bundle`` with each backend of ``cloth.backends``
    (the bake's table; the ``render.model`` MLP), under Mitsuba's ``sunsky`` on a floor,
    ``bundle_path`` integrator; FLIP of every neural image against the table's.
 
@@ -138,8 +142,60 @@ def build(cfg, out: Path) -> tuple[dict, object]:
     return info, geometry
 
 
-def render_apart(cfg, bsdf: dict, plies_path, radius: float, bbox) -> tuple[np.ndarray, float]:
-    """One render of the plies with ``bsdf`` in a process of its own: ``(image, seconds)``.
+def flyaways(cfg, out: Path, geometry, yarn, out_root) -> tuple[dict, dict | None]:
+    """Phase 3: ``flyaways.txt`` and its shape (``None`` without ``cloth.flyaways``), and its summary."""
+    from models.bundle import zhao2016_row
+    from models.cloth.flyaways import HairSpec, hair_flyaways
+    from models.cloth.yarn import PlyGeometry, write_curves
+
+    from .. import closure
+    from ..artifacts import fiber_table_path, load_bundle_table
+
+    f = cfg.cloth.flyaways
+    if f is None:
+        return {}, None
+    t0 = time.perf_counter()
+    spec = HairSpec.from_zhao(zhao2016_row(f.yarn or cfg.cloth.yarn), yarn.r_ply, f.density_scale)
+    hairs = hair_flyaways(geometry.curves, yarn.r_ply, spec, seed=f.seed)
+    # the fibers' radius scaled with the ply, as the plies' own fibers (models.cloth.fibers)
+    radius = cfg.fiber.radius_um * yarn.r_ply / cfg.bundle.bounding_radius_um()
+    write_curves(out / "flyaways.txt", PlyGeometry(hairs, radius, 0.0, np.inf, 0.0))
+    # the hairs leave their fibers as the bake's fibers do (closure.explicit_fiber)
+    exit_model = load_bundle_table(cfg, out_root)[0].meta.get("exit", "uniform")
+    fiber = closure.explicit_fiber(fiber_table_path(cfg, out_root), exit_model, 550.0)
+    for key in ("wavelength", "up"):  # spectral renders use every wavelength; curves have their own frame
+        fiber.pop(key)
+    shape = {"type": "bsplinecurve", "filename": str(out / "flyaways.txt"), "bsdf": fiber}
+    info = {"hairs": len(hairs), "control_points": int(sum(len(h) for h in hairs)), "fiber_radius_mm": radius,
+            "hairs_per_mm": spec.density, "yarn": f.yarn or cfg.cloth.yarn, "density_scale": f.density_scale,
+            "plugin": fiber["type"], "seconds": time.perf_counter() - t0}
+    print(f"[cloth] flyaways: {len(hairs):,} hairs ({spec.density:.3g} per mm of ply), {info['control_points']:,} "
+          f"control points, in {info['seconds']:.1f} s")
+    return info, shape
+
+
+def flyaway_share(cfg, shapes: dict, bbox) -> dict:
+    """The flyaways' share of the rendered radiance, from three renders at ``share_check_scale``
+    of the image (table backend, the same samples): the cloth with flyaways, without them, and
+    no cloth at all. Over the whole frame, and over the cloth's pixels (where the render with
+    flyaways differs from the empty scene by more than 2%: plies, hairs and their shadows)."""
+    c = cfg.cloth
+    k = c.flyaways.share_check_scale
+    size = (max(8, round(c.width * k)), max(8, round(c.height * k)))
+    with_, _ = render_apart(cfg, shapes, bbox, size)
+    without, _ = render_apart(cfg, {"yarn": shapes["yarn"]}, bbox, size)
+    empty, _ = render_apart(cfg, {}, bbox, size)
+    Y = np.array([0.2126, 0.7152, 0.0722]) if with_.shape[-1] == 3 else np.ones(1)
+    w, wo, e = with_ @ Y, without @ Y, empty @ Y
+    cloth = np.abs(w - e) > 0.02 * np.maximum(e, 1e-6)
+    return {"size": list(size), "frame": float((w.sum() - wo.sum()) / max(w.sum(), 1e-30)),
+            "cloth_pixels": float((w[cloth].sum() - wo[cloth].sum()) / max(w[cloth].sum(), 1e-30)),
+            "cloth_pixel_fraction": float(cloth.mean())}
+
+
+def render_apart(cfg, shapes: dict, bbox, size=None) -> tuple[np.ndarray, float]:
+    """One render of ``shapes`` (Mitsuba dicts; the plies carry one backend's ``fiber_bundle``)
+    in a process of its own, at ``size`` (default the config's): ``(image, seconds)``.
 
     Why a process: in Mitsuba 3.9 / Dr.Jit 1.5 (LLVM), a second scene of the glove's plies
     rendered with another kernel in the same process (the MLP after the table) segfaults
@@ -151,13 +207,14 @@ def render_apart(cfg, bsdf: dict, plies_path, radius: float, bbox) -> tuple[np.n
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
-        job = {"config": cfg.model_dump(mode="json"), "bsdf": bsdf, "plies": str(plies_path), "radius": radius,
-               "bbox": bbox, "out": str(Path(tmp) / "image.npy")}
+        job = {"config": cfg.model_dump(mode="json"), "shapes": shapes, "bbox": bbox, "size": size,
+               "out": str(Path(tmp) / "image.npy")}
         (Path(tmp) / "job.json").write_text(json.dumps(job))
         r = subprocess.run([sys.executable, "-m", "pipeline.stages.cloth", str(Path(tmp) / "job.json")],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         if r.returncode != 0:
-            raise RuntimeError(f"cloth: the {bsdf.get('backend')} render failed (exit status {r.returncode}):\n"
+            backend = shapes.get("yarn", {}).get("bsdf", {}).get("backend", "empty scene")
+            raise RuntimeError(f"cloth: the {backend} render failed (exit status {r.returncode}):\n"
                                f"{r.stderr[-2000:]}")
         return np.load(job["out"]), float(json.loads(r.stdout.strip().splitlines()[-1])["seconds"])
 
@@ -174,11 +231,14 @@ def _render_job(path) -> None:
 
     job = json.loads(Path(path).read_text())
     cfg = Config.model_validate(job["config"])
-    mi.set_variant(cfg.cloth.variant)
+    c = cfg.cloth
+    if job["size"]:
+        c = c.model_copy(update={"width": job["size"][0], "height": job["size"][1]})
+    mi.set_variant(c.variant)
     mitsuba_ext.register()
-    scene = scenes.cloth_scene(mi, cfg.cloth, {"yarn": scenes.ply_shape(job["plies"], job["bsdf"], job["radius"])},
-                               job["bbox"], cfg.cloth.spp)
-    img, seconds, _ = render_timed(mi, scene, job["bsdf"].get("backend", "table"), warm=False)
+    scene = scenes.cloth_scene(mi, c, job["shapes"], job["bbox"], c.spp)
+    backend = job["shapes"].get("yarn", {}).get("bsdf", {}).get("backend", "table")
+    img, seconds, _ = render_timed(mi, scene, backend, warm=False)
     np.save(job["out"], img)
     print(json.dumps({"seconds": seconds}))
 
@@ -186,6 +246,7 @@ def _render_job(path) -> None:
 def run(cfg, out_root="artifacts") -> Path:
     import mitsuba as mi
 
+    from .. import scenes
     from .render import backend_props, exposure_of, flip_and_psnr, model_size, save_images, save_png
 
     if cfg.cloth is None:
@@ -200,13 +261,25 @@ def run(cfg, out_root="artifacts") -> Path:
     # -- phases 1 and 2: centre lines and plies
     info, geometry = build(cfg, out)
 
-    # -- phase 3: renders, each in a process of its own (render_apart)
+    # -- phase 3: flyaways
+    fly_info, fly_shape = flyaways(cfg, out, geometry, yarn_spec(c), out_root)
+    extra = {"flyaways": fly_shape} if fly_shape else {}
+
+    # -- phase 4: renders, each in a process of its own (render_apart)
     mi.set_variant(c.variant)
     summary = {"variant": c.variant, "size": [c.width, c.height], "spp": c.spp, "geometry": info,
                "model": model_size(cfg) if set(c.backends) - {"table"} else None, "backends": {}}
+    if fly_shape:
+        plies = {"yarn": scenes.ply_shape(out / "plies.txt", props["table"] if "table" in props
+                                          else props[c.backends[0]], geometry.radius)}
+        fly_info["share"] = flyaway_share(cfg, {**plies, **extra}, info["bbox_mm"])
+        summary["flyaways"] = fly_info
+        print(f"[cloth] flyaways' share of the radiance: {fly_info['share']['cloth_pixels']:.1%} on the cloth's "
+              f"pixels, {fly_info['share']['frame']:.1%} of the frame")
     images = {}
     for backend in c.backends:
-        img, seconds = render_apart(cfg, props[backend], out / "plies.txt", geometry.radius, info["bbox_mm"])
+        shapes = {"yarn": scenes.ply_shape(out / "plies.txt", props[backend], geometry.radius), **extra}
+        img, seconds = render_apart(cfg, shapes, info["bbox_mm"])
         images[backend] = img
         summary["backends"][backend] = {"seconds": seconds, "mean_radiance": img.mean(axis=(0, 1)).tolist()}
         print(f"[cloth] {backend}: {c.width} x {c.height} x {c.spp} spp in {seconds:.1f} s (compilation included)")
@@ -225,7 +298,9 @@ def run(cfg, out_root="artifacts") -> Path:
                                             "control_points": info["control_points"],
                                             **{f"{b}_seconds": e["seconds"] for b, e in summary["backends"].items()},
                                             **{f"{b}_flip": e["flip"] for b, e in summary["backends"].items()
-                                               if "flip" in e}})
+                                               if "flip" in e},
+                                            **({"flyaway_share": fly_info["share"]["cloth_pixels"],
+                                                "flyaway_hairs": fly_info["hairs"]} if fly_info else {})})
     return out
 
 

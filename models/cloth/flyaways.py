@@ -1,0 +1,118 @@
+"""Hair-type flyaways about the plies: the fuzz of a real yarn (Zhao et al. 2016, Sec. 4.4).
+
+A hair flyaway is a short fiber that leaves its ply: in the ply's cylindrical frame
+``(r, phi, s)`` (distance from the ply's centre line, angle about it, arc length along it)
+it runs straight from ``(r0, phi0, s0)`` to ``(r0 + r_span, phi0 + phi_span, s0 + s_span)``,
+with ``s0`` and ``phi0`` uniform and
+
+    r0 ~ N(Rhair_min),  r_span ~ N(Rhair_span) > 0,  s_span ~ N(zhair_span) > 0,
+    phi_span ~ N(thhair_span),   Rhair_min etc. the (mu, sigma) pairs of Zhao's Table 2,
+
+``rho_hair`` of them per unit length of every ply. As in Zhao et al.'s public generator
+(``Fiber-level-cloth-simulation``, its "improved flyaways"), each draw uses half the listed
+sigma (that code's note: the fitted sigma is twice the Gaussian's), ``r0`` is clamped to
+the ply's radius, and the axial span is drawn positive; which way along the ply a hair
+points is a coin flip here (the ply has no preferred direction).
+
+**Units.** The lengths of ``zhao2016_table2.csv`` are absolute, in the table's length unit
+(the generator clamps ``r0`` against the ply's ellipse, ``sqrt(e_X e_Y)``, in the same
+unit); they are scaled with the ply, as :meth:`~models.cloth.yarn.YarnSpec.from_zhao` scales
+the yarn, and the density per unit length inversely.
+
+**Loop-type flyaways are not drawn.** Their fitted radius (``Rloop_max``, Cotton 1: mean
+0.024) lies inside the ply's own ellipse (``e_X`` 0.026) in the table's units, so as
+absolute radii the loops would not leave the ply, and the public generator has them
+switched off (``if (0 && nloop > 0)``): what they should be is not settled by the data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .curves import bspline_samples, interpolate_bspline
+from .plies import transport_frames
+
+HAIR_SAMPLES = 4        # points along one hair (a straight line in (r, phi, s): a gentle spiral)
+SIGMA_SCALE = 0.5       # Zhao et al.'s generator: the fitted sigma is twice the Gaussian's
+
+
+@dataclass
+class HairSpec:
+    """Hair flyaways of one ply in scene units: ``density`` per unit length and the
+    ``(mu, sigma)`` of the start radius, radial span, axial span (lengths) and azimuthal
+    span (radians)."""
+
+    density: float
+    r0: tuple[float, float]
+    r_span: tuple[float, float]
+    s_span: tuple[float, float]
+    phi_span: tuple[float, float]
+
+    @classmethod
+    def from_zhao(cls, row: dict, r_ply: float, density_scale: float = 1.0) -> "HairSpec":
+        """Zhao's hair flyaways for a ply of radius ``r_ply`` (scene units): the table's
+        lengths scaled by ``r_ply / max(e_X, e_Y)`` (the ply's bounding circle, as the plies
+        are drawn), its density by the inverse, times ``density_scale``."""
+        scale = r_ply / max(float(row["eX"]), float(row["eY"]))
+
+        def pair(name, k=scale):
+            return (k * float(row[f"{name}_mu"]), k * float(row[f"{name}_sd"]))
+        return cls(density_scale * float(row["rho_hair"]) / scale, pair("Rhair_min"), pair("Rhair_span"),
+                   pair("zhair_span"), pair("thhair_span", 1.0))
+
+
+def _normal(rng, mu_sigma, n, low=None):
+    """``n`` draws of N(mu, SIGMA_SCALE sigma), redrawn where ``<= low`` (a truncated normal)."""
+    mu, sigma = mu_sigma
+    x = mu + SIGMA_SCALE * sigma * rng.standard_normal(n)
+    if low is not None:
+        for _ in range(1000):
+            bad = x <= low
+            if not bad.any():
+                break
+            x[bad] = mu + SIGMA_SCALE * sigma * rng.standard_normal(int(bad.sum()))
+        x = np.maximum(x, np.nextafter(low, np.inf))  # a spread too narrow to leave `low`: at it
+    return x
+
+
+def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: int = 0) -> list[np.ndarray]:
+    """Hair flyaways about every ply (``plies``: B-spline control points ``[n, 3]`` of the
+    ply centre lines in Mitsuba's layout, as :func:`~models.cloth.yarn.build_plies` returns
+    them; a closed loop's ends repeat its first three points), each hair a B-spline's control
+    points ``[m, 3]`` (an open curve).
+
+    ``round(density * length)`` hairs per ply, at uniform arc length and angle, in the ply's
+    rotation-minimizing frame (continuous round a closed loop, so a hair may cross its seam).
+    """
+    rng = np.random.default_rng(seed)
+    hairs = []
+    u = np.linspace(0.0, 1.0, HAIR_SAMPLES)[:, None]
+    for C in plies:
+        loop = len(C) > 6 and np.allclose(C[:3], C[-3:])
+        p = bspline_samples(C, 2)
+        f = transport_frames(p[:-1] if loop else p, closed=loop, stride=4)
+        n = int(np.floor(spec.density * f.length + 0.5))
+        if n == 0:
+            continue
+        r0 = np.minimum(_normal(rng, spec.r0, n, low=0.0), r_ply)
+        r_span = _normal(rng, spec.r_span, n, low=0.0)
+        s_span = _normal(rng, spec.s_span, n, low=0.0) * rng.choice([-1.0, 1.0], n)
+        phi_span = _normal(rng, spec.phi_span, n)
+        s0 = rng.uniform(0.0, f.length, n)
+        phi0 = rng.uniform(0.0, 2 * np.pi, n)
+        r = r0 + u * r_span                                      # [HAIR_SAMPLES, n]
+        phi = phi0 + u * phi_span
+        s = s0 + u * s_span
+        s = np.mod(s, f.length) if loop else np.clip(s, 0.0, f.length)
+        # the ply's frame at s, linearly between its dense samples (round the loop's seam too)
+        knots = np.append(f.s, f.length) if loop else f.s
+
+        def at(v):
+            v = np.concatenate([v, v[:1]]) if loop else v
+            return np.stack([np.interp(s, knots, v[:, d]) for d in range(3)], -1)
+        centre, normal, binormal = at(f.p), at(f.n), at(f.b)
+        pos = centre + r[..., None] * (np.cos(phi)[..., None] * normal + np.sin(phi)[..., None] * binormal)
+        hairs += list(interpolate_bspline(pos, closed=False).transpose(1, 0, 2))  # all of the ply's at once
+    return hairs
