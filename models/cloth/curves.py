@@ -140,6 +140,8 @@ def interpolate_bspline(Q: np.ndarray, closed: bool) -> np.ndarray:
     A = sp.csr_matrix((v, (r, c)), shape=(M, M))
     b = np.zeros((M, Q.shape[1]))
     b[1:-1] = Q
+    if M <= 64:  # short curves (flyaways), many at once: a dense solve is cheaper than SuperLU's set-up
+        return np.linalg.solve(A.toarray(), b).reshape((M,) + tail)
     return np.asarray(spsolve(A.tocsc(), b)).reshape((M,) + tail)
 
 

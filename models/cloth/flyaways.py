@@ -106,13 +106,15 @@ def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: i
         phi = phi0 + u * phi_span
         s = s0 + u * s_span
         s = np.mod(s, f.length) if loop else np.clip(s, 0.0, f.length)
-        # the ply's frame at s, linearly between its dense samples (round the loop's seam too)
+        # the ply's frame at s, linearly between its dense samples (round the loop's seam too):
+        # one search for the nine coordinates of (p, n, b)
         knots = np.append(f.s, f.length) if loop else f.s
-
-        def at(v):
-            v = np.concatenate([v, v[:1]]) if loop else v
-            return np.stack([np.interp(s, knots, v[:, d]) for d in range(3)], -1)
-        centre, normal, binormal = at(f.p), at(f.n), at(f.b)
+        table = np.concatenate([f.p, f.n, f.b], axis=1)
+        table = np.concatenate([table, table[:1]]) if loop else table
+        j = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(knots) - 2)
+        w = ((s - knots[j]) / (knots[j + 1] - knots[j]))[..., None]
+        frame = (1 - w) * table[j] + w * table[j + 1]
+        centre, normal, binormal = frame[..., 0:3], frame[..., 3:6], frame[..., 6:9]
         pos = centre + r[..., None] * (np.cos(phi)[..., None] * normal + np.sin(phi)[..., None] * binormal)
         hairs += list(interpolate_bspline(pos, closed=False).transpose(1, 0, 2))  # all of the ply's at once
     return hairs
