@@ -238,57 +238,69 @@ def test_degenerate_centre_lines_are_refused():
 
 
 # -- flyaways -------------------------------------------------------------------------------
-def test_hair_flyaways_follow_their_distributions_about_a_straight_ply():
-    """About a straight ply along x the ply's cylindrical frame is plain (r = |(y, z)|, s = x,
-    phi = atan2(z, y) up to a constant): each hair's ends, read off its B-spline, give its
-    start radius, radial, axial and azimuthal spans, against the spec's (mu, sigma / 2)."""
-    from models.cloth.curves import bspline_samples, interpolate_bspline
-    from models.cloth.flyaways import SIGMA_SCALE, HairSpec, hair_flyaways
+def test_hair_draws_follow_their_distributions():
+    """Each hair parameter against its (mu, sigma / 2) (Zhao et al.'s generator's spread), the
+    count against density x length, the starts uniform along and round the ply."""
+    from models.cloth.flyaways import SIGMA_SCALE, HairSpec, draw_hairs
 
     L, r_ply = 4000.0, 1.0
-    x = np.linspace(0, L, 4001)
-    ply = interpolate_bspline(np.stack([x, 0 * x, 0 * x], -1), closed=False)
     spec = HairSpec(density=0.5, r0=(0.6, 0.2), r_span=(0.5, 0.3), s_span=(0.1, 1.0), phi_span=(0.4, 0.3))
-    hairs = hair_flyaways([ply], r_ply, spec, seed=3)
-    assert len(hairs) == round(0.5 * L)
-    ends = np.array([bspline_samples(h, 1)[[0, -1]] for h in hairs])           # [n, 2, 3]
-    r = np.hypot(ends[..., 1], ends[..., 2])
-    phi = np.arctan2(ends[..., 2], ends[..., 1])
-    r0, r_span = r[:, 0], r[:, 1] - r[:, 0]
-    s_span = ends[:, 1, 0] - ends[:, 0, 0]
-    phi_span = np.angle(np.exp(1j * (phi[:, 1] - phi[:, 0])))
-    n = len(hairs)
-    for got, (mu, sd) in ((r0, spec.r0), (phi_span, spec.phi_span)):    # untruncated (r0 > 0 at 3 sigma)
+    h = draw_hairs(np.random.default_rng(3), spec, r_ply, L)
+    n = len(h.r0)
+    assert n == round(0.5 * L)
+    for got, (mu, sd) in ((h.r0, spec.r0), (h.phi_span, spec.phi_span)):    # untruncated (r0 > 0 at 3 sigma)
         assert abs(got.mean() - mu) < 4 * SIGMA_SCALE * sd / np.sqrt(n), (got.mean(), mu)
         assert abs(got.std() / (SIGMA_SCALE * sd) - 1) < 0.1, (got.std(), sd)
-    assert r0.max() <= r_ply + 1e-9 and r_span.min() > 0            # from inside the ply, outwards
-    # the axial span: positive before its coin flip, so |s_span| is N(0.1, 0.5) truncated at 0
-    assert 0.4 < np.mean(s_span > 0) < 0.6 and np.abs(s_span).min() > 0
+    assert h.r0.max() <= r_ply and h.r_span.min() > 0
+    # the axial span: positive before its coin flip, so |s_span| is N(0.1, 0.5) truncated at 0:
     # E[X | X > 0] = mu + sigma pdf(a) / (1 - cdf(a)), a = -mu / sigma = -0.2: 0.4375
-    assert abs(np.abs(s_span).mean() - 0.4375) < 0.03
-    assert np.all(s_span.min() > -L) and ends[..., 0].min() >= 0 and ends[..., 0].max() <= L
-    # s0 and phi0 uniform: starts spread along the ply and round it
-    assert abs(np.mean(ends[:, 0, 0]) / L - 0.5) < 0.05
-    assert abs(np.mean(np.cos(phi[:, 0]))) < 0.1 and abs(np.mean(np.sin(phi[:, 0]))) < 0.1
+    assert 0.4 < np.mean(h.s_span > 0) < 0.6 and abs(np.abs(h.s_span).mean() - 0.4375) < 0.03
+    assert abs(h.s0.mean() / L - 0.5) < 0.02 and abs(np.mean(np.exp(1j * h.phi0))) < 0.1
 
 
-def test_hair_flyaways_round_a_closed_loop_stay_about_it():
+def test_hairs_about_a_straight_ply_start_where_they_leave_it():
+    """About a straight ply along x its frame is plain (r = |(y, z)|, s = x): each placed hair
+    runs from where its line (r0 + u r_span, phi0 + u phi_span, s0 + u s_span) crosses the
+    radius r_out to its end; a hair that ends inside is not placed."""
+    from models.cloth.flyaways import HAIR_SAMPLES, Hairs, place_hairs
+
+    x = np.linspace(0, 100, 1001)
+    f = transport_frames(np.stack([x, 0 * x, 0 * x], -1), closed=False)
+    h = Hairs(s0=np.array([10.0, 50.0, 70.0]), phi0=np.array([0.0, 1.0, 2.0]), r0=np.array([0.5, 0.9, 0.2]),
+              r_span=np.array([1.0, 0.4, 0.5]), s_span=np.array([2.0, -1.0, 1.0]), phi_span=np.array([0.5, 0.2, 0.1]))
+    pts = place_hairs(f, h, r_out=1.0)
+    assert pts.shape == (HAIR_SAMPLES, 2, 3)        # the third ends at 0.7, inside
+    r = np.hypot(pts[..., 1], pts[..., 2])
+    assert np.allclose(r[0], 1.0) and np.allclose(r[-1], [1.5, 1.3])
+    u_in = np.array([0.5, 0.25])                    # where r0 + u r_span = 1
+    assert np.allclose(pts[0, :, 0], [10 + 2 * 0.5, 50 - 0.25]) and np.allclose(pts[-1, :, 0], [12, 49])
+    turn = np.angle(np.exp(1j * (np.arctan2(pts[-1, :, 2], pts[-1, :, 1]) - np.arctan2(pts[0, :, 2], pts[0, :, 1]))))
+    assert np.allclose(turn, [0.5, 0.2] * (1 - u_in))
+
+
+def test_hair_flyaways_round_a_closed_loop_stay_about_it_and_pierce_no_other_ply():
     """About a circular ply loop (radius 10, its B-spline closed as build_plies writes it), every
-    hair point lies within the drawn radii of the loop's centre circle (torus coordinates), and
-    the count is the density times the loop's length."""
+    hair point lies between the ply's surface and the longest hair (torus coordinates), and
+    hairs cross the loop's seam; beside a second loop 1.2 radii away, no hair comes within a
+    ply radius (and the margin) of the other's centre line."""
     from models.cloth.curves import bspline_samples, interpolate_bspline
     from models.cloth.flyaways import HairSpec, hair_flyaways
 
     loop = interpolate_bspline(circle(400), closed=True)
-    spec = HairSpec(density=5.0, r0=(0.3, 0.05), r_span=(0.2, 0.05), s_span=(1.5, 0.5), phi_span=(0.0, 0.5))
-    hairs = hair_flyaways([loop], 0.5, spec, seed=0)
-    assert abs(len(hairs) - 5.0 * 2 * np.pi * 10) <= 1
+    spec = HairSpec(density=5.0, r0=(0.4, 0.05), r_span=(0.3, 0.05), s_span=(1.5, 0.5), phi_span=(0.0, 0.5))
+    hairs = hair_flyaways([loop], 0.5, spec, seed=0, hair_radius=0.02)
+    assert 0.5 * 5.0 * 2 * np.pi * 10 < len(hairs) <= 5.0 * 2 * np.pi * 10 + 1   # some end inside the ply
     pts = np.concatenate([bspline_samples(h, 4) for h in hairs])
     rho = np.hypot(np.hypot(pts[:, 0], pts[:, 1]) - 10.0, pts[:, 2])   # distance from the centre circle
-    assert rho.min() > 0.3 - 4 * 0.025 - 0.01 and rho.max() < 0.5 + 0.2 + 4 * 0.025 + 0.01
-    # hairs cross the loop's seam (angle 0) without a jump
-    a = np.arctan2(pts[:, 1], pts[:, 0])
-    assert np.any(np.abs(a) < 0.05)
+    assert rho.min() > 0.5 + 0.03 - 0.005 and rho.max() < 0.4 + 0.3 + 4 * 0.05 + 0.01
+    assert np.any(np.abs(np.arctan2(pts[:, 1], pts[:, 0])) < 0.05)   # across the seam at angle 0
+    other = interpolate_bspline(circle(400) + [0.0, 0.0, 1.2], closed=True)
+    both = hair_flyaways([loop, other], 0.5, spec, seed=0, hair_radius=0.02)
+    assert 0 < len(both) < 2 * len(hairs)
+    P = np.concatenate([bspline_samples(h, 4) for h in both])
+    d0 = np.hypot(np.hypot(P[:, 0], P[:, 1]) - 10.0, P[:, 2])
+    d1 = np.hypot(np.hypot(P[:, 0], P[:, 1]) - 10.0, P[:, 2] - 1.2)
+    assert np.all(np.minimum(d0, d1) > 0.5 + 0.03 - 0.005)   # every hair clear of both plies
 
 
 def test_zhao_flyaways_are_scaled_with_the_ply():

@@ -77,44 +77,98 @@ def _normal(rng, mu_sigma, n, low=None):
     return x
 
 
-def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: int = 0) -> list[np.ndarray]:
+@dataclass
+class Hairs:
+    """The drawn parameters of ``n`` hairs about one ply (arrays ``[n]``): where each starts
+    (``s0`` along the ply, ``phi0`` round it, ``r0`` from its axis) and its spans."""
+
+    s0: np.ndarray
+    phi0: np.ndarray
+    r0: np.ndarray
+    r_span: np.ndarray
+    s_span: np.ndarray
+    phi_span: np.ndarray
+
+
+def draw_hairs(rng, spec: HairSpec, r_ply: float, length: float) -> Hairs:
+    """``round(density * length)`` hairs: ``s0``, ``phi0`` uniform, the rest from ``spec``
+    (``r0`` clamped to the ply's radius, positive radial and axial spans, the axial one's
+    sign a coin flip)."""
+    n = int(np.floor(spec.density * length + 0.5))
+    r0 = np.minimum(_normal(rng, spec.r0, n, low=0.0), r_ply)
+    r_span = _normal(rng, spec.r_span, n, low=0.0)
+    s_span = _normal(rng, spec.s_span, n, low=0.0) * rng.choice([-1.0, 1.0], n)
+    phi_span = _normal(rng, spec.phi_span, n)
+    return Hairs(rng.uniform(0.0, length, n), rng.uniform(0.0, 2 * np.pi, n), r0, r_span, s_span, phi_span)
+
+
+def place_hairs(frames, hairs: Hairs, r_out: float) -> np.ndarray:
+    """Points ``[HAIR_SAMPLES, n, 3]`` of each hair's part outside radius ``r_out`` (the ply's
+    surface and a margin; the part inside is the ply's own fibers, which the bundle stands
+    for), in the ply's frame; hairs that never leave it are not placed (``n`` counts the rest)."""
+    f = frames
+    end = hairs.r0 + hairs.r_span
+    out = end > r_out
+    u_in = np.clip((r_out - hairs.r0[out]) / hairs.r_span[out], 0.0, 1.0)
+    u = u_in + np.linspace(0.0, 1.0, HAIR_SAMPLES)[:, None] * (1.0 - u_in)   # [HAIR_SAMPLES, n]
+    r = hairs.r0[out] + u * hairs.r_span[out]
+    phi = hairs.phi0[out] + u * hairs.phi_span[out]
+    s = hairs.s0[out] + u * hairs.s_span[out]
+    s = np.mod(s, f.length) if f.closed else np.clip(s, 0.0, f.length)
+    # the ply's frame at s, linearly between its dense samples (round the loop's seam too):
+    # one search for the nine coordinates of (p, n, b)
+    knots = np.append(f.s, f.length) if f.closed else f.s
+    table = np.concatenate([f.p, f.n, f.b], axis=1)
+    table = np.concatenate([table, table[:1]]) if f.closed else table
+    j = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(knots) - 2)
+    w = ((s - knots[j]) / (knots[j + 1] - knots[j]))[..., None]
+    frame = (1 - w) * table[j] + w * table[j + 1]
+    centre, normal, binormal = frame[..., 0:3], frame[..., 3:6], frame[..., 6:9]
+    return centre + r[..., None] * (np.cos(phi)[..., None] * normal + np.sin(phi)[..., None] * binormal)
+
+
+def piercing(points: np.ndarray, owner: np.ndarray, ply_samples: list[np.ndarray], reach: float) -> np.ndarray:
+    """Which hairs (``points [HAIR_SAMPLES, n, 3]``, of plies ``owner [n]``) come within
+    ``reach`` of another ply's centre line (its samples): they would pierce it."""
+    from scipy.spatial import cKDTree
+
+    pts = np.concatenate(ply_samples)
+    ids = np.concatenate([np.full(len(p), k) for k, p in enumerate(ply_samples)])
+    tree = cKDTree(pts)
+    hit = np.zeros(points.shape[1], bool)
+    for row in points:  # the 16 nearest samples within reach: the own ply's are a few of them
+        d, j = tree.query(row, k=16, distance_upper_bound=reach)
+        found = np.isfinite(d)
+        hit |= np.any(found & (ids[np.minimum(j, len(ids) - 1)] != owner[:, None]), axis=1)
+    return hit
+
+
+def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: int = 0,
+                  hair_radius: float = 0.0) -> list[np.ndarray]:
     """Hair flyaways about every ply (``plies``: B-spline control points ``[n, 3]`` of the
     ply centre lines in Mitsuba's layout, as :func:`~models.cloth.yarn.build_plies` returns
     them; a closed loop's ends repeat its first three points), each hair a B-spline's control
     points ``[m, 3]`` (an open curve).
 
-    ``round(density * length)`` hairs per ply, at uniform arc length and angle, in the ply's
-    rotation-minimizing frame (continuous round a closed loop, so a hair may cross its seam).
+    Per ply, :func:`draw_hairs`, in the ply's rotation-minimizing frame (continuous round a
+    closed loop, so a hair may cross its seam); each hair from where it leaves the ply
+    (:func:`place_hairs`, ``hair_radius`` clear of its surface); hairs that would pierce
+    another ply are left out (:func:`piercing`): touching curves are also what Mitsuba 3.9's
+    curve intersection cannot take (it crashed a glove render).
     """
     rng = np.random.default_rng(seed)
-    hairs = []
-    u = np.linspace(0.0, 1.0, HAIR_SAMPLES)[:, None]
-    for C in plies:
+    placed, owner, samples = [], [], []
+    for k, C in enumerate(plies):
         loop = len(C) > 6 and np.allclose(C[:3], C[-3:])
         p = bspline_samples(C, 2)
         f = transport_frames(p[:-1] if loop else p, closed=loop, stride=4)
-        n = int(np.floor(spec.density * f.length + 0.5))
-        if n == 0:
-            continue
-        r0 = np.minimum(_normal(rng, spec.r0, n, low=0.0), r_ply)
-        r_span = _normal(rng, spec.r_span, n, low=0.0)
-        s_span = _normal(rng, spec.s_span, n, low=0.0) * rng.choice([-1.0, 1.0], n)
-        phi_span = _normal(rng, spec.phi_span, n)
-        s0 = rng.uniform(0.0, f.length, n)
-        phi0 = rng.uniform(0.0, 2 * np.pi, n)
-        r = r0 + u * r_span                                      # [HAIR_SAMPLES, n]
-        phi = phi0 + u * phi_span
-        s = s0 + u * s_span
-        s = np.mod(s, f.length) if loop else np.clip(s, 0.0, f.length)
-        # the ply's frame at s, linearly between its dense samples (round the loop's seam too):
-        # one search for the nine coordinates of (p, n, b)
-        knots = np.append(f.s, f.length) if loop else f.s
-        table = np.concatenate([f.p, f.n, f.b], axis=1)
-        table = np.concatenate([table, table[:1]]) if loop else table
-        j = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(knots) - 2)
-        w = ((s - knots[j]) / (knots[j + 1] - knots[j]))[..., None]
-        frame = (1 - w) * table[j] + w * table[j + 1]
-        centre, normal, binormal = frame[..., 0:3], frame[..., 3:6], frame[..., 6:9]
-        pos = centre + r[..., None] * (np.cos(phi)[..., None] * normal + np.sin(phi)[..., None] * binormal)
-        hairs += list(interpolate_bspline(pos, closed=False).transpose(1, 0, 2))  # all of the ply's at once
-    return hairs
+        samples.append(f.p)
+        pts = place_hairs(f, draw_hairs(rng, spec, r_ply, f.length), r_ply + 1.5 * hair_radius)
+        placed.append(pts)
+        owner.append(np.full(pts.shape[1], k))
+    if not placed:
+        return []
+    points, owner = np.concatenate(placed, axis=1), np.concatenate(owner)
+    if len(plies) > 1 and points.shape[1]:
+        points = points[:, ~piercing(points, owner, samples, r_ply + 1.5 * hair_radius)]
+    return list(interpolate_bspline(points, closed=False).transpose(1, 0, 2)) if points.shape[1] else []

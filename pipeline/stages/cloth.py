@@ -156,9 +156,9 @@ def flyaways(cfg, out: Path, geometry, yarn, out_root) -> tuple[dict, dict | Non
         return {}, None
     t0 = time.perf_counter()
     spec = HairSpec.from_zhao(zhao2016_row(f.yarn or cfg.cloth.yarn), yarn.r_ply, f.density_scale)
-    hairs = hair_flyaways(geometry.curves, yarn.r_ply, spec, seed=f.seed)
     # the fibers' radius scaled with the ply, as the plies' own fibers (models.cloth.fibers)
     radius = cfg.fiber.radius_um * yarn.r_ply / cfg.bundle.bounding_radius_um()
+    hairs = hair_flyaways(geometry.curves, yarn.r_ply, spec, seed=f.seed, hair_radius=radius)
     write_curves(out / "flyaways.txt", PlyGeometry(hairs, radius, 0.0, np.inf, 0.0))
     # the hairs leave their fibers as the bake's fibers do (closure.explicit_fiber)
     exit_model = load_bundle_table(cfg, out_root)[0].meta.get("exit", "uniform")
