@@ -290,14 +290,16 @@ def test_hair_flyaways_round_a_closed_loop_stay_about_it_and_pierce_no_other_ply
     spec = HairSpec(density=5.0, r0=(0.4, 0.05), r_span=(0.3, 0.05), s_span=(1.5, 0.5), phi_span=(0.0, 0.5))
     hairs = hair_flyaways([loop], 0.5, spec, seed=0, hair_radius=0.02)
     assert 0.5 * 5.0 * 2 * np.pi * 10 < len(hairs) <= 5.0 * 2 * np.pi * 10 + 1   # some end inside the ply
-    pts = np.concatenate([bspline_samples(h, 4) for h in hairs])
+    assert all(h.shape[1] == 4 and np.all(h[[0, 1, 2, -3, -2, -1], 3] == 0) and np.all(h[3:-3, 3] == 0.02)
+               for h in hairs)                                  # radius 0.02, tapered tips
+    pts = np.concatenate([bspline_samples(h[3:-3, :3], 4) for h in hairs])
     rho = np.hypot(np.hypot(pts[:, 0], pts[:, 1]) - 10.0, pts[:, 2])   # distance from the centre circle
     assert rho.min() > 0.5 + 0.03 - 0.005 and rho.max() < 0.4 + 0.3 + 4 * 0.05 + 0.01
     assert np.any(np.abs(np.arctan2(pts[:, 1], pts[:, 0])) < 0.05)   # across the seam at angle 0
     other = interpolate_bspline(circle(400) + [0.0, 0.0, 1.2], closed=True)
     both = hair_flyaways([loop, other], 0.5, spec, seed=0, hair_radius=0.02)
     assert 0 < len(both) < 2 * len(hairs)
-    P = np.concatenate([bspline_samples(h, 4) for h in both])
+    P = np.concatenate([bspline_samples(h[3:-3, :3], 4) for h in both])     # the hairs' bodies
     d0 = np.hypot(np.hypot(P[:, 0], P[:, 1]) - 10.0, P[:, 2])
     d1 = np.hypot(np.hypot(P[:, 0], P[:, 1]) - 10.0, P[:, 2] - 1.2)
     assert np.all(np.minimum(d0, d1) > 0.5 + 0.03 - 0.005)   # every hair clear of both plies

@@ -143,12 +143,25 @@ def piercing(points: np.ndarray, owner: np.ndarray, ply_samples: list[np.ndarray
     return hit
 
 
+def tapered(C: np.ndarray, radius: float) -> np.ndarray:
+    """An open B-spline's control points ``C [m, 3]`` with a radius column ``[m + 6, 4]``: three
+    more control points beyond each end, along the end's direction, whose radius 0 makes the
+    curve taper to a point over a short tip. Mitsuba 3.9's ``bsplinecurve`` crashed (segfault)
+    on a 1280 x 960 x 32 spp glove render of blunt open hairs, and rendered it with tips; a
+    fiber's tip is tapered anyway."""
+    step = np.array([[1.0], [2.0], [3.0]]) / 9   # a tip a third of the end's control spacing long
+    head = C[0] - (C[1] - C[0]) * step[::-1]
+    tail = C[-1] + (C[-1] - C[-2]) * step
+    r = np.concatenate([np.zeros(3), np.full(len(C), radius), np.zeros(3)])
+    return np.column_stack([np.concatenate([head, C, tail]), r])
+
+
 def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: int = 0,
                   hair_radius: float = 0.0) -> list[np.ndarray]:
     """Hair flyaways about every ply (``plies``: B-spline control points ``[n, 3]`` of the
     ply centre lines in Mitsuba's layout, as :func:`~models.cloth.yarn.build_plies` returns
     them; a closed loop's ends repeat its first three points), each hair a B-spline's control
-    points ``[m, 3]`` (an open curve).
+    points with their radius, ``[m, 4]`` (an open curve, :func:`tapered` at both tips).
 
     Per ply, :func:`draw_hairs`, in the ply's rotation-minimizing frame (continuous round a
     closed loop, so a hair may cross its seam); each hair from where it leaves the ply
@@ -171,4 +184,6 @@ def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: i
     points, owner = np.concatenate(placed, axis=1), np.concatenate(owner)
     if len(plies) > 1 and points.shape[1]:
         points = points[:, ~piercing(points, owner, samples, r_ply + 1.5 * hair_radius)]
-    return list(interpolate_bspline(points, closed=False).transpose(1, 0, 2)) if points.shape[1] else []
+    if not points.shape[1]:
+        return []
+    return [tapered(C, hair_radius) for C in interpolate_bspline(points, closed=False).transpose(1, 0, 2)]

@@ -145,11 +145,14 @@ def build(cfg, out: Path) -> tuple[dict, object]:
 def flyaways(cfg, out: Path, geometry, yarn, out_root) -> tuple[dict, dict | None]:
     """Phase 3: ``flyaways.txt`` and its shape (``None`` without ``cloth.flyaways``), and its summary."""
     from models.bundle import zhao2016_row
+    from models.cloth.curves import write_mitsuba_curves
     from models.cloth.flyaways import HairSpec, hair_flyaways
-    from models.cloth.yarn import PlyGeometry, write_curves
+    from models.io import atomic_path
 
     from .. import closure
-    from ..artifacts import fiber_table_path, load_bundle_table
+    from models.bundle_table import BundleTable
+
+    from ..artifacts import bundle_table_path, fiber_table_path
 
     f = cfg.cloth.flyaways
     if f is None:
@@ -159,9 +162,10 @@ def flyaways(cfg, out: Path, geometry, yarn, out_root) -> tuple[dict, dict | Non
     # the fibers' radius scaled with the ply, as the plies' own fibers (models.cloth.fibers)
     radius = cfg.fiber.radius_um * yarn.r_ply / cfg.bundle.bounding_radius_um()
     hairs = hair_flyaways(geometry.curves, yarn.r_ply, spec, seed=f.seed, hair_radius=radius)
-    write_curves(out / "flyaways.txt", PlyGeometry(hairs, radius, 0.0, np.inf, 0.0))
+    with atomic_path(out / "flyaways.txt") as tmp, open(tmp, "w") as fh:
+        write_mitsuba_curves(fh, hairs)
     # the hairs leave their fibers as the bake's fibers do (closure.explicit_fiber)
-    exit_model = load_bundle_table(cfg, out_root)[0].meta.get("exit", "uniform")
+    exit_model = BundleTable.load(bundle_table_path(cfg, out_root)).meta.get("exit", "uniform")
     fiber = closure.explicit_fiber(fiber_table_path(cfg, out_root), exit_model, 550.0)
     for key in ("wavelength", "up"):  # spectral renders use every wavelength; curves have their own frame
         fiber.pop(key)
