@@ -144,16 +144,19 @@ def piercing(points: np.ndarray, owner: np.ndarray, ply_samples: list[np.ndarray
 
 
 def tapered(C: np.ndarray, radius: float) -> np.ndarray:
-    """An open B-spline's control points ``C [m, 3]`` with a radius column ``[m + 6, 4]``: three
+    """An open B-spline's control points ``C [m, ..., 3]`` (many curves at once) with a radius
+    column, ``[m + 6, ..., 4]``: three
     more control points beyond each end, along the end's direction, whose radius 0 makes the
     curve taper to a point over a short tip. Mitsuba 3.9's ``bsplinecurve`` crashed (segfault)
     on a 1280 x 960 x 32 spp glove render of blunt open hairs, and rendered it with tips; a
     fiber's tip is tapered anyway."""
-    step = np.array([[1.0], [2.0], [3.0]]) / 9   # a tip a third of the end's control spacing long
+    step = (np.arange(1.0, 4.0) / 9).reshape((3,) + (1,) * (C.ndim - 1))  # a tip a third of the end's spacing
     head = C[0] - (C[1] - C[0]) * step[::-1]
     tail = C[-1] + (C[-1] - C[-2]) * step
-    r = np.concatenate([np.zeros(3), np.full(len(C), radius), np.zeros(3)])
-    return np.column_stack([np.concatenate([head, C, tail]), r])
+    points = np.concatenate([head, C, tail])
+    r = np.zeros(points.shape[:-1] + (1,))
+    r[3:-3] = radius
+    return np.concatenate([points, r], axis=-1)
 
 
 def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: int = 0,
@@ -186,4 +189,4 @@ def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: i
         points = points[:, ~piercing(points, owner, samples, r_ply + 1.5 * hair_radius)]
     if not points.shape[1]:
         return []
-    return [tapered(C, hair_radius) for C in interpolate_bspline(points, closed=False).transpose(1, 0, 2)]
+    return list(tapered(interpolate_bspline(points, closed=False), hair_radius).transpose(1, 0, 2))
