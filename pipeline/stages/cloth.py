@@ -145,13 +145,12 @@ def build(cfg, out: Path) -> tuple[dict, object]:
 def flyaways(cfg, out: Path, geometry, yarn, out_root) -> tuple[dict, dict | None]:
     """Phase 3: ``flyaways.txt`` and its shape (``None`` without ``cloth.flyaways``), and its summary."""
     from models.bundle import zhao2016_row
+    from models.bundle_table import BundleTable
     from models.cloth.curves import write_mitsuba_curves
     from models.cloth.flyaways import HairSpec, hair_flyaways
     from models.io import atomic_path
 
     from .. import closure
-    from models.bundle_table import BundleTable
-
     from ..artifacts import bundle_table_path, fiber_table_path
 
     f = cfg.cloth.flyaways
@@ -189,7 +188,9 @@ def flyaway_share(cfg, shapes: dict, bbox) -> dict:
     with_, _ = render_apart(cfg, shapes, bbox, size)
     without, _ = render_apart(cfg, {"yarn": shapes["yarn"]}, bbox, size)
     empty, _ = render_apart(cfg, {}, bbox, size)
-    Y = np.array([0.2126, 0.7152, 0.0722]) if with_.shape[-1] == 3 else np.ones(1)
+    from ..plots import LUMINANCE
+
+    Y = LUMINANCE if with_.shape[-1] == 3 else np.ones(1)
     w, wo, e = with_ @ Y, without @ Y, empty @ Y
     cloth = np.abs(w - e) > 0.02 * np.maximum(e, 1e-6)
     return {"size": list(size), "frame": float((w.sum() - wo.sum()) / max(w.sum(), 1e-30)),

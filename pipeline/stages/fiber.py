@@ -100,11 +100,10 @@ def plot_energy(theta_i, wavelength, energy, ext, path, model_name) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    n = 2 if ext is not None else 1
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
 
+    n = 2 if ext is not None else 1
     fig, axes = plt.subplots(1, n, figsize=(5.8 * n, 4), dpi=110, squeeze=False, layout="constrained")
     cmap, norm = plt.get_cmap("turbo"), Normalize(float(np.min(wavelength)), float(np.max(wavelength)) + 1e-9)
     for j, lam in enumerate(wavelength):

@@ -240,10 +240,10 @@ def side_by_side(images: dict, flip_maps: dict, entry: dict, path: Path, name: s
     """Each backend's image, and the FLIP map of each neural image, with their figures."""
     import matplotlib.pyplot as plt
 
-    from ..plots import save_figure
-
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
+
+    from ..plots import save_figure
 
     cols = list(images)
     h, w = next(iter(images.values())).shape[:2]
