@@ -3,7 +3,7 @@
 #   make test   set up, then run the default test suite
 CONFIG ?= configs/default.yaml
 
-.PHONY: setup setup-run run test bench bench-bake bench-neural bench-train bench-render bench-closure bench-cluster bench-exit bench-twisted bench-cloth cloth stability clean
+.PHONY: setup setup-run run test bench bench-bake bench-neural bench-train bench-render bench-closure bench-cluster bench-exit bench-twisted bench-highlight bench-cloth cloth stability clean
 setup:
 	./scripts/setup.sh
 
@@ -37,6 +37,9 @@ bench-closure: run
 
 bench-exit: setup
 	.venv/bin/python -m pipeline.bench.exit
+
+bench-highlight: run
+	.venv/bin/python -m pipeline.bench.highlight $(CONFIG)
 
 bench-twisted: setup
 	.venv/bin/python -m pipeline.bench.twisted --config $(CONFIG)

@@ -18,7 +18,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from models.grid import cell
+from models.grid import Cells, cell
 
 FOUR_PI = 4.0 * np.pi
 
@@ -44,6 +44,8 @@ class DirectionGrid:
         self.theta_i = np.asarray(theta_i, float)
         self.phi_o_edges = np.asarray(phi_o_edges, float)
         self.theta_o_edges = np.asarray(theta_o_edges, float)
+        self.theta_cells = Cells(self.theta_o_edges)
+        self.theta_cells.upload(Float)
         n_pi, n_ti, self.n_phi, self.n_theta = mass.shape
         self.n_cells = self.n_phi * self.n_theta
         flat = mass.reshape(n_pi * n_ti, self.n_cells)
@@ -83,8 +85,7 @@ class DirectionGrid:
         # tie 0: the cell that sample() drew from, up to its edge
         ip, _ = cell(phi_o, self.phi_o_edges[0], self.phi_o_edges[-1] - self.phi_o_edges[0], self.n_phi,
                      periodic=True, xp=dr)
-        it, _ = cell(theta_o, self.theta_o_edges[0], self.theta_o_edges[-1] - self.theta_o_edges[0], self.n_theta,
-                     xp=dr)
+        it = self.theta_cells.index(theta_o, xp=dr)
         return ip * self.n_theta + it, ip, it
 
     # -- the two operations --------------------------------------------------

@@ -13,6 +13,7 @@ import drjit as dr  # the plugins import this module once a Mitsuba variant is c
 import numpy as np
 
 from models.bundle_table import BundleTable, bin_slopes, cell_offsets, cone_lookup
+from models.grid import Cells
 
 
 class DrJitTable:
@@ -31,6 +32,8 @@ class DrJitTable:
         self.theta_i = np.asarray(table.theta_i, float)
         self.shape = table.values.shape[:4]
         self.phi_o0 = float(table.phi_o_edges[0])
+        self.theta_cells = Cells(table.theta_o_edges)
+        self.theta_cells.upload(Float)
         self.u_edges = Float(np.sin(table.theta_o_edges).astype(np.float32))
         self.sin_nodes = Float(np.sin(self.theta_i).astype(np.float32))
         flat = lambda a: Float(np.ascontiguousarray(a, dtype=np.float32).ravel())  # noqa: E731
@@ -65,7 +68,7 @@ class _Reader:
         """Add ``weight`` x node (a, b) at (phi, u): bin value plus the slopes' offsets."""
         t, Float = self.t, self.t.Float
         _, n_b, n_p, n_t = t.shape
-        kp, kt, dp = cell_offsets(t.phi_o0, n_p, n_t, phi, u, xp=dr)
+        kp, kt, dp = cell_offsets(t.phi_o0, n_p, t.theta_cells, phi, u, xp=dr)
         base = (((a * n_b + b) * n_p + kp) * n_t + kt) * t.n_lambda
         active = weight != 0.0
         if not self.nearest:

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .grid import TIE, bin_solid_angle, cell, linear
+from .grid import TIE, Cells, bin_solid_angle, cell, linear
 from .io import atomic_path, check_axis
 
 FORMAT = "bcsdf.bundle_table/1"
@@ -164,11 +164,14 @@ class BundleTable:
         for key, allowed in REDUCTIONS.items():
             if reductions.get(key) not in allowed:
                 raise ValueError(f"meta.reductions.{key}: {reductions.get(key)!r} is not one of {allowed}")
+        if reductions.get("theta_i") == "mirror" and not np.allclose(self.theta_o_edges, -self.theta_o_edges[::-1],
+                                                                     atol=1e-9):
+            raise ValueError("theta_o_edges are not symmetric about 0, which the theta_i mirror reduction needs")
 
     def check_lookup(self) -> None:
         """What the lookups (numpy and Dr.Jit) assume beyond :meth:`validate`: equal steps on
-        every axis (the baker itself takes any theta_i nodes)."""
-        for name in ("theta_i", "phi_o_edges", "theta_o_edges") + (("phi_i",) if len(self.phi_i) > 1 else ()):
+        every axis but theta_o's bins (the baker itself takes any theta_i nodes)."""
+        for name in ("theta_i", "phi_o_edges") + (("phi_i",) if len(self.phi_i) > 1 else ()):
             step = np.diff(np.asarray(getattr(self, name), float))
             if len(step) and np.ptp(step) > 1e-6 * max(1.0, float(np.abs(step).max())):
                 raise ValueError(f"axis {name}: steps {step.min():.6g} .. {step.max():.6g}; the lookup needs equal steps")
@@ -315,13 +318,14 @@ def cone_lookup(reader, phi_i, theta_i, phi_o, theta_o, nearest: bool, xp=np):
                     select(back, wa * select(lower, w0, w1), 0.0))
 
 
-def cell_offsets(phi_o0, n_phi, n_theta, phi, u, xp=np):
+def cell_offsets(phi_o0, n_phi, theta_cells: Cells, phi, u, xp=np):
     """``(kp, kt, dp)``: the output cell of ``(phi, u = sin theta_o)`` in ``phi_o`` and
-    ``theta_o``, and the offset from the cell's centre in ``phi`` that the limited slope
-    multiplies (a reader takes the offset in ``u`` from its own ``theta_o`` edges)."""
+    ``theta_o`` (``theta_cells``: :class:`~models.grid.Cells` of the ``theta_o`` edges), and
+    the offset from the cell's centre in ``phi`` that the limited slope multiplies (a
+    reader takes the offset in ``u`` from its own ``theta_o`` edges)."""
     kp, t = cell(phi, phi_o0, 2 * np.pi, n_phi, periodic=True, tie=TIE, xp=xp)
-    kt, _ = cell(xp.arcsin(xp.clip(u, -1.0, 1.0)) if xp is np else xp.safe_asin(xp.clip(u, -1.0, 1.0)),
-                 -np.pi / 2, np.pi, n_theta, tie=TIE, xp=xp)
+    kt = theta_cells.index(xp.arcsin(xp.clip(u, -1.0, 1.0)) if xp is np else xp.safe_asin(xp.clip(u, -1.0, 1.0)),
+                           tie=TIE, xp=xp)
     dp = (t - kp - 0.5) * float(2 * np.pi / n_phi)
     return kp, kt, dp
 
@@ -356,7 +360,7 @@ class _NumpyReader:
         self.table, self.nearest = table, nearest
         self.phi_i, self.theta_i = table.phi_i, table.theta_i
         self.s_phi, self.s_u = (None, None) if nearest else (slopes or bin_slopes(table))
-        self.n_p, self.n_t = len(table.phi_o_edges) - 1, len(table.theta_o_edges) - 1
+        self.n_p, self.theta_cells = len(table.phi_o_edges) - 1, Cells(table.theta_o_edges)
         self.u_edges = np.sin(table.theta_o_edges)
         self.out = np.zeros(shape + (len(table.wavelength),))
 
@@ -366,7 +370,7 @@ class _NumpyReader:
     def read(self, a, b, phi, u, weight):
         if not np.any(weight):
             return
-        kp, kt, dp = cell_offsets(self.table.phi_o_edges[0], self.n_p, self.n_t, phi, u)
+        kp, kt, dp = cell_offsets(self.table.phi_o_edges[0], self.n_p, self.theta_cells, phi, u)
         value = self.table.values[a, b, kp, kt].astype(np.float64)
         if not self.nearest:
             du = u - 0.5 * (self.u_edges[kt] + self.u_edges[kt + 1])

@@ -107,3 +107,108 @@ def bin_solid_angle(phi_edges, theta_edges) -> np.ndarray:
     """Solid angle of each (phi, theta) bin, ``[n_phi, n_theta]``: ``d(phi) d(sin theta)``
     (theta measured from the normal plane, as every direction in the project)."""
     return np.outer(np.diff(np.asarray(phi_edges, np.float64)), np.diff(np.sin(np.asarray(theta_edges, np.float64))))
+
+
+# ------------------------------------------------------------------------------
+# Cells between any sorted edges, and the theta_o axis that follows the specular cone
+# ------------------------------------------------------------------------------
+
+def cone_edges(period: float, cone_bin: float, coarse_per_gap: int = 1) -> np.ndarray:
+    """``theta_o`` edges (radians) that follow the specular cone of parallel fibers.
+
+    Light from ``theta_i`` leaves on the cone ``theta_o = -theta_i``, a ridge as wide as the
+    fiber's longitudinal lobe. The bake's ``theta_i`` nodes are multiples of ``period``, so
+    their cones are too: each gets a bin of width ``cone_bin`` centred on it, and each gap
+    between two cones ``coarse_per_gap`` equal bins. At the poles (+-90 deg, the grazing
+    nodes, whose cone has no width) the half cone bin joins its neighbour. The lookup reads
+    every node at the same offset from its own cone (``models.bundle_table.cone_lookup``),
+    so at and between nodes the cone's light sits in the middle of a narrow bin instead of
+    on the edge of two wide ones. ``P (coarse_per_gap + 1) - 1`` bins for ``P = pi /
+    period``; symmetric about 0 (the theta mirror maps bins onto bins).
+    """
+    P = int(round(np.pi / period))
+    if P < 1 or abs(P * period - np.pi) > 1e-9:
+        raise ValueError(f"a cone layout needs theta_i nodes that divide 180 deg (step {np.rad2deg(period):g} deg)")
+    if not 0.0 < cone_bin < period:
+        raise ValueError(f"the cone bin ({np.rad2deg(cone_bin):g} deg) must be narrower than the theta_i step "
+                         f"({np.rad2deg(period):g} deg)")
+    if coarse_per_gap < 1:
+        raise ValueError(f"a cone layout needs at least one bin between two cones (got {coarse_per_gap})")
+    cones = -np.pi / 2 + period * np.arange(P + 1)
+    edges = [-np.pi / 2]
+    for k in range(P):  # the gap between cones k and k + 1, its cone bins' halves cut off
+        lo, hi = cones[k] + cone_bin / 2, cones[k + 1] - cone_bin / 2
+        inner = list(np.linspace(lo, hi, coarse_per_gap + 1))
+        edges += inner[(0 if k else 1):(len(inner) if k < P - 1 else -1)]
+    edges.append(np.pi / 2)
+    return np.array(edges)
+
+
+def cone_bin_counts(period: float, max_count: int = 3600) -> list:
+    """The bin counts a cone layout can have for theta_i nodes ``period`` apart."""
+    P = int(round(np.pi / period))
+    return [P * (m + 1) - 1 for m in range(1, max_count // P + 1) if P * (m + 1) - 1 <= max_count]
+
+
+class Cells:
+    """The cells between sorted ``edges`` (half open, ``[lo, hi)``, the outer ones clamped),
+    for numpy and Dr.Jit.
+
+    Equal cells are found by arithmetic (:func:`cell`). Others by a lookup grid: ``x``'s
+    slot among slots of half the narrowest cell holds the cell of the slot's start, then
+    comparisons with the neighbouring edges correct it (a slot holds at most one edge;
+    two comparisons each way also absorb float32 rounding of the slot index): a few
+    gathers, the same on both backends.
+    """
+
+    def __init__(self, edges):
+        self.edges = np.asarray(edges, np.float64)
+        self.n = len(self.edges) - 1
+        widths = np.diff(self.edges)
+        if self.n < 1 or np.any(widths <= 0):
+            raise ValueError("cell edges must be increasing")
+        self.lo, self.span, self.min_width = float(self.edges[0]), float(self.edges[-1] - self.edges[0]), float(widths.min())
+        self.uniform = bool(np.ptp(widths) <= 1e-9 * self.span)
+        self.slot = self.min_width / 2
+        n_slots = int(np.ceil(self.span / self.slot)) + 1
+        starts = self.lo + self.slot * np.arange(n_slots)
+        self.lut = np.clip(np.searchsorted(self.edges, starts, side="right") - 1, 0, self.n - 1)
+        self._uploads = {}
+
+    def index(self, x, tie: float = 0.0, xp=np):
+        """The cell of ``x``; ``tie``: as :func:`cell`, in units of the narrowest cell."""
+        if self.uniform:
+            return cell(x, self.lo, self.span, self.n, tie=tie, xp=xp)[0]
+        if tie:
+            x = x + tie * self.min_width
+        n_slots = len(self.lut)
+        if _is_numpy(xp):
+            edges, lut = self.edges, self.lut
+            j = np.clip(np.floor((x - self.lo) / self.slot), 0, n_slots - 1).astype(np.int64)
+            k = lut[j]
+            for _ in range(2):
+                k = k - ((x < edges[k]) & (k > 0))
+                k = k + ((x >= edges[k + 1]) & (k < self.n - 1))
+            return k
+        Float = type(x)
+        UInt = xp.uint32_array_t(Float)
+        edges, lut = self.upload(Float)
+        j = UInt(xp.clip(xp.floor((x - self.lo) * float(1.0 / self.slot)), 0, n_slots - 1))
+        k = xp.gather(UInt, lut, j)
+        for _ in range(2):
+            k = xp.select((x < xp.gather(Float, edges, k)) & (k > 0), k - 1, k)
+            k = xp.select((x >= xp.gather(Float, edges, k + 1)) & (k < self.n - 1), k + 1, k)
+        return k
+
+    def __getstate__(self):  # Dask ships specs to its workers: without the uploads
+        return {k: v for k, v in self.__dict__.items() if k != "_uploads"} | {"_uploads": {}}
+
+    def upload(self, Float):
+        """The edges and the lookup grid as Dr.Jit arrays of ``Float``'s backend (once)."""
+        import drjit as dr
+
+        key = Float.__name__ + Float.__module__
+        if key not in self._uploads:
+            self._uploads[key] = (Float(self.edges.astype(np.float32)),
+                                  dr.uint32_array_t(Float)(self.lut.astype(np.uint32)))
+        return self._uploads[key]

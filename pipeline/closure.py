@@ -35,6 +35,8 @@ import textwrap
 
 import numpy as np
 
+from models.grid import TIE, Cells
+
 AXIS = np.array([0.0, 1.0, 0.0])   # the fibers' direction (bundle frame +y)
 UP = [1.0, 0.0, 0.0]               # the BSDFs' ``up``: bundle frame x = world x
 
@@ -432,9 +434,10 @@ def cone_cases(table, phi_bins, beside: bool = True) -> list:
     """``(theta_i index, phi bin, theta bin)``: for each node the bin just beside its
     specular cone (and, with ``beside``, the one two bins further), at ``phi_bins``."""
     n_t = len(table.theta_o_edges) - 1
+    cells = Cells(table.theta_o_edges)
     cases = []
     for j, ti in enumerate(table.theta_i):
-        cone = int(np.clip(np.floor((np.pi / 2 - ti) / np.pi * n_t), 0, n_t - 1))
+        cone = int(cells.index(np.array(-ti), tie=TIE))  # the bin on the cone, or just above it
         for k_phi in phi_bins:
             cases.append((j, k_phi, cone))
             if beside and cone + 2 < n_t:

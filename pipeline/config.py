@@ -19,6 +19,8 @@ import numpy as np
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from models.grid import cone_bin_counts, cone_edges
+
 
 # Which config sections each stage's artifact depends on (its provenance hash)
 FIBER_SECTIONS = ("wavelengths", "fiber", "tabulate")
@@ -260,6 +262,10 @@ class BakeCfg(Strict):
     phi_i_step_deg: float = Field(15.0, gt=0.0, le=90.0, description="ellipse only")
     n_theta_o: int = Field(36, ge=2, le=3600)
     n_phi_o: int = Field(72, ge=4, le=7200)
+    theta_o_layout: Literal["uniform", "cone"] = Field(
+        "uniform", description="theta_o bins: n_theta_o equal bins, or a narrow bin on every node's specular cone "
+                               "and equal bins between (models.grid.cone_edges)")
+    cone_bin_deg: float = Field(2.0, gt=0.0, le=45.0, description="cone layout: the width of the bin on each cone")
     max_bounces: int = Field(1000, ge=1, le=1_000_000)
     rr_start: int = Field(8, ge=1)
     exit: Literal["auto", "uniform", "entry", "lobe"] = Field(
@@ -289,12 +295,37 @@ class BakeCfg(Strict):
         ellipse's mirrors give the rest)."""
         return np.zeros(1) if circle else np.deg2rad(np.arange(0, 90 + 1e-9, self.phi_i_step_deg))
 
-    @field_validator("n_theta_o", "n_phi_o")
+    @field_validator("n_phi_o")
     @classmethod
     def _even(cls, v):
         if v % 2:
             raise ValueError(f"must be even so that the symmetry mirrors map bins onto bins (got {v})")
         return v
+
+    @model_validator(mode="after")
+    def _theta_o_bins(self):
+        if self.theta_o_layout == "uniform" and self.n_theta_o % 2:
+            raise ValueError(f"n_theta_o: must be even so that the symmetry mirrors map bins onto bins (got "
+                             f"{self.n_theta_o}), or use theta_o_layout: cone")
+        if self.theta_o_layout == "cone":
+            step = np.deg2rad(self.theta_i_step_deg)
+            counts = cone_bin_counts(step)
+            if self.n_theta_o not in counts:
+                raise ValueError(f"n_theta_o: {self.n_theta_o} bins cannot follow the cones of theta_i nodes every "
+                                 f"{self.theta_i_step_deg:g} deg; a cone layout has {', '.join(map(str, counts[:4]))}, "
+                                 "... bins (a cone bin per node and equal bins between)")
+            if self.cone_bin_deg >= self.theta_i_step_deg:
+                raise ValueError(f"cone_bin_deg: {self.cone_bin_deg:g} must be narrower than theta_i_step_deg "
+                                 f"({self.theta_i_step_deg:g})")
+        return self
+
+    def theta_o_edges(self) -> np.ndarray:
+        """The bake's theta_o bin edges (radians)."""
+        if self.theta_o_layout == "uniform":
+            return np.linspace(-np.pi / 2, np.pi / 2, self.n_theta_o + 1)
+        step = np.deg2rad(self.theta_i_step_deg)
+        per_gap = (self.n_theta_o + 1) // int(round(np.pi / step)) - 1
+        return cone_edges(step, np.deg2rad(self.cone_bin_deg), per_gap)
 
 
 class TrainCfg(Strict):

@@ -41,6 +41,20 @@ def tone_map(rgb: np.ndarray, scale: tuple[float, float] | None = None) -> np.nd
     return np.clip(colour.cctf_encoding(np.clip(out, 0, 1)), 0, 1)
 
 
+def theta_rows(f: np.ndarray, theta_edges) -> np.ndarray:
+    """``f[theta_o, ...]`` over bins with ``theta_edges`` as rows of equal height (an image's
+    rows are equal): each bin repeated over the rows it covers (rows half its narrowest bin
+    high), so a cone layout's narrow bins keep their width on the page. Equal bins: ``f``."""
+    from models.grid import Cells
+
+    cells = Cells(theta_edges)
+    if cells.uniform:
+        return f
+    n_rows = int(np.ceil(cells.span / (cells.min_width / 2)))
+    centres = cells.lo + (np.arange(n_rows) + 0.5) * cells.span / n_rows
+    return np.asarray(f)[cells.index(centres)]
+
+
 def spectral_image(f: np.ndarray, wavelength, path: Path, title: str,
                    xlabel="dphi = phi_o - phi_i [deg]  (0: back to the light, 180: forward)",
                    extent=(0, 360, -90, 90), unit="1/sr", scale=None) -> tuple[float, float]:

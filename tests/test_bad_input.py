@@ -85,6 +85,13 @@ CASES = {
                    ["bake.paths_per_phi_i", "less than or equal"]),
     "table of 48 GiB": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={"n_theta_o": 3600, "n_phi_o": 7200}))],
                         ["GiB", "bake.n_theta_o"]),
+    "cone layout, wrong bin count": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
+        "theta_o_layout": "cone", "n_theta_o": 36, "theta_i_step_deg": 10}))], ["bake", "n_theta_o: 36", "35, 53"]),
+    "cone bin wider than the step": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
+        "theta_o_layout": "cone", "n_theta_o": 35, "theta_i_step_deg": 10, "cone_bin_deg": 12}))],
+        ["cone_bin_deg", "narrower"]),
+    "odd uniform bin count": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={"n_theta_o": 35}))],
+                              ["n_theta_o", "even", "theta_o_layout: cone"]),
     "a million batches": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={"paths_per_phi_i": 10**9,
                                                                                "batch_paths": 64}))],
                           ["batches", "bake.batch_paths"]),

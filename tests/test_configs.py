@@ -13,7 +13,7 @@ from pipeline import cli
 from tests.test_cli import ROOT
 
 SHRINK = ["tabulate.theta_i_step_deg=30", "bake.paths_per_phi_i=2000",
-          "bake.batch_paths=1024", "bake.theta_i_step_deg=45", "bake.phi_i_step_deg=45", "bake.n_theta_o=8",
+          "bake.batch_paths=1024", "bake.theta_i_step_deg=45", "bake.phi_i_step_deg=45",
           "bake.n_phi_o=8", "train.models={s: [4]}", "train.epochs=2", "train.calibration_steps=2",
           "render.width=16", "render.height=8", "render.spp=1", "render.mono_check=false",
           "render.explicit=false", "render.model=null", "render.backends=[table, mlp]", "report.queries=1000"]
@@ -28,7 +28,9 @@ def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
     cfg = load_config(path)
     stages = ["fiber"] + (["bake", "train", "export", "render"] if cfg.bundle is not None else []) \
         + (["cloth"] if cfg.cloth else []) + (["sweep"] if cfg.sweep else []) + ["report"]
-    shrink = SHRINK + (["wavelengths.count=3"] if cfg.wavelengths.count > 3 else []) \
+    # 4 theta_o bins a quarter of the sphere; a cone layout: a bin on each cone, one between
+    shrink = SHRINK + [f"bake.n_theta_o={7 if cfg.bake.theta_o_layout == 'cone' else 8}"] \
+        + (["wavelengths.count=3"] if cfg.wavelengths.count > 3 else []) \
         + (["cloth.width=24", "cloth.height=16", "cloth.spp=1", "cloth.curves=2"] if cfg.cloth else [])
     sets = [a for s in shrink for a in ("--set", s)]
     for stage in stages:

@@ -66,8 +66,54 @@ def test_cells_agree_on_edges(dr_float, periodic):
     assert np.array_equal(k_np[: n + 1], upper)
 
 
-@pytest.mark.parametrize("relative", [True, False])
-def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, relative):
+def test_cone_edges_centre_a_narrow_bin_on_every_cone():
+    """The cone layout: symmetric, spanning the sphere, a bin of the asked width centred on
+    every multiple of the node step but the poles, ``m`` equal bins between, and as many
+    bins as :func:`grid.cone_bin_counts` says."""
+    for step_deg, bin_deg, m in [(10.0, 2.0, 1), (15.0, 3.0, 1), (30.0, 6.0, 2), (5.0, 1.0, 3)]:
+        step, width = np.deg2rad(step_deg), np.deg2rad(bin_deg)
+        e = grid.cone_edges(step, width, m)
+        P = round(180 / step_deg)
+        assert len(e) - 1 == P * (m + 1) - 1 == grid.cone_bin_counts(step)[m - 1]
+        assert e[0] == -np.pi / 2 and e[-1] == np.pi / 2 and np.all(np.diff(e) > 0)
+        assert np.allclose(e, -e[::-1], atol=1e-12)
+        cells = grid.Cells(e)
+        for cone in np.deg2rad(np.arange(-90 + step_deg, 90, step_deg)):
+            k = int(cells.index(np.array(cone)))
+            assert np.isclose(e[k + 1] - e[k], width) and np.isclose(0.5 * (e[k] + e[k + 1]), cone)
+        gaps = np.diff(e)[1:-1]
+        assert np.allclose(np.sort(gaps)[-(P - 2) * m:], (step - width) / m)  # the bins between cones
+    for bad in [(np.deg2rad(7.0), np.deg2rad(2.0), 1), (np.deg2rad(10.0), np.deg2rad(10.0), 1),
+                (np.deg2rad(10.0), np.deg2rad(2.0), 0)]:
+        with pytest.raises(ValueError):
+            grid.cone_edges(*bad)
+
+
+@pytest.mark.parametrize("edges", ["cone", "random"])
+def test_cells_of_unequal_edges_on_both_backends(dr_float, edges):
+    """``Cells`` of unequal edges finds what a search finds (numpy: exactly; Dr.Jit: of the
+    float32 edges), on random points, on every edge (the cell above) and beyond the ends
+    (clamped); the lookup's tie puts a point a hair below an edge in the cell above."""
+    import drjit as dr
+
+    rng = np.random.default_rng(8)
+    e = (grid.cone_edges(np.deg2rad(10.0), np.deg2rad(2.0)) if edges == "cone"
+         else np.sort(np.concatenate([[-np.pi / 2, np.pi / 2], rng.uniform(-np.pi / 2, np.pi / 2, 40)])))
+    cells = grid.Cells(e)
+    assert not cells.uniform
+    x = np.concatenate([rng.uniform(-2.0, 2.0, 20000), e, e - 1e-12, [-np.pi, np.pi]])
+    searched = np.clip(np.searchsorted(e, x, side="right") - 1, 0, len(e) - 2)
+    assert np.array_equal(cells.index(x), searched)
+    x32 = x.astype(np.float32)
+    searched32 = np.clip(np.searchsorted(e.astype(np.float32), x32, side="right") - 1, 0, len(e) - 2)
+    assert np.array_equal(cells.index(dr_float(x32), xp=dr).numpy(), searched32)
+    below = e[1:-1] - 1e-6 * cells.min_width
+    assert np.array_equal(cells.index(below, tie=grid.TIE), np.arange(1, len(e) - 1))
+    assert np.array_equal(cells.index(dr_float(below), tie=grid.TIE, xp=dr).numpy(), np.arange(1, len(e) - 1))
+
+
+@pytest.mark.parametrize("relative,cone", [(True, False), (False, False), (True, True)])
+def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, relative, cone):
     """numpy's ``lookup`` and the plugin's ``DrJitTable`` are one algorithm (``cone_lookup``):
     they agree to float32 rounding on random directions and on every direction where a
     backend's trigonometry decides the bin (the cone at a theta_i node lies on a theta_o
@@ -77,7 +123,7 @@ def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, rel
     from models.bundle_table import BundleTable
 
     cfg = make_config(tmp_path)
-    synthetic_table(cfg, tmp_path / "t.npz", relative=relative)
+    synthetic_table(cfg, tmp_path / "t.npz", relative=relative, cone=cone)
     table = BundleTable.load(tmp_path / "t.npz", expand=True)
     rng = np.random.default_rng(5)
     n = 3000

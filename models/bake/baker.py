@@ -123,6 +123,7 @@ class Baker:
         return output_bin(self.spec, phi_travel, theta, phi_i, xp)
 
     def trace(self, phi_index: int, n_paths: int, seed) -> Tally:
+        self.spec.theta_cells.upload(mi.Float)  # read in the bounce loop: uploaded before it
         rng = np.random.default_rng(seed)
         tally = Tally.zeros(self.spec, self.n_lambda)
         phi_i = self.spec.phi_i[phi_index]

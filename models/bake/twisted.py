@@ -137,6 +137,7 @@ class TwistedBaker:
 
     # -- entry -----------------------------------------------------------------------
     def trace(self, phi_index: int, n_paths: int, seed) -> Tally:
+        self.spec.theta_cells.upload(mi.Float)  # read in the bounce loop: uploaded before it
         spec, L = self.spec, self.n_lambda
         rng = np.random.default_rng(seed)
         Rb, P = self.ply.bundle.bounding_radius, self.geometry.period

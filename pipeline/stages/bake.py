@@ -37,7 +37,7 @@ from ..artifacts import load_fiber_table, stage_dir
 from ..build import batch_seed, build_ply, code_version, cross_section, make_spec, tracer
 from ..config import BAKE_SECTIONS, theta_nodes
 from ..metrics import write_metrics
-from ..plots import save_figure, spectral_image
+from ..plots import save_figure, spectral_image, theta_rows
 
 
 def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None) -> Path:
@@ -249,7 +249,8 @@ def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50
     probe_paths = min(probe_paths, c.paths_per_phi_i, c.batch_paths)
     full = BakeSpec(theta_nodes(c.theta_i_step_deg, negative=True),
                     np.deg2rad(np.arange(0, 360 - 1e-9, c.phi_i_step_deg)), c.n_theta_o, c.n_phi_o,
-                    relative_phi=False, estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start)
+                    relative_phi=False, estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
+                    theta_o_bins=spec.theta_o_edges)
 
     def seconds(b, k):
         t0 = time.perf_counter()
@@ -266,7 +267,7 @@ def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50
         per_azimuth = float(np.median([seconds(full_baker, k) / max(seconds(baker, k), 1e-9) for k in range(3)]))
 
     def nbytes(sp):  # values and stderr, float32
-        return 2 * 4 * len(sp.phi_i) * len(sp.theta_i) * c.n_phi_o * c.n_theta_o * baker.n_lambda
+        return 2 * 4 * len(sp.phi_i) * len(sp.theta_i) * sp.n_phi_o * sp.n_theta_o * baker.n_lambda
     return {"reduced_bytes": nbytes(spec), "full_bytes": nbytes(full), "reduced_seconds": bake_seconds,
             "full_seconds": bake_seconds * per_azimuth * len(full.phi_i) / len(spec.phi_i),
             "reduced_incidences": [len(spec.phi_i), len(spec.theta_i)],
@@ -310,7 +311,7 @@ def plot_table(table: BundleTable, folder: Path) -> None:
     n_phi = len(table.phi_o)
     for a, phi_i in enumerate(table.phi_i):
         for j, theta_i in enumerate(table.theta_i):
-            f = table.values[a, j].transpose(1, 0, 2)  # [theta_o, phi_o, lambda]
+            f = theta_rows(table.values[a, j].transpose(1, 0, 2), table.theta_o_edges)  # [theta_o, phi_o, lambda]
             if relative:  # dphi over [0, 360): forward (180) in the middle
                 f = np.roll(f, n_phi // 2, axis=1)
                 xlabel, extent = "dphi = phi_o - phi_i [deg]  (0: back to the light, 180: forward)", (0, 360, -90, 90)

@@ -22,7 +22,7 @@ import yaml
 from models.io import atomic_path, write_text
 from models.jit import to_drjit
 
-from ..plots import save_figure, spectral_image
+from ..plots import save_figure, spectral_image, theta_rows
 from ..artifacts import config_dir, stage_dir
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
@@ -220,13 +220,14 @@ def compare_slices(cfg, out_root, out) -> str:
         roll = len(table.phi_o) // 2 if relative else 0
         scale = None  # the model's image on the table's tone map, so that their greys compare
         for label, data in (("table", ref), (f"model {name}", pred)):
-            scale = spectral_image(np.roll(data.transpose(1, 0, 2), roll, axis=1), table.wavelength,
+            scale = spectral_image(np.roll(theta_rows(data.transpose(1, 0, 2), table.theta_o_edges), roll, axis=1),
+                                   table.wavelength,
                                    out / f"compare_{label.split()[0]}_{tag}.png",
                                    f"{label}: S at theta_i = {np.rad2deg(table.theta_i[j]):.0f} deg, "
                                    f"bin averages (tone map of the table)", extent=extent, scale=scale)
         err = np.abs(pred - ref).mean(-1) / max(ref.mean(-1).max(), 1e-30)
         fig, ax = plt.subplots(figsize=(12, 3.6), dpi=110)
-        im = ax.imshow(np.roll(err.T, roll, axis=1), origin="lower", aspect="auto", extent=extent, cmap="magma")
+        im = ax.imshow(np.roll(theta_rows(err.T, table.theta_o_edges), roll, axis=1), origin="lower", aspect="auto", extent=extent, cmap="magma")
         fig.colorbar(im, ax=ax, label="|model - table| / table peak\n(mean over wavelengths)")
         xlabel = "dphi = phi_o - phi_i [deg]" if relative else "phi_o [deg] (bundle frame)"
         ax.set(xlabel=xlabel, ylabel="theta_o [deg]", title=f"error map, theta_i = {target:.0f} deg")
