@@ -283,7 +283,8 @@ def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
 # -- measurements over many directions (the render stage and bench_closure) ------------
 def evaluator(mi, kind: str, path, wavelength_nm: float):
     """``S_of(pi, ti, po, to)``: what a renderer is given, at the wavelength nearest
-    ``wavelength_nm``, evaluated the way its own code does, outside any render.
+    ``wavelength_nm``, evaluated the way its own code does, outside any render: a float
+    for scalar angles, an array for arrays (broadcast; one evaluation for all of them).
 
     ``kind``: ``fiber`` (a ``fiber_table.npz``, numpy), ``table`` (a ``bundle_table.npz``,
     the numpy lookup), ``mlp`` (``weights.npz``, Dr.Jit) or ``onnx`` (``model.onnx``,
@@ -293,26 +294,35 @@ def evaluator(mi, kind: str, path, wavelength_nm: float):
         from models.fiber.base import FiberTable
 
         fiber = FiberTable.load(path)
-        return lambda pi_, ti, po, to: float(fiber.eval(phi_i=pi_, theta_i=ti, phi_o=po, theta_o=to,
-                                                         wavelength=wavelength_nm))
+        return _on_arrays(lambda pi_, ti, po, to: fiber.eval(phi_i=pi_, theta_i=ti, phi_o=po, theta_o=to,
+                                                              wavelength=wavelength_nm))
     if kind == "table":
         from models.bundle_table import BundleTable, lookup
 
         t = BundleTable.load(path, expand=True)
         k = int(np.argmin(np.abs(t.wavelength - wavelength_nm)))
-        return lambda pi_, ti, po, to: float(lookup(t, pi_, ti, po, to)[..., k])
+        return _on_arrays(lambda pi_, ti, po, to: lookup(t, pi_, ti, po, to)[..., k])
     from mitsuba_ext.neural import DrJitMLP, OnnxMLP
 
     if kind == "mlp":
         mlp = DrJitMLP(path)
         k = int(np.argmin(np.abs(np.asarray(mlp.spec.wavelength) - wavelength_nm)))
-        return lambda *angles: float(mlp.eval(*(mi.Float(float(a)) for a in angles))[k].numpy()[0])
+        return _on_arrays(lambda *angles: mlp.eval(*(mi.Float(a.astype(np.float32)) for a in angles))[k].numpy())
     if kind == "onnx":
         onnx = OnnxMLP(path)
         k = int(np.argmin(np.abs(np.asarray(onnx.spec.wavelength) - wavelength_nm)))
-        return lambda *angles: float(onnx.eval(*(np.array([a], np.float32) for a in angles))[0, k])
+        return _on_arrays(lambda *angles: onnx.eval(*(a.astype(np.float32) for a in angles))[:, k])
     raise ValueError(f"evaluator: kind {kind!r}; use fiber, table, mlp or onnx")
 
+
+def _on_arrays(S_flat):
+    """``S_flat`` (flat float64 arrays of angles -> values) for scalars or arrays of any shape."""
+    def S_of(*angles):
+        a = [np.asarray(x, np.float64) for x in angles]
+        shape = np.broadcast_shapes(*(x.shape for x in a))
+        out = np.asarray(S_flat(*(np.broadcast_to(x, shape).ravel() for x in a)), np.float64).reshape(shape)
+        return float(out) if out.ndim == 0 else out
+    return S_of
 
 
 def continuous(S_of, pairs, d: float = 1e-6) -> np.ndarray:
@@ -320,17 +330,14 @@ def continuous(S_of, pairs, d: float = 1e-6) -> np.ndarray:
     its bin edges (it keeps bin averages), a grid pattern at its stripes' edges, and a
     float32 direction at a jump lands on either side of it; there ``S`` is not one number.
     ``d`` (radians) is ten times a float32 direction's error and small enough that a
-    steep but continuous pattern (Mie fringes) changes by far less than 0.1% over it."""
-    values = [S_of(*p) for p in pairs]
-    peak = max(values)
-
-    def flat(p, v):
-        near = [S_of(p[0] + a, p[1] + b, p[2] + c, p[3] + e) for a in (-d, d) for b in (-d, d) for c in (-d, d)
-                for e in (-d, d)]
-        return v > 1e-4 * peak and np.ptp(near + [v]) < 1e-3 * v
-
-    return np.array([flat(p, v) for p, v in zip(pairs, values)], bool)
-
+    steep but continuous pattern (Mie fringes) changes by far less than 0.1% over it.
+    ``S_of`` is evaluated once, on arrays (every pair and its 16 neighbours)."""
+    P = np.asarray(pairs, np.float64)
+    corners = np.array(np.meshgrid(*[(-d, d)] * 4, indexing="ij")).reshape(4, -1).T   # [16, 4]
+    values = np.atleast_1d(S_of(*P.T))
+    near = S_of(*(P[:, None, :] + corners[None]).reshape(-1, 4).T).reshape(len(P), len(corners))
+    spread = np.ptp(np.concatenate([near, values[:, None]], 1), axis=1)
+    return (values > 1e-4 * values.max()) & (spread < 1e-3 * values)
 
 
 def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, spp: int = 4, shape=None) -> list:
