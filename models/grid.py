@@ -176,28 +176,22 @@ class Cells:
         self._uploads = {}
 
     def index(self, x, tie: float = 0.0, xp=np):
-        """The cell of ``x``; ``tie``: as :func:`cell`, in units of the narrowest cell."""
+        """The cell of ``x``; ``tie``: as :func:`cell`, in units of the narrowest cell. A NaN
+        reads as the first cell (it must not become an index)."""
         if self.uniform:
             return cell(x, self.lo, self.span, self.n, tie=tie, xp=xp)[0]
-        if tie:
-            x = x + tie * self.min_width
-        n_slots = len(self.lut)
         if _is_numpy(xp):
-            edges, lut = self.edges, self.lut
-            j = np.clip(np.floor((x - self.lo) / self.slot), 0, n_slots - 1).astype(np.int64)
-            k = lut[j]
-            for _ in range(2):
-                k = k - ((x < edges[k]) & (k > 0))
-                k = k + ((x >= edges[k + 1]) & (k < self.n - 1))
-            return k
-        Float = type(x)
-        UInt = xp.uint32_array_t(Float)
-        edges, lut = self.upload(Float)
-        j = UInt(xp.clip(xp.floor((x - self.lo) * float(1.0 / self.slot)), 0, n_slots - 1))
-        k = xp.gather(UInt, lut, j)
+            edges, lut, select = self.edges, self.lut, np.where
+            take, to_index = (lambda a, i: a[i]), (lambda v: v.astype(np.int64))
+        else:
+            edges, lut = self.upload(type(x))
+            select, to_index = xp.select, xp.uint32_array_t(type(x))
+            take = lambda a, i: xp.gather(type(a), a, i)  # noqa: E731
+        x = select(xp.isfinite(x), x + tie * self.min_width, self.lo)
+        k = take(lut, to_index(xp.clip(xp.floor((x - self.lo) * float(1.0 / self.slot)), 0, len(self.lut) - 1)))
         for _ in range(2):
-            k = xp.select((x < xp.gather(Float, edges, k)) & (k > 0), k - 1, k)
-            k = xp.select((x >= xp.gather(Float, edges, k + 1)) & (k < self.n - 1), k + 1, k)
+            k = select((x < take(edges, k)) & (k > 0), k - 1, k)
+            k = select((x >= take(edges, k + 1)) & (k < self.n - 1), k + 1, k)
         return k
 
     def __getstate__(self):  # Dask ships specs to its workers: without the uploads
