@@ -189,7 +189,7 @@ def test_table_lookup_keeps_its_bin_averages_and_moves_the_ridge_with_the_cone(t
     from models.fiber.base import sphere_quadrature
 
     cfg = make_config(tmp_path)
-    table = synthetic_table(cfg, tmp_path / "t.npz", relative=True, cone=cone)
+    table = synthetic_table(cfg, tmp_path / "t.npz", relative=True, cone=3.0 if cone else None)
     t = BundleTable.load(tmp_path / "t.npz", expand=True)
     pe, te = t.phi_o_edges, t.theta_o_edges
     sub = (np.arange(6) + 0.5) / 6

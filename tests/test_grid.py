@@ -123,7 +123,7 @@ def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, rel
     from models.bundle_table import BundleTable
 
     cfg = make_config(tmp_path)
-    synthetic_table(cfg, tmp_path / "t.npz", relative=relative, cone=cone)
+    synthetic_table(cfg, tmp_path / "t.npz", relative=relative, cone=3.0 if cone else None)
     table = BundleTable.load(tmp_path / "t.npz", expand=True)
     rng = np.random.default_rng(5)
     n = 3000

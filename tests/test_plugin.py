@@ -21,10 +21,13 @@ def mi_plug(mi_plugins):
 def tables(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("plugin")
     cfg = make_config(tmp)
-    circle, ellipse = tmp / "circle.npz", tmp / "ellipse.npz"
+    circle, ellipse, cone = tmp / "circle.npz", tmp / "ellipse.npz", tmp / "cone.npz"
     synthetic_table(cfg, circle, relative=True, passthrough=0.3)
     synthetic_table(cfg, ellipse, relative=False, passthrough=0.2)
-    return {"circle": circle, "ellipse": ellipse}
+    # the cone layout's theta_o bins: 5 deg on each cone, 10 between (edges on the 2.5-deg
+    # cells of the chi-square test, which integrates the pdf over its cells)
+    synthetic_table(cfg, cone, relative=True, passthrough=0.3, cone=5.0)
+    return {"circle": circle, "ellipse": ellipse, "cone": cone}
 
 
 def vec(mi, w):
@@ -114,7 +117,8 @@ def wi_of(theta_deg, phi_deg):
     return [np.cos(t) * np.cos(p), np.sin(t), np.cos(t) * np.sin(p)]
 
 
-@pytest.mark.parametrize("which,backend", [("circle", "table"), ("ellipse", "table"), ("circle", "mlp")])
+@pytest.mark.parametrize("which,backend", [("circle", "table"), ("ellipse", "table"), ("cone", "table"),
+                                           ("circle", "mlp")])
 @pytest.mark.parametrize("theta,phi", [(0, 90), (40, 20), (-75, 160)])  # wi.z > 0: from outside
 def test_sampling_passes_mitsuba_chi2(mi_plug, tables, trained, which, backend, theta, phi, tmp_path, monkeypatch):
     mi = mi_plug
@@ -130,7 +134,7 @@ def test_sampling_passes_mitsuba_chi2(mi_plug, tables, trained, which, backend, 
     bsdf = mi.load_dict({**props, "passthrough": False, "up": [1.0, 0.0, 0.0]})
     sample, pdf = chi2_adapter(mi, bsdf, wi_of(theta, phi))
     # cells: table 36 x 18 or model grid 72 x 36, relative to phi_i for a circle
-    phi0 = (np.radians(phi) if which == "circle" else 0.0) - np.pi
+    phi0 = (np.radians(phi) if which != "ellipse" else 0.0) - np.pi
     test = ChiSquareTest(domain=BundleDomain(phi0), sample_func=sample, pdf_func=pdf,
                          sample_dim=3, sample_count=500_000, res=144, ires=6, seed=3)
     assert test.run(), test.messages
