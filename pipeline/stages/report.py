@@ -58,6 +58,11 @@ def run(cfg, out_root="artifacts") -> Path:
                 f"wavelength): scattered {s['scattered']:.4f}, passthrough {np.mean(s['passthrough']):.4f}, "
                 f"absorbed {_f4(s['absorbed'])}, lost {_f4(s['lost'])}, total {s['total']:.4f} (largest "
                 f"deviation from 1 of any incidence and wavelength: {s['max_abs_energy_error']:.4f}).</p>")
+        b = cfg.bake
+        body += (f"<p>Output bins: {b.n_phi_o} in phi_o; {b.n_theta_o} in theta_o, "
+                 + (f"following the specular cone (a {b.cone_bin_deg:g}-deg bin centred on the cone of every "
+                    f"theta_i node, {b.theta_i_step_deg:g} deg apart, equal bins between)"
+                    if b.theta_o_layout == "cone" else "equal") + ".</p>")
         if "reductions" in s:
             r = s["reductions"]
             used = ", ".join(f"{k}: {v}" for k, v in r["used"].items() if v) or "none"
