@@ -115,15 +115,7 @@ def place_hairs(frames, hairs: Hairs, r_out: float) -> np.ndarray:
     phi = hairs.phi0[out] + u * hairs.phi_span[out]
     s = hairs.s0[out] + u * hairs.s_span[out]
     s = np.mod(s, f.length) if f.closed else np.clip(s, 0.0, f.length)
-    # the ply's frame at s, linearly between its dense samples (round the loop's seam too):
-    # one search for the nine coordinates of (p, n, b)
-    knots = np.append(f.s, f.length) if f.closed else f.s
-    table = np.concatenate([f.p, f.n, f.b], axis=1)
-    table = np.concatenate([table, table[:1]]) if f.closed else table
-    j = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(knots) - 2)
-    w = ((s - knots[j]) / (knots[j + 1] - knots[j]))[..., None]
-    frame = (1 - w) * table[j] + w * table[j + 1]
-    centre, normal, binormal = frame[..., 0:3], frame[..., 3:6], frame[..., 6:9]
+    centre, _, normal, binormal = f.at(s)  # the ply's frame at s, between its dense samples
     return centre + r[..., None] * (np.cos(phi)[..., None] * normal + np.sin(phi)[..., None] * binormal)
 
 

@@ -34,6 +34,20 @@ class Frames:
     length: float
     closed: bool
 
+    def at(self, s) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(p, t, n, b)`` at arc lengths ``s`` (any shape, within ``[0, length]``), linearly
+        between the samples (round a closed loop's seam too), one search for all twelve
+        coordinates. Not unit length between samples: callers that need a frame
+        re-orthonormalize."""
+        knots = np.append(self.s, self.length) if self.closed else self.s
+        table = np.concatenate([self.p, self.t, self.n, self.b], axis=1)
+        table = np.concatenate([table, table[:1]]) if self.closed else table
+        s = np.asarray(s, np.float64)
+        j = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(knots) - 2)
+        w = ((s - knots[j]) / (knots[j + 1] - knots[j]))[..., None]
+        f = (1 - w) * table[j] + w * table[j + 1]
+        return f[..., 0:3], f[..., 3:6], f[..., 6:9], f[..., 9:12]
+
 
 def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
@@ -123,14 +137,7 @@ def wind_plies(frames: Frames, K: int, R: float, pitch: float,
     m = int(max(np.ceil(turns * samples_per_turn), np.ceil(L / spacing)))
     s = np.arange(m) * (L / m) if frames.closed else np.linspace(0, L, m + 1)
     # the frame between samples, linearly (the samples are dense next to the ply's turns)
-    period = np.concatenate([frames.s, [L]]) if frames.closed else frames.s
-
-    def along(x):
-        x = np.concatenate([x, x[:1]]) if frames.closed else x
-        return np.stack([np.interp(s, period, x[:, d]) for d in range(3)], -1)
-
-    c, n, b = along(frames.p), along(frames.n), along(frames.b)
-    t = along(frames.t)
+    c, t, n, _ = frames.at(s)
     n = _unit(n - np.sum(n * t, -1, keepdims=True) * t)
     b = np.cross(_unit(t), n)
     plies = []
