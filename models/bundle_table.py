@@ -17,7 +17,8 @@ Axes and bins (radians, nm):
 ``theta_i``    incident longitude nodes (>= 0 when the mirror reduction is used)
 ``phi_o``      bins with ``phi_o_edges`` over [-pi, pi); ``phi_o - phi_i`` when
                ``meta["reductions"]["phi_o"] == "relative"``
-``theta_o``    bins with ``theta_o_edges`` over [-pi/2, pi/2]
+``theta_o``    bins with ``theta_o_edges`` over [-pi/2, pi/2]: equal, or a narrow bin on
+               every node's specular cone (``models.grid.cone_edges``)
 ``lambda``     the fiber table's wavelengths
 =============  =================================================================
 
