@@ -167,7 +167,8 @@ class Cells:
         widths = np.diff(self.edges)
         if self.n < 1 or np.any(widths <= 0):
             raise ValueError("cell edges must be increasing")
-        self.lo, self.span, self.min_width = float(self.edges[0]), float(self.edges[-1] - self.edges[0]), float(widths.min())
+        self.lo, self.span = float(self.edges[0]), float(self.edges[-1] - self.edges[0])
+        self.min_width = float(widths.min())
         self.uniform = bool(np.ptp(widths) <= 1e-9 * self.span)
         self.slot = self.min_width / 2
         n_slots = int(np.ceil(self.span / self.slot)) + 1

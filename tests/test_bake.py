@@ -37,10 +37,10 @@ def iso_fiber():
 
 def bake(bundle, fiber, estimator="fast", paths=100_000, theta_i=(0.0, 30.0, 60.0), phi_i=(0.0,),
          relative=None, n_theta_o=12, n_phi_o=32, max_bounces=500, seed=3, exit_model="uniform",
-         theta_o_bins=None) -> BundleTable:
+         theta_o_edges=None) -> BundleTable:
     spec = BakeSpec(np.deg2rad(theta_i), np.deg2rad(phi_i), n_theta_o, n_phi_o,
                     relative_phi=bundle.is_circle if relative is None else relative,
-                    estimator=estimator, max_bounces=max_bounces, exit=exit_model, theta_o_bins=theta_o_bins)
+                    estimator=estimator, max_bounces=max_bounces, exit=exit_model, theta_o_edges=theta_o_edges)
     return bake_unreduced(bundle, fiber, spec, paths, seed)
 
 
@@ -105,7 +105,7 @@ def test_single_fiber_in_cone_bins_reproduces_its_model(ray_fiber):
 
     one = Bundle([[0.0, 0.0]], 20.0, (20.0, 20.0), "one fiber")
     edges = cone_edges(np.deg2rad(30.0), np.deg2rad(6.0), 2)
-    table = bake(one, ray_fiber, "fast", paths=60_000, theta_o_bins=edges)
+    table = bake(one, ray_fiber, "fast", paths=60_000, theta_o_edges=edges)
     assert np.array_equal(table.theta_o_edges, edges) and table.values.shape[3] == 17
     for j in range(len(table.theta_i)):
         ref = bin_average(ray_fiber, table, j)

@@ -241,7 +241,7 @@ def test_cone_layout_reads_the_highlight_where_equal_bins_miss_it(mono, tmp_path
     bundle = poisson((80.0, 80.0), 20.0, packing=0.4, seed=2)
     mi.set_variant("llvm_ad_rgb")  # the baker's own variant
     kw = dict(paths=1_000_000, theta_i=(20, 30, 60), n_phi_o=36)
-    tables = {"cone": bake(bundle, fiber, n_theta_o=35, theta_o_bins=cone_edges(np.deg2rad(10), np.deg2rad(2)), **kw),
+    tables = {"cone": bake(bundle, fiber, n_theta_o=35, theta_o_edges=cone_edges(np.deg2rad(10), np.deg2rad(2)), **kw),
               "equal": bake(bundle, fiber, n_theta_o=36, **kw)}
     mi.set_variant("llvm_ad_mono")
     mitsuba_ext.register()

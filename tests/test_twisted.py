@@ -114,7 +114,7 @@ def test_single_tilted_fiber_is_the_fiber_model_rotated(ray_fiber, layout):
     rho, r, Rb, pitch = 60.0, 20.0, 80.0, 1500.0
     ply = TwistedBundle(Bundle(np.array([[rho, 0.0]]), r, (Rb, Rb)), pitch)
     spec = BakeSpec(np.deg2rad([0.0, 30.0, 50.0]), [0.0], 12, 24, relative_phi=True,
-                    theta_o_bins=cone_edges(np.deg2rad(10.0), np.deg2rad(4.0)) if layout == "cone" else None)
+                    theta_o_edges=cone_edges(np.deg2rad(10.0), np.deg2rad(4.0)) if layout == "cone" else None)
     paths = 400_000 if layout == "uniform" else 2_000_000  # narrower bins: no empty bin of 0.2% of the peak
     table = table_of(TwistedBaker(ply, ray_fiber, spec).trace(0, paths, 2), spec, ray_fiber)
 

@@ -30,8 +30,8 @@ class BakeSpec:
     max_bounces: int = 1000
     rr_start: int = 8                  # fast: Russian roulette from this bounce on
     exit: str = "uniform"              # where scattered light leaves a fiber (module docstring)
-    # theta_o bin edges (radians) when not n_theta_o equal bins: models.grid.cone_edges
-    theta_o_bins: np.ndarray | None = None
+    # theta_o bin edges (radians); None: n_theta_o equal bins (other layouts: models.grid.cone_edges)
+    theta_o_edges: np.ndarray | None = None
 
     def __post_init__(self):
         self.theta_i = np.atleast_1d(np.asarray(self.theta_i, dtype=np.float64))
@@ -46,17 +46,13 @@ class BakeSpec:
             raise ValueError(f"the bounce cap must be at least 1 (got {self.max_bounces})")
         if np.any(np.abs(self.theta_i) > np.pi / 2):
             raise ValueError("theta_i must lie in [-pi/2, pi/2] radians")
-        if self.theta_o_bins is None:
-            self.theta_o_bins = np.linspace(-np.pi / 2, np.pi / 2, self.n_theta_o + 1)
-        self.theta_o_bins = np.asarray(self.theta_o_bins, np.float64)
-        self.n_theta_o = len(self.theta_o_bins) - 1
-        if abs(self.theta_o_bins[0] + np.pi / 2) > 1e-12 or abs(self.theta_o_bins[-1] - np.pi / 2) > 1e-12:
+        if self.theta_o_edges is None:
+            self.theta_o_edges = np.linspace(-np.pi / 2, np.pi / 2, self.n_theta_o + 1)
+        self.theta_o_edges = np.asarray(self.theta_o_edges, np.float64)
+        self.n_theta_o = len(self.theta_o_edges) - 1
+        if abs(self.theta_o_edges[0] + np.pi / 2) > 1e-12 or abs(self.theta_o_edges[-1] - np.pi / 2) > 1e-12:
             raise ValueError("theta_o bins must span [-pi/2, pi/2]")
-        self.theta_cells = Cells(self.theta_o_bins)
-
-    @property
-    def theta_o_edges(self):
-        return self.theta_o_bins
+        self.theta_cells = Cells(self.theta_o_edges)
 
     @property
     def phi_o_edges(self):

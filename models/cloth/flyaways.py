@@ -138,9 +138,9 @@ def piercing(points: np.ndarray, owner: np.ndarray, ply_samples: list[np.ndarray
 def tapered(C: np.ndarray, radius: float) -> np.ndarray:
     """Open B-splines' control points ``C [m, ..., 3]`` (many curves at once) with a radius
     column, ``[m + 6, ..., 4]``: three more control points beyond each end, along the end's
-    direction, whose radius 0 makes the curve taper to a point over a short tip. Mitsuba 3.9's ``bsplinecurve`` crashed (segfault)
-    on a 1280 x 960 x 32 spp glove render of blunt open hairs, and rendered it with tips; a
-    fiber's tip is tapered anyway."""
+    direction, whose radius 0 makes the curve taper to a point over a short tip. Mitsuba
+    3.9's ``bsplinecurve`` crashed (segfault) on a 1280 x 960 x 32 spp glove render of blunt
+    open hairs, and rendered it with tips; a fiber's tip is tapered anyway."""
     step = (np.arange(1.0, 4.0) / 9).reshape((3,) + (1,) * (C.ndim - 1))  # a tip a third of the end's spacing
     head = C[0] - (C[1] - C[0]) * step[::-1]
     tail = C[-1] + (C[-1] - C[-2]) * step

@@ -232,7 +232,8 @@ def compare_slices(cfg, out_root, out) -> str:
                                    f"bin averages (tone map of the table)", extent=extent, scale=scale)
         err = np.abs(pred - ref).mean(-1) / max(ref.mean(-1).max(), 1e-30)
         fig, ax = plt.subplots(figsize=(12, 3.6), dpi=110)
-        im = ax.imshow(np.roll(theta_rows(err.T, table.theta_o_edges), roll, axis=1), origin="lower", aspect="auto", extent=extent, cmap="magma")
+        im = ax.imshow(np.roll(theta_rows(err.T, table.theta_o_edges), roll, axis=1), origin="lower", aspect="auto",
+                       extent=extent, cmap="magma")
         fig.colorbar(im, ax=ax, label="|model - table| / table peak\n(mean over wavelengths)")
         xlabel = "dphi = phi_o - phi_i [deg]" if relative else "phi_o [deg] (bundle frame)"
         ax.set(xlabel=xlabel, ylabel="theta_o [deg]", title=f"error map, theta_i = {target:.0f} deg")
