@@ -13,8 +13,11 @@ turns of the arrangement) at directions exactly on the cone ``theta_o = -theta_i
 edge; then again with each turn seen at its own azimuth across a phi_o bin's width (theta_o
 still exactly on the cone), against the lookup averaged over the same azimuths: a Mie
 fiber's azimuthal glints are finer than any phi_o bin, and this isolates the theta_o axis.
-Printed: ``lookup / explicit - 1`` per direction and layout, and per layout the median and
-largest error, how many directions lie within 5%, and the table's bytes.
+``--models ROOT ...``: the table baked and the models exported under those artifacts roots
+(``bcsdf bake``, ``train`` and ``export`` of this config there, e.g. with another
+``bake.theta_o_layout``) are compared too, evaluated as the plugin does. Printed: ``lookup / explicit - 1`` per direction and
+layout (or model), and for each the median and largest error, how many directions lie
+within 5%, and its bytes.
 Written: ``artifacts/<name>/closure/bench_highlight.json`` and ``highlight.png``.
 """
 
@@ -98,26 +101,51 @@ def spread(width_deg: float, n: int = 16) -> np.ndarray:
     return width_deg * ((np.arange(n) + 0.5) / n - 0.5)
 
 
-def compare(tables: dict, explicit: list, spread_deg: float) -> dict:
-    """Each layout's lookup against the explicit fibers (averaged alike over the spread)."""
+def table_entries(tables: dict) -> dict:
+    """``{layout: (S_of, bytes, bake seconds)}``: each baked table's lookup at 550 nm."""
     from models.bundle_table import lookup
 
+    def reader(t):
+        lam = int(np.argmin(np.abs(t.wavelength - LAM)))
+        return lambda *angles: lookup(t, *angles)[..., lam]
+    return {name: (reader(t), int(t.values.nbytes), seconds) for name, (t, seconds) in tables.items()}
+
+
+def model_entries(mi, cfg, roots) -> dict:
+    """``{"table (ROOT)" | "mlp SIZE (ROOT)": (S_of, bytes, None)}``: the baked table and the
+    models exported under each artifacts root (``bcsdf bake`` / ``train`` / ``export`` of this
+    config there), evaluated as the plugin does."""
+    from .. import closure
+    from ..artifacts import bundle_table_path
+
+    entries = {}
+    for root in roots:
+        table = bundle_table_path(cfg, root)
+        entries[f"table ({root})"] = (closure.evaluator(mi, "table", table, LAM), table.stat().st_size, None)
+        for weights in sorted((stage_dir(cfg, "export", root)).glob("*/weights.npz")):
+            entries[f"mlp {weights.parent.name} ({root})"] = (closure.evaluator(mi, "mlp", weights, LAM),
+                                                            weights.stat().st_size, None)
+    return entries
+
+
+def compare(entries: dict, explicit: list, spread_deg: float) -> dict:
+    """Each entry (a layout's lookup, a model) against the explicit fibers, averaged alike
+    over the spread of azimuths."""
     result = {"spread_deg": spread_deg, "layouts": {},
               "directions": [{"theta_i": ti, "dphi": dp, "explicit": S, "explicit_err": se}
                              for ti, dp, S, se in explicit]}
     for ti, dp, S, se in explicit:
         line = f"  theta_i {ti:4.0f}  dphi {dp:5.1f}: explicit {S:.3f} +- {se:.3f} /sr:"
-        for name, (t, _) in tables.items():
-            lam = int(np.argmin(np.abs(t.wavelength - LAM)))
+        for name, (S_of, _, _) in entries.items():
             dphi = np.deg2rad(dp + spread(spread_deg))
-            err = float(lookup(t, 0.0, np.deg2rad(ti), dphi, -np.deg2rad(ti))[:, lam].mean() / S - 1)
+            err = float(np.mean(S_of(0.0, np.deg2rad(ti), dphi, -np.deg2rad(ti))) / S - 1)
             result["layouts"].setdefault(name, {"errors": []})["errors"].append(err)
             line += f" {err:+.3f}"
         print(line)
     node = np.array([ti % 10 == 0 for ti, *_ in explicit])
-    for name, (t, seconds) in tables.items():
+    for name, (_, nbytes, seconds) in entries.items():
         e = np.abs(result["layouts"][name]["errors"])
-        summary = {"bytes": int(t.values.nbytes), "bake_seconds": seconds, "median": float(np.median(e)),
+        summary = {"bytes": nbytes, "bake_seconds": seconds, "median": float(np.median(e)),
                    "max": float(e.max()), "within_5pct": int(np.sum(e <= 0.05)), "n": len(e),
                    "median_at_nodes": float(np.median(e[node])), "median_between": float(np.median(e[~node]))}
         result["layouts"][name].update(summary)
@@ -133,11 +161,13 @@ def main(argv=None) -> int:
     p.add_argument("--artifacts", default="artifacts")
     p.add_argument("--paths", type=int, default=8_000_000, help="paths of each layout's bake")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel of each explicit render")
+    p.add_argument("--models", nargs="*", default=[], metavar="ROOT",
+                   help="artifacts roots whose exported models of this config are compared too")
     args = p.parse_args(argv)
     cfg = load_config(args.config)
     if cfg.bake.exit not in ("auto", "uniform") or cfg.fiber.model == "ray" or cfg.bundle.twist is not None:
         raise SystemExit("bench.highlight compares a parallel ply with the uniform exit (fiber_table explicit fibers)")
-    tables = bake_layouts(args.config, args.artifacts, args.paths)
+    entries = table_entries(bake_layouts(args.config, args.artifacts, args.paths))
     result = {"paths": args.paths, "wavelength_nm": LAM}
     # single directions, then the mean over a phi_o bin's width of azimuths (theta_o still
     # exactly on the cone): the Mie fiber's azimuthal glints are finer than any phi_o bin,
@@ -145,9 +175,13 @@ def main(argv=None) -> int:
     for key, spread_deg in (("single", 0.0), ("phi_bin", 360.0 / cfg.bake.n_phi_o)):
         t0 = time.perf_counter()
         explicit = explicit_on_cone(cfg, args.artifacts, args.spp, spread_deg)
+        if args.models and key == "single":  # the renders chose the mono variant the models run in
+            import mitsuba as mi
+
+            entries.update(model_entries(mi, cfg, args.models))
         print(f"[highlight] explicit fibers at {len(explicit)} directions (azimuths over {spread_deg:g} deg) in "
-              f"{time.perf_counter() - t0:.0f} s; lookup / explicit - 1 on the cone (" + ", ".join(tables) + ")")
-        result[key] = compare(tables, explicit, spread_deg)
+              f"{time.perf_counter() - t0:.0f} s; lookup / explicit - 1 on the cone (" + ", ".join(entries) + ")")
+        result[key] = compare(entries, explicit, spread_deg)
     out = stage_dir(cfg, "closure", args.artifacts)
     write_text(out / "bench_highlight.json", json.dumps(result, indent=2))
     plot(result, out / "highlight.png")
@@ -168,7 +202,7 @@ def plot(result: dict, path) -> None:
         r_ = result[key]
         d = r_["directions"]
         x = np.arange(len(d))
-        for (name, r), m in zip(r_["layouts"].items(), "os^"):
+        for (name, r), m in zip(r_["layouts"].items(), "os^Dv<>pPXd*"):
             ax.plot(x, np.array(r["errors"]) * 100, m, label=f"{name} ({r['bytes'] / 2**20:.2f} MiB): median "
                     f"{r['median']:.1%}, at nodes {r['median_at_nodes']:.1%}")
         ax.axhspan(-5, 5, color="0.9", zorder=0)
