@@ -20,7 +20,7 @@ inside the bound, or a :class:`ValueError` says which fibers and by how much.
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import InitVar, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -245,17 +245,66 @@ def zhao2016(yarn: str, r: float, seed=0, max_tries=200_000, name=None) -> Bundl
 # Twisted plies: the cross-section turned along the axis
 # ------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class Migration:
+    """Fiber migration (Zhao et al. 2016): fiber ``k`` at nominal distance ``rho_k`` from the
+    axis moves between ``r_min rho_k`` and ``rho_k`` as it turns,
+
+        ``rho_k(theta) = rho_k (r_min + (1 - r_min) (cos(s theta + theta_k0) + 1) / 2)``,
+
+    ``theta = 2 pi y / pitch`` the helix's angle, ``s`` migration cycles per turn, ``theta_k0``
+    each fiber's phase (uniform, drawn from ``seed``). The paper's ``R_max`` is 1: the
+    nominal arrangement is the outermost position of every fiber.
+
+    A ply with migration repeats after ``turns`` turns, the fewest (at most
+    :attr:`MAX_TURNS`) in which every fiber completes whole migration cycles: ``s`` must be
+    a fraction ``p / q`` with ``q <= MAX_TURNS`` (Cotton 1's 1.1 repeats after 10 turns).
+    """
+
+    r_min: float
+    s: float
+    seed: int = 0
+
+    MAX_TURNS = 20
+
+    def __post_init__(self):
+        if not (0.0 < self.r_min <= 1.0):
+            raise ValueError(f"migration: r_min {self.r_min:g} must lie in (0, 1] (the innermost position as a "
+                             "fraction of the fiber's nominal distance from the axis; 1 = no migration)")
+        if not (np.isfinite(self.s) and self.s > 0.0):
+            raise ValueError(f"migration: s {self.s:g} must be a positive number of migration cycles per turn")
+        self.turns  # refuse a period that never repeats, here rather than at the bake
+
+    @property
+    def turns(self) -> int:
+        """Turns of the helix after which every fiber is back where it started."""
+        for q in range(1, self.MAX_TURNS + 1):
+            if abs(self.s * q - round(self.s * q)) < 1e-6 * q:
+                return q
+        raise ValueError(f"migration: s = {self.s:g} cycles per turn makes the ply repeat only after more than "
+                         f"{self.MAX_TURNS} turns (s must be a fraction p/q with q <= {self.MAX_TURNS}, e.g. "
+                         f"{round(self.s * 10) / 10:g}); the bake traces one whole period")
+
+    def factor(self, theta, phases) -> np.ndarray:
+        """``rho(theta) / rho`` at helix angles ``theta`` for fibers of ``phases`` (broadcast)."""
+        return self.r_min + (1.0 - self.r_min) * 0.5 * (np.cos(self.s * theta + phases) + 1.0)
+
+    def phases(self, n: int) -> np.ndarray:
+        return np.random.default_rng(self.seed).uniform(0.0, 2 * np.pi, n)
+
+
 @dataclass
 class TwistedBundle:
     """A ply whose fibers are helices about its axis: the cross-section ``bundle`` (at
-    ``y = 0``) turned rigidly along ``+y``, one turn per ``pitch`` micrometres.
+    ``y = 0``) turned along ``+y``, one turn per ``pitch`` micrometres, each fiber's distance
+    from the axis migrating if ``migration`` is given (:class:`Migration`).
 
     ``pitch`` is signed as Zhao et al. 2016's ``alpha``: positive, every fiber is a
     right-handed helix (a Z twist); negative, left-handed (an S twist). Fiber ``k`` at
     height ``y`` sits at its ``y = 0`` position turned by ``-2 pi y / pitch`` about the
     axis (the project's ``phi`` runs from ``+x`` to ``+z``, a left-handed sense about
-    ``+y``). A fiber at distance ``rho`` from the axis leans ``atan(2 pi rho / |pitch|)``
-    from it. The arrangement repeats every ``|pitch|`` along the axis.
+    ``+y``), scaled towards the axis by its migration. The arrangement repeats every
+    :attr:`period`: ``|pitch|`` without migration, a whole number of turns with it.
 
     Circular plies only (an ellipse would turn with its fibers, which a yarn's plies do
     not). Checked on construction: no two fibers come closer than their radii anywhere
@@ -264,15 +313,23 @@ class TwistedBundle:
 
     bundle: Bundle
     pitch: float
+    migration: Migration | None = None
+    checked: InitVar[bool] = True   # False: the caller checks (pipeline.build spaces a ply out)
 
-    def __post_init__(self):
+    def __post_init__(self, checked: bool = True):
         if not np.isfinite(self.pitch) or self.pitch == 0:
             raise ValueError(f"twisted ply: the pitch must be a finite, non-zero length (got {self.pitch} um); "
                              "leave bundle.twist out for parallel fibers")
         if not self.bundle.is_circle:
             raise ValueError("twisted ply: only circular cross-sections can be twisted (an elliptical ply "
                              f"{self.bundle.semi_axes} would turn with its fibers); use shape: circle")
-        self.validate()
+        if self.migration is not None and self.migration.r_min == 1.0:
+            self.migration = None  # no migration: the rigid twist (a screw symmetry)
+        x, z = self.bundle.centers.T
+        self._rho, self._phi = np.hypot(x, z), np.arctan2(z, x)
+        self._phases = None if self.migration is None else self.migration.phases(len(x))
+        if checked:
+            self.validate()
 
     @property
     def omega(self) -> float:
@@ -280,52 +337,94 @@ class TwistedBundle:
         return -2 * np.pi / self.pitch
 
     @property
-    def period(self) -> float:
+    def turn_length(self) -> float:
+        """The axial length of one turn of every helix, ``|pitch|``."""
         return abs(self.pitch)
+
+    @property
+    def period(self) -> float:
+        """The axial length after which the whole arrangement repeats."""
+        return self.turn_length * (1 if self.migration is None else self.migration.turns)
+
+    def rho_at(self, y, k=None) -> np.ndarray:
+        """Distances from the axis at heights ``y``: of every fiber ``[..., n]``, or of fibers
+        ``k`` (an index array broadcast against ``y``) ``[...]``."""
+        y = np.asarray(y, float)
+        rho = self._rho if k is None else self._rho[k]
+        if self.migration is None:
+            return np.broadcast_to(rho, (y.shape + rho.shape) if k is None else np.broadcast_shapes(y.shape, rho.shape))
+        theta = 2 * np.pi * y / self.pitch
+        if k is None:
+            return rho * self.migration.factor(theta[..., None], self._phases)
+        return rho * self.migration.factor(theta, self._phases[k])
+
+    def centers_at(self, y, k=None) -> np.ndarray:
+        """Fiber centres (x, z) at heights ``y``: ``[..., n, 2]`` for every fiber, or
+        ``[..., 2]`` for fibers ``k`` (an index array broadcast against ``y``)."""
+        y = np.asarray(y, float)
+        a = (self._phi if k is None else self._phi[k]) + self.omega * (y[..., None] if k is None else y)
+        rho = self.rho_at(y, k)
+        return np.stack([rho * np.cos(a), rho * np.sin(a)], -1)
 
     @property
     def max_lean(self) -> float:
         """The largest angle (radians) between a fiber and the ply's axis."""
-        rho = np.hypot(*self.bundle.centers.T)
-        return float(np.arctan(np.max(rho) * abs(self.omega)))
-
-    def centers_at(self, y) -> np.ndarray:
-        """Fiber centres ``[..., n, 2]`` (x, z) at heights ``y`` (broadcast)."""
-        a = self.omega * np.asarray(y, float)[..., None]
-        x, z = self.bundle.centers.T
-        return np.stack([x * np.cos(a) - z * np.sin(a), x * np.sin(a) + z * np.cos(a)], -1)
+        if self.migration is None:
+            return float(np.arctan(np.max(self._rho) * abs(self.omega)))
+        # |dc/dy|^2 = (rho w)^2 + (drho/dy)^2, sampled densely over the period
+        y = np.linspace(0.0, self.period, 256 * self.migration.turns + 1)
+        rho = self.rho_at(y)
+        drho = np.gradient(rho, y, axis=0)
+        return float(np.arctan(np.max(np.hypot(rho * self.omega, drho))))
 
     def closest_approach(self) -> tuple[float, int, int]:
         """``(gap, i, j)``: the smallest surface-to-surface distance between two fibers
         anywhere along their length (negative: they intersect), and the pair.
 
-        The twist is a screw symmetry, so the distance between fibers ``i`` and ``j`` at
-        heights ``y`` and ``y + dy`` depends on ``dy`` alone; it is minimized over ``dy``
-        (dense samples, then refined) for every pair within reach.
+        For every pair within reach, the distance between fiber ``i`` at height ``y`` and
+        fiber ``j`` at ``y + dy`` is minimized over both, on a grid and then on grids 10x
+        finer about each pair's minimum. Without migration the twist is a screw symmetry:
+        the distance depends on ``dy`` alone, and ``y = 0`` suffices; with it, ``y`` runs
+        over the whole period.
         """
         b = self.bundle
         c, r = b.centers, b.radii
         reach = 1.5 * (2 * r.max()) / np.cos(self.max_lean)  # beyond it, no pair comes near touching
+        if self.migration is not None:  # fibers move towards the axis by up to (1 - r_min) rho
+            reach += (1.0 - self.migration.r_min) * 2 * b.bounding_radius
         from scipy.spatial import cKDTree
 
         pairs = cKDTree(c).query_pairs(reach, output_type="ndarray")
         if len(pairs) == 0:
             return np.inf, -1, -1
         i, j = pairs.T
+
+        def dist(y, dy, i=i, j=j):  # [..., pairs] each
+            d = self.centers_at(y, i) - self.centers_at(y + dy, j)
+            return np.sqrt(np.sum(d**2, -1) + dy**2)
+
         span = 2 * reach * np.tan(self.max_lean) + 1e-9
-        dy = np.linspace(-span, span, 801)
-
-        def dist(dy_):
-            cj = self.centers_at(dy_)[..., j, :]                    # [k, pairs, 2]
-            return np.sqrt(np.sum((c[i] - cj) ** 2, -1) + dy_[:, None] ** 2)
-
-        d = dist(dy)
-        k = np.argmin(d, 0)
-        step = dy[1] - dy[0]
-        fine = dy[k][None, :] + np.linspace(-step, step, 201)[:, None]  # refine around each minimum
-        cj = np.stack([self.centers_at(fine[:, p])[:, q] for p, q in enumerate(j)], 1)
-        d_fine = np.sqrt(np.sum((c[i][None] - cj) ** 2, -1) + fine**2)
-        gap = d_fine.min(0) - r[i] - r[j]
+        if self.migration is None:
+            grid = (np.zeros(1), np.linspace(-span, span, 801))
+        else:
+            grid = (np.arange(32 * self.migration.turns) * self.period / (32 * self.migration.turns),
+                    np.linspace(-span, span, 121))
+        steps = [g[1] - g[0] if len(g) > 1 else 0.0 for g in grid]
+        Y, DY = (g.reshape(-1, 1) for g in np.meshgrid(*grid, indexing="ij"))
+        best = np.empty((2, len(i)))
+        for s0 in range(0, len(i), 64):  # a block of pairs at a time: the grid is large
+            sl = slice(s0, s0 + 64)
+            k = np.argmin(dist(Y, DY, i[sl], j[sl]), 0)
+            best[:, sl] = Y[k, 0], DY[k, 0]
+        u = np.linspace(-1.0, 1.0, 21)
+        for _ in range(4):  # zoom in about each pair's minimum, 10x per round
+            gy = best[0] + steps[0] * u[:, None, None] + 0 * u[None, :, None]
+            gdy = best[1] + steps[1] * u[None, :, None] + 0 * u[:, None, None]
+            d = dist(gy, gdy).reshape(-1, len(i))
+            k = np.argmin(d, 0)
+            best = np.stack([gy.reshape(-1, len(i))[k, np.arange(len(i))], gdy.reshape(-1, len(i))[k, np.arange(len(i))]])
+            steps = [s / 10 for s in steps]
+        gap = dist(best[0], best[1]) - r[i] - r[j]
         worst = int(np.argmin(gap))
         return float(gap[worst]), int(i[worst]), int(j[worst])
 
@@ -333,6 +432,8 @@ class TwistedBundle:
         gap, i, j = self.closest_approach()
         if gap < -tol * self.bundle.bounding_radius:
             raise ValueError(
-                f"twisted ply: fibers {i} and {j} intersect by {-gap:.4g} um where they lean past each other "
-                f"(the pitch {self.pitch:g} um leans the outer fibers {np.degrees(self.max_lean):.1f} deg); space "
-                "the cross-section out (bundle.gap_um) or lengthen the pitch")
+                f"twisted ply: fibers {i} and {j} intersect by {-gap:.4g} um where they "
+                + ("lean past each other" if self.migration is None else "lean and migrate past each other")
+                + f" (the pitch {self.pitch:g} um leans the outer fibers {np.degrees(self.max_lean):.1f} deg); space "
+                "the cross-section out (bundle.gap_um) or lengthen the pitch"
+                + ("" if self.migration is None else f", or migrate less (r_min {self.migration.r_min:g} nearer 1)"))

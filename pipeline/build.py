@@ -26,21 +26,46 @@ def build_bundle(cfg) -> bundles.Bundle:
         return bundles.zhao2016(b.yarn, r, seed=b.seed, name=f"{cfg.name} ({b.yarn})")
     if b.arrangement == "file":
         return bundles.from_file(b.file, b.semi_axes(), name=cfg.name)
-    gap = b.gap_um
-    if b.twist is not None:
-        # fibers leaning by `lean` clear each other when their centres are 2 r / cos(lean)
-        # apart in the cross-section: widen the Poisson distance for the leanest (outermost)
-        lean = np.arctan(2 * np.pi * (b.bounding_radius_um() - r) / abs(b.twist.pitch(b.bounding_radius_um())))
-        gap = max(gap, 2 * r * (1 / np.cos(lean) - 1) * 1.001)
-    return bundles.poisson(b.semi_axes(), r, gap=gap, packing=b.packing, seed=b.seed, name=cfg.name)
+    return bundles.poisson(b.semi_axes(), r, gap=_poisson_gap(cfg), packing=b.packing, seed=b.seed, name=cfg.name)
+
+
+def _poisson_gap(cfg) -> float:
+    """The Poisson arrangement's gap: ``bundle.gap_um``, widened for a twist so that fibers
+    leaning by ``lean`` clear each other (centres ``2 r / cos(lean)`` apart in the
+    cross-section, for the leanest, outermost fibers)."""
+    b, r = cfg.bundle, cfg.fiber.radius_um
+    if b.twist is None:
+        return b.gap_um
+    rho = b.bounding_radius_um() - r
+    lean = np.arctan(2 * np.pi * rho / abs(b.twist.pitch(b.bounding_radius_um())))
+    return max(b.gap_um, 2 * r * (1 / np.cos(lean) - 1) * 1.001)
 
 
 def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
-    """What the bake traces: the cross-section, or the twisted ply of ``bundle.twist``."""
+    """What the bake traces: the cross-section, or the twisted ply of ``bundle.twist``.
+
+    Migrating fibers (``bundle.twist.migration``) pass each other closer than the cross-
+    section shows; a Poisson cross-section is spaced out until they clear (its gap grown by
+    each try's overlap), a listed one is refused with the amount."""
     bundle = build_bundle(cfg)
-    if cfg.bundle.twist is None:
+    twist = cfg.bundle.twist
+    if twist is None:
         return bundle
-    return bundles.TwistedBundle(bundle, cfg.bundle.twist.pitch(bundle.bounding_radius))
+    pitch, migration = twist.pitch(bundle.bounding_radius), twist.migration_model(cfg.bundle.seed)
+    if migration is None or cfg.bundle.arrangement != "poisson":
+        return bundles.TwistedBundle(bundle, pitch, migration)
+    gap = bundle_gap = _poisson_gap(cfg)
+    for _ in range(40):
+        ply = bundles.TwistedBundle(bundle, pitch, migration, checked=False)
+        overlap = -ply.closest_approach()[0]
+        if overlap <= 0:
+            return ply  # checked: its closest approach is a gap
+        gap += overlap + 0.01 * cfg.fiber.radius_um
+        b = cfg.bundle
+        bundle = bundles.poisson(b.semi_axes(), cfg.fiber.radius_um, gap=gap, packing=b.packing, seed=b.seed,
+                                 name=cfg.name)
+    raise ValueError(f"bundle.twist.migration: no Poisson cross-section with gaps from {bundle_gap:.3g} to {gap:.3g} "
+                     "um clears its migrating fibers; migrate less (r_min nearer 1) or lengthen the pitch")
 
 
 def tracer(ply, fiber: FiberTable, spec: BakeSpec):

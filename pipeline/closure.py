@@ -171,20 +171,23 @@ def helix_control_points(ply, half_length: float, unit: float = 1e-3, per_turn: 
     (Mitsuba's ``bsplinecurve``) from ``y = -half_length`` to ``+half_length`` (scene
     units): one ``[n, 4]`` array of control points ``x y z r`` per fiber.
 
-    Control points sit on the helix every ``1 / per_turn`` of a turn, pushed out by
-    ``6 / (4 + 2 cos delta)`` (``delta`` the turn between them): a uniform B-spline passes
-    through ``(p_{k-1} + 4 p_k + p_{k+1}) / 6``, which for points on a circle lies inside it
-    by that factor, so the curve passes through the helix at every knot and strays from it
-    between knots by about ``rho delta^4 / 400`` (0.00006 um at ``rho`` = 260 um and 64 per
-    turn; ``tests/test_twisted.py`` evaluates the spline). One control point beyond each end, so the curve spans the length asked.
+    The spline interpolates each centre line (``models.cloth.curves.interpolate_bspline``)
+    at knots ``1 / per_turn`` of a turn apart, so it passes through the helix at every knot
+    and strays from it between knots by about ``rho (f delta)^4 / 384`` (``delta`` the turn
+    between knots, ``f`` = 1 for a helix, ``1 + s`` for a migrating one: 0.00006 um at
+    ``rho`` = 260 um and 64 per turn without migration; ``tests/test_twisted.py`` evaluates
+    the spline). The interpolation runs six knots past each end, where its natural end
+    conditions have died out (by ``(2 - sqrt 3)^6``), and those knots are cut off.
     """
-    L = half_length / unit
-    n = int(np.ceil(2 * L / ply.period * per_turn))         # knot intervals over [-L, L]
-    step = 2 * L / n
-    y = -L + step * np.arange(-1, n + 2)                    # one control point beyond each end
-    delta = abs(ply.omega) * step
-    c = ply.centers_at(y) * (6.0 / (4.0 + 2.0 * np.cos(delta)))
-    return [np.stack([c[:, k, 0], y, c[:, k, 1], np.full(len(y), r)], -1) * unit
+    from models.cloth.curves import interpolate_bspline
+
+    L, extra = half_length / unit, 6
+    n = int(np.ceil(2 * L / ply.turn_length * per_turn))    # knot intervals over [-L, L]
+    y = -L + 2 * L / n * np.arange(-extra, n + extra + 1)
+    c = ply.centers_at(y)                                   # [knots, fibers, 2]
+    C = interpolate_bspline(np.stack([c[..., 0], np.broadcast_to(y[:, None], c.shape[:2]), c[..., 1]], -1),
+                            closed=False)[extra:extra + n + 3]  # the segments from y = -L to +L
+    return [np.concatenate([C[:, k], np.full((len(C), 1), r)], -1) * unit
             for k, r in enumerate(np.asarray(ply.bundle.radii, float))]
 
 
@@ -197,15 +200,30 @@ def write_curves(curves, path) -> None:
         write_mitsuba_curves(f, curves, fmt="%.9g")
 
 
-def explicit_twisted_shapes(curve_file, fiber_bsdf: dict, turn: float) -> dict:
+def explicit_twisted_shapes(curve_file, fiber_bsdf: dict, turn: float, shift: float = 0.0) -> dict:
     """A twisted ply's fibers (``curve_file`` from :func:`helix_control_points`) as one
-    ``bsplinecurve``, turned by ``turn`` (radians) about the axis: for a twisted ply a
-    turn is a shift along the axis, so evenly spaced turns average over its period."""
+    ``bsplinecurve``, turned by ``turn`` (radians) about the axis and moved by ``shift``
+    (scene units) along it. Without migration a turn is a shift along the axis, so evenly
+    spaced turns average over the period; with it, turns and shifts together."""
     import mitsuba as mi
 
+    T = mi.ScalarTransform4f()
     return {"ply": {"type": "bsplinecurve", "filename": str(curve_file), "bsdf": fiber_bsdf,
                     # Mitsuba's rotation about +y turns z towards x: -turn in phi = atan2(z, x)
-                    "to_world": mi.ScalarTransform4f().rotate([0.0, 1.0, 0.0], -float(np.rad2deg(turn)))}}
+                    "to_world": T.translate([0.0, float(shift), 0.0]) @ T.rotate([0.0, 1.0, 0.0],
+                                                                                 -float(np.rad2deg(turn)))}}
+
+
+def view_placements(ply, n_views: int, unit: float) -> list[tuple[float, float]]:
+    """``(turn, shift)`` of each view of the explicit ply, averaging over what its bake
+    averages over: the incident azimuth (turns) and the height within the period (shifts).
+    A rigid twist needs the turns alone (a turn is a shift); a migrating ply's pairs are a
+    rank-1 lattice over (turn, height) whose every projection, and the shift a turn amounts
+    to, are stratified."""
+    turns = [2 * np.pi * k / n_views for k in range(n_views)]
+    if getattr(ply, "migration", None) is None:
+        return [(t, 0.0) for t in turns]
+    return [(t, (5 * k % n_views) / n_views * ply.period * unit) for k, t in enumerate(turns)]
 
 
 def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, resolution: int = 48,
@@ -240,6 +258,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     section = bundle.bundle if twisted else bundle
     hs = 1.2 * section.bounding_radius * unit
     half_length = 40 * hs
+    placements = view_placements(bundle, len(requests[0][1]), unit) if turns and twisted else None
     n_views = len(requests[0][1])
     if any(len(views) != n_views for _, views in requests):
         raise ValueError("explicit_intensities: every request needs as many views")
@@ -247,12 +266,13 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     suns = [_sun(mi, w_i) for w_i, _ in requests]
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
         curve_file = Path(tmp) / "helices.txt"
-        if twisted:
-            write_curves(helix_control_points(bundle, half_length, unit), curve_file)
+        if twisted:  # long enough for every shift: the view stays 40 hs from either end
+            reach = max(shift for _, shift in placements) if placements else 0.0
+            write_curves(helix_control_points(bundle, half_length + reach, unit), curve_file)
         for k in range(n_views):
             turn = 2 * np.pi * k / n_views if turns else 0.0
-            shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, turn) if twisted
-                      else explicit_shapes(bundle, fiber_bsdf, turn, half_length, unit))
+            shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, *(placements[k] if placements else (0.0,)))
+                      if twisted else explicit_shapes(bundle, fiber_bsdf, turn, half_length, unit))
             w_i0, views0 = requests[0]
             loaded = mi.load_dict(scene(mi, shapes, w_i0, views0[k], hs, resolution=resolution, spp=spp, seed=k))
             params = mi.traverse(loaded)

@@ -165,6 +165,15 @@ class Tabulate(Strict):
         return v
 
 
+class MigrationCfg(Strict):
+    """Fiber migration as Zhao et al. 2016's (``models.bundle.Migration``): each fiber's
+    distance from the axis moves between ``r_min`` and 1 times its nominal one, ``s``
+    cycles per turn, with a phase of its own (drawn from ``bundle.seed``)."""
+
+    r_min: float = Field(gt=0.0, le=1.0, description="innermost position, a fraction of the nominal distance")
+    s: float = Field(gt=0.0, le=100.0, description="migration cycles per turn (a fraction p/q, q <= 20)")
+
+
 class TwistCfg(Strict):
     """Fibers twisted about the ply's axis (a twisted ply, baked in 3D: models/bake/twisted.py).
 
@@ -172,12 +181,16 @@ class TwistCfg(Strict):
     right-handed helix, a Z twist; < 0 an S twist), in micrometres like every length of the
     cross-section. Or ``yarn``: a Zhao 2016 yarn of data/zhao2016_table2.csv whose pitch is
     scaled with the ply (pitch = alpha x the bundle radius / the yarn's e_X), so that the
-    outer fibers lean as in that yarn. Fiber migration is not modelled (the fibers keep
-    their distance from the axis).
+    outer fibers lean as in that yarn.
+
+    ``migration``: ``true`` takes the yarn's ``R_min`` and ``s`` (with ``yarn``), or give
+    ``{r_min, s}``; absent or ``false``, the fibers keep their distance from the axis. The
+    cross-section is then spaced so that migrating fibers clear each other (``pipeline.build``).
     """
 
     pitch_um: Optional[float] = Field(None, description="signed pitch (um); > 0 right-handed")
     yarn: Optional[str] = None
+    migration: Union[bool, MigrationCfg] = False
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -186,6 +199,12 @@ class TwistCfg(Strict):
         if self.pitch_um is not None and not (abs(self.pitch_um) >= 1.0):
             raise ValueError(f"bundle.twist.pitch_um: {self.pitch_um} um; the pitch must be a non-zero length "
                              "(at least 1 um either way); leave bundle.twist out for parallel fibers")
+        if self.migration is True and self.yarn is None:
+            raise ValueError("bundle.twist.migration: true takes R_min and s from a Zhao 2016 yarn (bundle.twist.yarn); "
+                             "with pitch_um give them directly: migration: {r_min: 0.8, s: 1.1}")
+        if not isinstance(self.migration, bool):
+            from models.bundle import Migration
+            Migration(self.migration.r_min, self.migration.s)  # s must repeat within a few turns
         return self
 
     def pitch(self, bounding_radius_um: float) -> float:
@@ -195,6 +214,16 @@ class TwistCfg(Strict):
         from models.bundle import zhao2016_row
         row = zhao2016_row(self.yarn)
         return float(row["alpha"]) * 1e4 * bounding_radius_um / row["eX_um"]
+
+    def migration_model(self, seed: int):
+        """The :class:`models.bundle.Migration` this asks for, or ``None``."""
+        from models.bundle import Migration, zhao2016_row
+        if self.migration is False:
+            return None
+        if self.migration is True:
+            row = zhao2016_row(self.yarn)
+            return Migration(float(row["Rmin"]), float(row["s"]), seed)
+        return Migration(self.migration.r_min, self.migration.s, seed)
 
 
 class BundleCfg(Strict):

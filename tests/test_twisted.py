@@ -18,7 +18,7 @@ import pytest
 
 from models.bake import Baker, BakeSpec
 from models.bake.twisted import TwistedBaker
-from models.bundle import Bundle, TwistedBundle, poisson
+from models.bundle import Bundle, Migration, TwistedBundle, poisson
 from models.fiber.patterns import PatternFiber
 from pipeline.stages.bake import tally_to_table
 
@@ -84,6 +84,58 @@ def test_leaning_fibers_that_intersect_are_refused_with_the_amount():
         TwistedBundle(b, 0.0)
     with pytest.raises(ValueError, match="only circular"):
         TwistedBundle(poisson((200.0, 120.0), 20.0, seed=1), 5000.0)
+
+
+def test_migrating_fibers_follow_zhao_and_repeat_after_whole_cycles():
+    """Migration (Zhao et al. 2016): ``R(theta) = R_min rho + (1 - R_min) rho / 2 (cos(s theta
+    + theta_0) + 1)`` with ``theta = 2 pi y / pitch``, written out here; the ply repeats
+    after the fewest whole turns in which ``s`` makes whole cycles (s = 1.5: 2 turns; Cotton
+    1's s = 1.1: 10), not after one; the lean from finite differences of the centre line."""
+    rho0, phi0, pitch = 60.0, 0.4, -900.0
+    m = Migration(0.8, 1.5, seed=5)
+    ply = TwistedBundle(Bundle(np.array([[rho0 * np.cos(phi0), rho0 * np.sin(phi0)]]), 10.0, (80.0, 80.0)), pitch, m)
+    theta0 = m.phases(1)[0]
+    y = np.linspace(-2000.0, 2000.0, 40001)
+    theta = 2 * np.pi * y / pitch
+    R = 0.8 * rho0 + 0.2 * rho0 / 2 * (np.cos(1.5 * theta + theta0) + 1)
+    c = ply.centers_at(y)[:, 0]
+    assert np.allclose(np.hypot(*c.T), R, atol=1e-9)
+    assert np.allclose(np.arctan2(c[:, 1], c[:, 0]), np.angle(np.exp(1j * (phi0 - theta))), atol=1e-9)  # the turn
+    assert ply.period == 2 * 900.0 and Migration(0.8, 1.1).turns == 10 and Migration(0.9, 2.0).turns == 1
+    assert np.allclose(ply.centers_at(y + 1800.0), c[:, None], atol=1e-9)
+    assert not np.allclose(ply.centers_at(y + 900.0), c[:, None], atol=1.0)  # one turn is not a period
+    p = np.stack([c[:, 0], y, c[:, 1]], -1)
+    d1 = np.gradient(p, y, axis=0)[10:-10]
+    lean = np.arccos(d1[:, 1] / np.linalg.norm(d1, axis=1))
+    assert abs(lean.max() - ply.max_lean) < 1e-4
+    assert lean.max() > np.arctan(2 * np.pi * 0.8 * rho0 / 900.0)  # the radial drift leans it past its innermost turn
+
+
+def test_closest_approach_of_migrating_fibers_is_the_sampled_minimum():
+    b = Bundle(np.array([[50.0, 0.0], [42.0 * np.cos(0.9), 42.0 * np.sin(0.9)]]), 15.0, (75.0, 75.0))
+    ply = TwistedBundle(b, 700.0, Migration(0.85, 0.5, seed=1), checked=False)
+    gap, i, j = ply.closest_approach()
+    # brute force: every pair of points 0.2 um apart along the two centre lines, over a period (2 turns)
+    y0, y1 = np.linspace(0, 1400, 7001), np.linspace(-150, 1550, 8501)
+    c0, c1 = ply.centers_at(y0)[:, 0], ply.centers_at(y1)[:, 1]
+    p0, p1 = np.stack([c0[:, 0], y0, c0[:, 1]], -1), np.stack([c1[:, 0], y1, c1[:, 1]], -1)
+    d = min(np.sqrt(((p0[k:k + 500, None, :] - p1[None, :, :]) ** 2).sum(-1)).min() for k in range(0, len(y0), 500))
+    assert {i, j} == {0, 1}
+    assert abs(gap - (d - 30.0)) < 0.01
+    rigid = TwistedBundle(b, 700.0).closest_approach()[0]
+    assert gap < rigid - 1.0  # migration brings them closer than the rigid twist does
+
+
+def test_migration_that_collides_is_refused_with_the_amount():
+    b = poisson((200.0, 200.0), 20.0, gap=3.0, seed=1)
+    TwistedBundle(b, 5000.0)  # the rigid twist clears
+    with pytest.raises(ValueError, match=r"intersect by \d+(\.\d+)? um where they lean and migrate") as e:
+        TwistedBundle(b, 5000.0, Migration(0.8, 1.1))
+    assert "r_min 0.8 nearer 1" in str(e.value)
+    with pytest.raises(ValueError, match="more than 20 turns"):
+        Migration(0.8, 1.13)
+    with pytest.raises(ValueError, match=r"r_min 0 must lie in \(0, 1\]"):
+        Migration(0.0, 1.0)
 
 
 # -- the 3D bake ---------------------------------------------------------------------
@@ -156,10 +208,12 @@ def test_single_tilted_fiber_is_the_fiber_model_rotated(ray_fiber, layout):
                           rtol=0.01)
 
 
-def test_lossless_twisted_ply_conserves_energy():
+@pytest.mark.parametrize("migration", [None, Migration(0.85, 1.5, seed=2)], ids=["rigid", "migrating"])
+def test_lossless_twisted_ply_conserves_energy(migration):
     fiber = PatternFiber(WL, "isotropic").tabulate(NODES)
-    ply = TwistedBundle(poisson((100.0, 100.0), 20.0, gap=2.0, seed=4), 1800.0)
-    assert np.degrees(ply.max_lean) > 12
+    ply = TwistedBundle(poisson((100.0, 100.0), 20.0, gap=2.0 if migration is None else 14.0, seed=4), 1800.0,
+                        migration)
+    assert np.degrees(ply.max_lean) > 10
     spec = BakeSpec(np.deg2rad([-60.0, 0.0, 40.0, 75.0]), [0.0], 12, 24, relative_phi=True, max_bounces=2000)
     tally = TwistedBaker(ply, fiber, spec).trace(0, 40_000, 5)
     table = table_of(tally, spec, fiber)
@@ -196,6 +250,10 @@ def test_a_turn_of_a_twisted_ply_is_a_shift_along_its_axis(ray_fiber):
     ("{}", "either pitch_um"),
     ("{pitch_um: .nan}", "finite"),
     ("{yarn: Wool 9}", "not in"),
+    ("{pitch_um: 3000, migration: true}", "takes R_min and s from a Zhao 2016 yarn"),
+    ("{yarn: Cotton 1, migration: {r_min: 0.8, s: 1.13}}", "more than 20 turns"),
+    ("{yarn: Cotton 1, migration: {r_min: 1.5, s: 1}}", "r_min"),
+    ("{yarn: Cotton 1, migration: {s: 1}}", "r_min"),
 ])
 def test_a_bad_twist_is_refused_naming_the_key(twist, message):
     from pipeline.build import build_ply
@@ -229,6 +287,46 @@ def test_a_zhao_yarn_gives_its_lean_and_the_spec_keeps_every_theta_i_but_the_pol
     assert np.allclose(np.rad2deg(spec.theta_i), np.arange(-80, 81, 10))
     assert reductions == {"theta_i": None, "phi_i": "rotation", "phi_o": "relative"}
     assert spec.exit == "uniform" and spec.relative_phi
+
+
+def test_a_migrating_zhao_ply_is_spaced_until_its_fibers_clear(tmp_path):
+    """``migration: true`` takes Cotton 1's R_min 0.8 and s 1.1: the ply repeats after 10 turns,
+    the Poisson cross-section is spaced out until no two fibers meet anywhere along the period
+    (checked here independently of the search, on a dense sampling of every pair), and a
+    listed cross-section that cannot clear is refused with the amount."""
+    from pipeline.build import build_bundle, build_ply
+    from pipeline.config import load_config
+
+    cfg = load_config("configs/twisted_cotton1.yaml", ["bundle.twist.migration=true"])
+    ply = build_ply(cfg)
+    assert ply.migration.r_min == 0.8 and ply.migration.s == 1.1 and ply.period == pytest.approx(10 * abs(ply.pitch))
+    rigid = build_bundle(cfg)
+    assert 3 <= len(ply.bundle.radii) < len(rigid.radii)  # sparser than the rigid twist's
+    # brute force: every pair, fiber j within 60 um of each height of fiber i (leaning fibers meet
+    # off-level), on a 7 x 3.5 um grid; then the five nearest pairs on a 0.1 um grid about their
+    # sampled minima
+    i, j = np.triu_indices(len(ply.bundle.radii), 1)
+    r = ply.bundle.radii
+
+    def gaps(y, dy, i, j):
+        return np.sqrt(((ply.centers_at(y, i) - ply.centers_at(y + dy, j)) ** 2).sum(-1) + dy**2) - r[i] - r[j]
+
+    y, dy = np.arange(0.0, ply.period, 7.0)[:, None, None], 3.5 * np.arange(-17, 18)[None, :, None]
+    g = gaps(y, dy, i, j).reshape(-1, len(i))
+    near = np.argsort(g.min(0))[:5]
+    u = 0.1 * np.arange(-70, 71)
+    fine = []
+    for p in near:
+        k = np.argmin(g[:, p])
+        y0, dy0 = y.ravel()[k // dy.size], dy.ravel()[k % dy.size]
+        fine.append(gaps(y0 + u[:, None], dy0 + u[None, :] / 2, i[p], j[p]).min())
+    sampled = min(fine)
+    assert sampled > 0.0 and sampled - ply.closest_approach()[0] < 0.1, (sampled, ply.closest_approach())
+    listed = tmp_path / "fibers.csv"
+    listed.write_text("x_um,z_um,r_um\n" + "\n".join(f"{x},{z},{rr}" for (x, z), rr in zip(rigid.centers, rigid.radii)))
+    with pytest.raises(ValueError, match=r"intersect by \d+(\.\d+)? um where they lean and migrate"):
+        build_ply(load_config("configs/twisted_cotton1.yaml",
+                              ["bundle.twist.migration=true", "bundle.arrangement=file", f"bundle.file={listed}"]))
 
 
 # -- the stage: resumable, batch-seeded, the same table on Dask ------------------------

@@ -7,13 +7,14 @@ import pytest
 
 from models.bake import BakeSpec
 from models.bake.twisted import TwistedBaker
-from models.bundle import TwistedBundle, poisson
+from models.bundle import Migration, TwistedBundle, poisson
 from tests.test_twisted import table_of
 
 
-CLOSURE_PLIES = {  # (fiber, pitch um): two twists, both senses; the rim leans 14 and 28 deg
-    "ray, pitch +1500 um": ("ray", 1500.0),
-    "mie, pitch -700 um": ("mie", -700.0),
+CLOSURE_PLIES = {  # (fiber, pitch um, migration): two twists, both senses; the rim leans 14 and 28 deg
+    "ray, pitch +1500 um": ("ray", 1500.0, None),
+    "mie, pitch -700 um": ("mie", -700.0, None),
+    "ray, pitch -1000 um, migrating": ("ray", -1000.0, Migration(0.8, 1.5, seed=3)),
 }
 
 
@@ -36,13 +37,14 @@ def test_explicit_twisted_ply_renders_its_bake(mono, tmp_path, name):
     from pipeline import closure
     from tests.test_closure import LAM, WL as WL3, fiber_models
 
-    kind, pitch = CLOSURE_PLIES[name]
+    kind, pitch, migration = CLOSURE_PLIES[name]
     fiber = fiber_models()[kind]()
     fiber.save(tmp_path / "fiber.npz")
-    r = 20.0
-    lean = np.arctan(2 * np.pi * 60.0 / abs(pitch))          # the rim's lean, as pipeline.build widens
-    ply = TwistedBundle(poisson((80.0, 80.0), r, gap=2 * r * (1 / np.cos(lean) - 1) + 1.0, packing=0.3, seed=2),
-                        pitch)
+    r = 20.0 if migration is None else 15.0
+    lean = np.arctan(2 * np.pi * (80.0 - r) / abs(pitch))    # the rim's lean, as pipeline.build widens
+    gap = 2 * r * (1 / np.cos(lean) - 1) + (1.0 if migration is None else 6.0)  # migrating fibers need more room
+    ply = TwistedBundle(poisson((80.0, 80.0), r, gap=gap, packing=0.3 if migration is None else 0.25, seed=2),
+                        pitch, migration)
     assert len(ply.bundle.radii) >= 5
     spec = BakeSpec(np.deg2rad([-30.0, 20.0, 60.0]), [0.0], 18, 36, relative_phi=True)
     mi.set_variant("llvm_ad_rgb")  # the baker's own variant

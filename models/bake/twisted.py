@@ -2,8 +2,8 @@
 
 The fibers of a :class:`~models.bundle.TwistedBundle` are helices, so a path's geometry
 depends on its longitude: each path carries one incident ``theta_i`` (and, as in the
-parallel bake, every wavelength). The ply repeats every ``|pitch|`` along its axis, so
-one period is built, as Mitsuba ``cylinder`` segments along each helix, and a ray that
+parallel bake, every wavelength). The ply repeats every ``|pitch|`` along its axis (with
+migration, every few turns: ``TwistedBundle.period``), so one period is built, as Mitsuba ``cylinder`` segments along each helix, and a ray that
 leaves the period through its top or bottom re-enters through the other side (the axis
 coordinate is wrapped). Cylinders rather than curves: Mitsuba 3.9's curve intersection
 reads past its segment array where fibers touch (``pipeline.scenes.explicit_scene``), and
@@ -49,7 +49,8 @@ MAX_WRAPS = 10_000      # crossings of the period's ends one path may make (stee
 
 
 class TwistedScene:
-    """One period of the twisted ply as Mitsuba cylinders (segments of the helices)."""
+    """One period of the twisted ply as Mitsuba cylinders (segments of the helices,
+    ``segments`` per turn; a migrating ply's period is several turns)."""
 
     def __init__(self, ply: TwistedBundle, segments: int = SEGMENTS):
         b = ply.bundle
@@ -58,7 +59,7 @@ class TwistedScene:
         # a margin so that every fiber's surface inside the period is whole: a tube leaning
         # by `lean` reaches r / cos(lean) along the axis past its centre line's end
         margin = r_max / np.cos(ply.max_lean) + r_max
-        n_seg = int(np.ceil(segments * (self.period + 2 * margin) / self.period))
+        n_seg = int(np.ceil(segments * (self.period + 2 * margin) / ply.turn_length))
         y = np.linspace(-margin, self.period + margin, n_seg + 1)
         c = ply.centers_at(y)                                     # [n_seg + 1, fibers, 2]
         shapes, fiber_of, axis = {}, [], []
