@@ -23,7 +23,7 @@ class DrJitTable:
 
     def __init__(self, table: BundleTable, Float):
         red = table.meta.get("reductions", {})
-        if red.get("theta_i") == "mirror" or red.get("phi_i") == "mirror_xz":
+        if red.get("theta_i") == "mirror" or red.get("phi_i") in ("mirror_xz", "half_turns"):
             raise ValueError("DrJitTable needs an expanded table: BundleTable.load(path, expand=True)")
         self.Float = Float
         self.relative = red["phi_o"] == "relative"

@@ -306,9 +306,16 @@ class TwistedBundle:
     ``+y``), scaled towards the axis by its migration. The arrangement repeats every
     :attr:`period`: ``|pitch|`` without migration, a whole number of turns with it.
 
-    Circular plies only (an ellipse would turn with its fibers, which a yarn's plies do
-    not). Checked on construction: no two fibers come closer than their radii anywhere
-    along their length (:meth:`closest_approach`).
+    An elliptical cross-section (semi-axes ``a`` on x, ``b`` on z) stays where it is while
+    its fibers turn through it, as in Zhao et al.: a fiber's position in the unit disk,
+    ``(x / a, z / b)``, turns (and migrates), then is scaled back to the ellipse, so its
+    helix is elliptical. Only a circle's fibers turn rigidly (a screw symmetry); an
+    ellipse's pass each other closer than at ``y = 0`` (by up to ``b / a``), and a fiber
+    near the rim crosses the ellipse by up to ``r (1 - b / a)`` where it passes the minor
+    axis (it stays inside the bounding circle, across which the bake's rays enter).
+
+    Checked on construction: no two fibers come closer than their radii anywhere along
+    their length (:meth:`closest_approach`).
     """
 
     bundle: Bundle
@@ -320,16 +327,19 @@ class TwistedBundle:
         if not np.isfinite(self.pitch) or self.pitch == 0:
             raise ValueError(f"twisted ply: the pitch must be a finite, non-zero length (got {self.pitch} um); "
                              "leave bundle.twist out for parallel fibers")
-        if not self.bundle.is_circle:
-            raise ValueError("twisted ply: only circular cross-sections can be twisted (an elliptical ply "
-                             f"{self.bundle.semi_axes} would turn with its fibers); use shape: circle")
         if self.migration is not None and self.migration.r_min == 1.0:
-            self.migration = None  # no migration: the rigid twist (a screw symmetry)
-        x, z = self.bundle.centers.T
-        self._rho, self._phi = np.hypot(x, z), np.arctan2(z, x)
-        self._phases = None if self.migration is None else self.migration.phases(len(x))
+            self.migration = None  # no migration: the rigid twist
+        self._axes = np.asarray(self.bundle.semi_axes, float)
+        u, v = (self.bundle.centers / self._axes).T          # in the unit disk
+        self._rho, self._phi = np.hypot(u, v), np.arctan2(v, u)
+        self._phases = None if self.migration is None else self.migration.phases(len(u))
         if checked:
             self.validate()
+
+    @property
+    def screw(self) -> bool:
+        """Whether a turn of the ply is a shift along its axis (a circle, no migration)."""
+        return self.migration is None and self.bundle.is_circle
 
     @property
     def omega(self) -> float:
@@ -346,9 +356,9 @@ class TwistedBundle:
         """The axial length after which the whole arrangement repeats."""
         return self.turn_length * (1 if self.migration is None else self.migration.turns)
 
-    def rho_at(self, y, k=None) -> np.ndarray:
-        """Distances from the axis at heights ``y``: of every fiber ``[..., n]``, or of fibers
-        ``k`` (an index array broadcast against ``y``) ``[...]``."""
+    def radius_at(self, y, k=None) -> np.ndarray:
+        """Every fiber's radius in the unit disk at heights ``y`` (``[..., n]``), or fibers
+        ``k``' (an index array broadcast against ``y``: ``[...]``)."""
         y = np.asarray(y, float)
         rho = self._rho if k is None else self._rho[k]
         if self.migration is None:
@@ -363,19 +373,18 @@ class TwistedBundle:
         ``[..., 2]`` for fibers ``k`` (an index array broadcast against ``y``)."""
         y = np.asarray(y, float)
         a = (self._phi if k is None else self._phi[k]) + self.omega * (y[..., None] if k is None else y)
-        rho = self.rho_at(y, k)
-        return np.stack([rho * np.cos(a), rho * np.sin(a)], -1)
+        rho = self.radius_at(y, k)
+        return np.stack([self._axes[0] * rho * np.cos(a), self._axes[1] * rho * np.sin(a)], -1)
 
     @property
     def max_lean(self) -> float:
         """The largest angle (radians) between a fiber and the ply's axis."""
-        if self.migration is None:
-            return float(np.arctan(np.max(self._rho) * abs(self.omega)))
-        # |dc/dy|^2 = (rho w)^2 + (drho/dy)^2, sampled densely over the period
-        y = np.linspace(0.0, self.period, 256 * self.migration.turns + 1)
-        rho = self.rho_at(y)
-        drho = np.gradient(rho, y, axis=0)
-        return float(np.arctan(np.max(np.hypot(rho * self.omega, drho))))
+        if self.screw:
+            return float(np.arctan(np.max(self._rho) * self._axes[0] * abs(self.omega)))
+        # the centre lines' slope |dc/dy|, sampled densely over the period
+        y = np.linspace(0.0, self.period, 256 * round(self.period / self.turn_length) + 1)
+        slope = np.linalg.norm(np.gradient(self.centers_at(y), y, axis=0), axis=-1)
+        return float(np.arctan(slope.max()))
 
     def closest_approach(self) -> tuple[float, int, int]:
         """``(gap, i, j)``: the smallest surface-to-surface distance between two fibers
@@ -383,8 +392,8 @@ class TwistedBundle:
 
         For every pair within reach, the distance between fiber ``i`` at height ``y`` and
         fiber ``j`` at ``y + dy`` is minimized over both, on a grid and then on grids 10x
-        finer about each pair's minimum. Without migration the twist is a screw symmetry:
-        the distance depends on ``dy`` alone, and ``y = 0`` suffices; with it, ``y`` runs
+        finer about each pair's minimum. For a screw symmetry (a circle without migration)
+        the distance depends on ``dy`` alone, and ``y = 0`` suffices; otherwise ``y`` runs
         over the whole period.
         """
         b = self.bundle
@@ -392,6 +401,7 @@ class TwistedBundle:
         reach = 1.5 * (2 * r.max()) / np.cos(self.max_lean)  # beyond it, no pair comes near touching
         if self.migration is not None:  # fibers move towards the axis by up to (1 - r_min) rho
             reach += (1.0 - self.migration.r_min) * 2 * b.bounding_radius
+        reach *= self._axes.max() / self._axes.min()  # an ellipse brings fibers closer by up to b / a
         from scipy.spatial import cKDTree
 
         pairs = cKDTree(c).query_pairs(reach, output_type="ndarray")
@@ -404,11 +414,11 @@ class TwistedBundle:
             return np.sqrt(np.sum(d**2, -1) + dy**2)
 
         span = 2 * reach * np.tan(self.max_lean) + 1e-9
-        if self.migration is None:
+        if self.screw:
             grid = (np.zeros(1), np.linspace(-span, span, 801))
         else:
-            grid = (np.arange(32 * self.migration.turns) * self.period / (32 * self.migration.turns),
-                    np.linspace(-span, span, 121))
+            n_y = 32 * round(self.period / self.turn_length)
+            grid = (np.arange(n_y) * self.period / n_y, np.linspace(-span, span, 121))
         steps = [g[1] - g[0] if len(g) > 1 else 0.0 for g in grid]
         Y, DY = (g.reshape(-1, 1) for g in np.meshgrid(*grid, indexing="ij"))
         best = np.empty((2, len(i)))
@@ -431,9 +441,12 @@ class TwistedBundle:
     def validate(self, tol: float = 1e-6) -> None:
         gap, i, j = self.closest_approach()
         if gap < -tol * self.bundle.bounding_radius:
+            how = "lean" + (" and migrate" if self.migration is not None else "") + " past each other"
+            if not self.bundle.is_circle:
+                a, b = self.bundle.semi_axes
+                how += f" through the ellipse ({a:g} x {b:g} um: its fibers pass closer than at y = 0)"
             raise ValueError(
-                f"twisted ply: fibers {i} and {j} intersect by {-gap:.4g} um where they "
-                + ("lean past each other" if self.migration is None else "lean and migrate past each other")
-                + f" (the pitch {self.pitch:g} um leans the outer fibers {np.degrees(self.max_lean):.1f} deg); space "
-                "the cross-section out (bundle.gap_um) or lengthen the pitch"
+                f"twisted ply: fibers {i} and {j} intersect by {-gap:.4g} um where they {how} (the pitch "
+                f"{self.pitch:g} um leans the outer fibers {np.degrees(self.max_lean):.1f} deg); space the "
+                "cross-section out (bundle.gap_um) or lengthen the pitch"
                 + ("" if self.migration is None else f", or migrate less (r_min {self.migration.r_min:g} nearer 1)"))

@@ -23,9 +23,11 @@ Axes and bins (radians, nm):
 =============  =================================================================
 
 Reductions (``meta["reductions"]``): ``theta_i: "mirror"`` (S(-ti, -to) = S(ti, to),
-parallel untilted fibers), ``phi_i: "rotation"`` (circle) or ``"mirror_xz"``
-(ellipse: phi_i in [0, 90 deg]), ``phi_o: "relative" | "absolute"``.
-:meth:`BundleTable.expanded` undoes the theta and ellipse reductions.
+parallel untilted fibers), ``phi_i: "rotation"`` (circle), ``"mirror_xz"`` (ellipse:
+phi_i in [0, 90 deg], its x and z mirrors) or ``"half_turns"`` (twisted ellipse: phi_i in
+[0, 90 deg], the half turns about y, and about x and z with theta flipped),
+``phi_o: "relative" | "absolute"``. :meth:`BundleTable.expanded` undoes the theta and
+ellipse reductions.
 
 Example::
 
@@ -47,7 +49,7 @@ from .io import atomic_path, check_axis
 
 FORMAT = "bcsdf.bundle_table/1"
 MAX_VALUE = 1e20   # 1/sr: far beyond any physical lobe, far below float32's 3.4e38
-REDUCTIONS = {"theta_i": (None, "mirror"), "phi_i": (None, "rotation", "mirror_xz"),
+REDUCTIONS = {"theta_i": (None, "mirror"), "phi_i": (None, "rotation", "mirror_xz", "half_turns"),
               "phi_o": ("relative", "absolute")}
 ARRAYS = ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost",
           "phi_i", "theta_i", "phi_o_edges", "theta_o_edges", "wavelength")
@@ -185,8 +187,8 @@ class BundleTable:
         if red.get("theta_i") == "mirror":
             t = t._mirror_theta()
             red["theta_i"] = None
-        if red.get("phi_i") == "mirror_xz":
-            t = t._mirror_phi()
+        if red.get("phi_i") in ("mirror_xz", "half_turns"):
+            t = t._mirror_phi(twisted=red["phi_i"] == "half_turns")
             red["phi_i"] = None
         t.meta = dict(t.meta, reductions=red)
         return t
@@ -210,30 +212,44 @@ class BundleTable:
             absorbed=cat(self.absorbed, 1), lost=cat(self.lost, 1),
             passthrough_theta=None if self.passthrough_theta is None else cat(self.passthrough_theta, 1))
 
-    def _mirror_phi(self):
-        """Ellipse: from phi_i in [0, pi/2] to [0, 2 pi) by the x and z mirrors.
+    def _mirror_phi(self, twisted: bool = False):
+        """Ellipse: from phi_i in [0, pi/2] to [0, 2 pi) by its symmetries.
 
-        A mirror ``T`` of the cross-section (``phi -> -phi``, ``pi - phi``, ``phi + pi``)
-        maps the bundle onto itself, so ``S(T phi_i, phi_o) = S(phi_i, T^-1 phi_o)``;
-        with uniform phi_o bins of even count, ``T^-1`` maps bin centres to centres.
+        A symmetry ``T`` of the bundle (``phi -> -phi``, ``pi - phi``, ``phi + pi``) maps it
+        onto itself, so ``S(T phi_i, phi_o) = S(phi_i, T^-1 phi_o)``; with uniform phi_o bins
+        of even count, ``T^-1`` maps bin centres to centres. A parallel ellipse has the x and
+        z mirrors (theta unchanged). A twisted one is chiral: its symmetries are the half
+        turns about y (``phi + pi``), z (``pi - phi``) and x (``-phi``), the last two
+        flipping theta (``theta_i`` and ``theta_o`` both, which needs symmetric nodes and edges).
         """
         n = len(self.phi_o_edges) - 1
         step = 2 * np.pi / n
-        mirrors = [(lambda p: p, lambda p: p), (lambda p: np.pi - p, lambda p: np.pi - p),
-                   (lambda p: np.pi + p, lambda p: p - np.pi), (lambda p: -p, lambda p: -p)]
+        mirrors = [(lambda p: p, lambda p: p, False), (lambda p: np.pi - p, lambda p: np.pi - p, twisted),
+                   (lambda p: np.pi + p, lambda p: p - np.pi, False), (lambda p: -p, lambda p: -p, twisted)]
+        if twisted and not (np.allclose(self.theta_i, -self.theta_i[::-1], atol=1e-9)
+                            and np.allclose(self.theta_o_edges, -self.theta_o_edges[::-1], atol=1e-9)):
+            raise ValueError("half_turns reduction: the theta_i nodes and theta_o edges must be symmetric about 0")
         rows = {}
-        for forward, inverse in mirrors:
+        for forward, inverse, flip in mirrors:
             source_bin = np.floor(np.mod(inverse(self.phi_o) + np.pi, 2 * np.pi) / step).astype(int) % n
             for a, p in enumerate(self.phi_i):
                 q = round(float(np.mod(forward(p), 2 * np.pi)), 12)
-                rows.setdefault(q, (a, source_bin))
+                rows.setdefault(q, (a, source_bin, flip))
+
+        def pick(arr, per_bin, theta_axes=(0,)):
+            out = []
+            for q in phis:
+                a, source_bin, flip = rows[q]
+                v = arr[a][:, source_bin] if per_bin else arr[a]
+                out.append(np.flip(v, theta_axes) if flip and theta_axes else v)
+            return np.stack(out)
+
         phis = sorted(rows)
-        pick = lambda arr, per_bin: np.stack([  # noqa: E731
-            arr[rows[q][0]][:, rows[q][1]] if per_bin else arr[rows[q][0]] for q in phis])
-        return self._replace(phi_i=np.array(phis), values=pick(self.values, True), stderr=pick(self.stderr, True),
+        return self._replace(phi_i=np.array(phis), values=pick(self.values, True, (0, 2)),
+                             stderr=pick(self.stderr, True, (0, 2)),
                              absorbed=pick(self.absorbed, False), lost=pick(self.lost, False),
-                             passthrough=pick(self.passthrough, False),
-                             passthrough_stderr=pick(self.passthrough_stderr, False),
+                             passthrough=pick(self.passthrough, False, ()),
+                             passthrough_stderr=pick(self.passthrough_stderr, False, ()),
                              passthrough_theta=None if self.passthrough_theta is None
                              else pick(self.passthrough_theta, False))
 
@@ -340,7 +356,7 @@ def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "line
     the algorithm is :func:`cone_lookup`, shared.
     """
     reductions = table.meta.get("reductions", {})
-    if reductions.get("theta_i") == "mirror" or reductions.get("phi_i") == "mirror_xz":
+    if reductions.get("theta_i") == "mirror" or reductions.get("phi_i") in ("mirror_xz", "half_turns"):
         raise ValueError("lookup needs an expanded table: BundleTable.load(path, expand=True)")
     if mode not in ("nearest", "linear"):
         raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")

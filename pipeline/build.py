@@ -44,15 +44,16 @@ def _poisson_gap(cfg) -> float:
 def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
     """What the bake traces: the cross-section, or the twisted ply of ``bundle.twist``.
 
-    Migrating fibers (``bundle.twist.migration``) pass each other closer than the cross-
-    section shows; a Poisson cross-section is spaced out until they clear (its gap grown by
-    each try's overlap), a listed one is refused with the amount."""
+    Migrating fibers (``bundle.twist.migration``) and the fibers of an elliptical ply pass
+    each other closer than the cross-section shows; a Poisson cross-section is spaced out
+    until they clear (its gap grown by each try's overlap), a listed one is refused with the
+    amount."""
     bundle = build_bundle(cfg)
     twist = cfg.bundle.twist
     if twist is None:
         return bundle
     pitch, migration = twist.pitch(bundle.bounding_radius), twist.migration_model(cfg.bundle.seed)
-    if migration is None or cfg.bundle.arrangement != "poisson":
+    if (migration is None and bundle.is_circle) or cfg.bundle.arrangement != "poisson":
         return bundles.TwistedBundle(bundle, pitch, migration)
     gap = bundle_gap = _poisson_gap(cfg)
     for _ in range(40):
@@ -64,8 +65,8 @@ def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
         b = cfg.bundle
         bundle = bundles.poisson(b.semi_axes(), cfg.fiber.radius_um, gap=gap, packing=b.packing, seed=b.seed,
                                  name=cfg.name)
-    raise ValueError(f"bundle.twist.migration: no Poisson cross-section with gaps from {bundle_gap:.3g} to {gap:.3g} "
-                     "um clears its migrating fibers; migrate less (r_min nearer 1) or lengthen the pitch")
+    raise ValueError(f"bundle.twist: no Poisson cross-section with gaps from {bundle_gap:.3g} to {gap:.3g} "
+                     "um clears its turning fibers; migrate less (r_min nearer 1) or lengthen the pitch")
 
 
 def tracer(ply, fiber: FiberTable, spec: BakeSpec):
@@ -94,8 +95,9 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     """Incident directions and bins, after the symmetry reductions the scene allows.
 
     A twisted ply (``bundle`` a :class:`~models.bundle.TwistedBundle`) keeps the rotation
-    reduction (a turn of the ply is a shift along its axis, and rays enter over a whole
-    period), but not the theta mirror (the mirror of a twisted ply is twisted the other way);
+    reduction of a circle (a turn of the ply is a shift along its axis, and rays enter over a
+    whole period), but not the theta mirror (the mirror of a twisted ply is twisted the other
+    way); a twisted ellipse keeps its half turns (``half_turns``: models/bundle_table.py);
     its theta_i nodes stop short of +-90 deg, where light runs along the axis and crosses no
     width (the lookup holds the last node's value beyond it).
     """
@@ -104,7 +106,10 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     bundle = cross_section(bundle)
     mirror_theta = bool(fiber.meta.get("mirror_symmetric", True)) and not twisted
     theta_i = theta_nodes(c.theta_i_step_deg, negative=not mirror_theta, poles=not twisted)
-    phi_i, phi_reduction = c.phi_i(bundle.is_circle), "rotation" if bundle.is_circle else "mirror_xz"
+    # an ellipse: its x and z mirrors; twisted, the half turns about y (exact: a shift by half
+    # a turn) and about x and z (each a mirror of the cross-section with theta flipped)
+    phi_i = c.phi_i(bundle.is_circle)
+    phi_reduction = "rotation" if bundle.is_circle else "half_turns" if twisted else "mirror_xz"
     spec = BakeSpec(theta_i, phi_i, c.n_theta_o, c.n_phi_o, relative_phi=bundle.is_circle,
                     estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
                     exit=exit_model(c.exit, fiber, c.estimator, twisted), theta_o_edges=c.theta_o_edges())

@@ -214,16 +214,20 @@ def explicit_twisted_shapes(curve_file, fiber_bsdf: dict, turn: float, shift: fl
                                                                                  -float(np.rad2deg(turn)))}}
 
 
-def view_placements(ply, n_views: int, unit: float) -> list[tuple[float, float]]:
-    """``(turn, shift)`` of each view of the explicit ply, averaging over what its bake
-    averages over: the incident azimuth (turns) and the height within the period (shifts).
-    A rigid twist needs the turns alone (a turn is a shift); a migrating ply's pairs are a
-    rank-1 lattice over (turn, height) whose every projection, and the shift a turn amounts
-    to, are stratified."""
-    turns = [2 * np.pi * k / n_views for k in range(n_views)]
-    if getattr(ply, "migration", None) is None:
-        return [(t, 0.0) for t in turns]
-    return [(t, (5 * k % n_views) / n_views * ply.period * unit) for k, t in enumerate(turns)]
+def view_placements(ply, n_views: int, unit: float, turns: bool = True) -> list[tuple[float, float]]:
+    """``(turn, shift)`` of each view of an explicit twisted ply, averaging over what its
+    bake averages over: the incident azimuth (turns, a circle's) and the height within the
+    period (shifts, scene units). A rigid circular twist needs the turns alone (a turn is a
+    shift); an ellipse, whose bake keeps its azimuth, the shifts alone; a migrating circle
+    both, as a rank-1 lattice over (turn, height) whose every projection, and the shift a
+    turn amounts to, are stratified."""
+    P = ply.period * unit
+    if not turns:
+        return [(0.0, k / n_views * P) for k in range(n_views)]
+    placed = [2 * np.pi * k / n_views for k in range(n_views)]
+    if ply.screw:
+        return [(t, 0.0) for t in placed]
+    return [(t, (5 * k % n_views) / n_views * P) for k, t in enumerate(placed)]
 
 
 def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, resolution: int = 48,
@@ -258,7 +262,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     section = bundle.bundle if twisted else bundle
     hs = 1.2 * section.bounding_radius * unit
     half_length = 40 * hs
-    placements = view_placements(bundle, len(requests[0][1]), unit) if turns and twisted else None
+    placements = view_placements(bundle, len(requests[0][1]), unit, turns) if twisted else None
     n_views = len(requests[0][1])
     if any(len(views) != n_views for _, views in requests):
         raise ValueError("explicit_intensities: every request needs as many views")
@@ -267,12 +271,12 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
         curve_file = Path(tmp) / "helices.txt"
         if twisted:  # long enough for every shift: the view stays 40 hs from either end
-            reach = max(shift for _, shift in placements) if placements else 0.0
+            reach = max(shift for _, shift in placements)
             write_curves(helix_control_points(bundle, half_length + reach, unit), curve_file)
         for k in range(n_views):
             turn = 2 * np.pi * k / n_views if turns else 0.0
-            shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, *(placements[k] if placements else (0.0,)))
-                      if twisted else explicit_shapes(bundle, fiber_bsdf, turn, half_length, unit))
+            shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, *placements[k]) if twisted
+                      else explicit_shapes(bundle, fiber_bsdf, turn, half_length, unit))
             w_i0, views0 = requests[0]
             loaded = mi.load_dict(scene(mi, shapes, w_i0, views0[k], hs, resolution=resolution, spp=spp, seed=k))
             params = mi.traverse(loaded)

@@ -185,7 +185,8 @@ class TwistCfg(Strict):
 
     ``migration``: ``true`` takes the yarn's ``R_min`` and ``s`` (with ``yarn``), or give
     ``{r_min, s}``; absent or ``false``, the fibers keep their distance from the axis. The
-    cross-section is then spaced so that migrating fibers clear each other (``pipeline.build``).
+    cross-section is then spaced so that migrating fibers clear each other (``pipeline.build``),
+    as is an elliptical one's (``shape: ellipse``: the ellipse stays, its fibers turn through it).
     """
 
     pitch_um: Optional[float] = Field(None, description="signed pitch (um); > 0 right-handed")
@@ -242,9 +243,6 @@ class BundleCfg(Strict):
 
     @model_validator(mode="after")
     def _consistent(self):
-        if self.twist is not None and (self.shape != "circle" or self.arrangement == "zhao2016"):
-            raise ValueError("bundle.twist needs a circular cross-section (shape: circle, arrangement poisson or "
-                             "file): an elliptical ply would turn with its fibers")
         if self.arrangement == "zhao2016":
             if not self.yarn:
                 raise ValueError("arrangement 'zhao2016' needs 'yarn' (e.g. 'Cotton 1')")

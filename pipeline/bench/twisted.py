@@ -8,6 +8,11 @@ relative standard error over the bins holding 90% of its scattered energy reache
 target (5%), or its budget runs out (then extrapolated with error ~ 1/sqrt(time), and
 marked). Prints paths and vertices per second and the time to the target; the parallel
 table's paths carry every theta_i, a twisted table's one each.
+
+``--migration R_MIN S`` adds two rows at the first pitch: the cross-section that
+``pipeline.build`` spaces out until fibers migrating so clear each other (sparser), twisted
+rigidly and with the migration (a period of several turns), so that migration's own cost is
+read from one cross-section.
 """
 
 from __future__ import annotations
@@ -29,6 +34,8 @@ def main(argv=None):
     parser.add_argument("--target", type=float, default=0.05)
     parser.add_argument("--budget", type=float, default=120.0, help="seconds per row")
     parser.add_argument("--batch", type=int, default=32768)
+    parser.add_argument("--migration", type=float, nargs=2, metavar=("R_MIN", "S"),
+                        help="add a migrating ply (Cotton 1: 0.8 1.1) and its rigid twin")
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
 
@@ -37,7 +44,7 @@ def main(argv=None):
     from models import fiber as fiber_models
     from models.bake import Tally
     from models.bundle import TwistedBundle
-    from pipeline.build import build_bundle, make_spec, tracer
+    from pipeline.build import build_bundle, build_ply, make_spec, tracer
     from pipeline.config import load_config
 
     # the cross-section spaced for the steepest pitch, shared by every row
@@ -55,6 +62,13 @@ def main(argv=None):
     print(f"{'ply':>22s} {'lean':>6s} {'theta_i':>7s} {'paths/s':>9s} {'vertices/s':>11s} {'paths':>9s} "
           f"{'error':>7s} {'time to target':>15s}")
     rows = [("parallel", bundle)] + [(f"twisted, pitch {p:+.0f} um", TwistedBundle(bundle, p)) for p in args.pitch]
+    if args.migration:
+        r_min, s = args.migration
+        migrating = build_ply(load_config(args.config, [
+            f"bundle.twist={{pitch_um: {args.pitch[0]}, migration: {{r_min: {r_min}, s: {s}}}}}"]))
+        print(f"migrating: {len(migrating.bundle.radii)} fibers (packing {migrating.bundle.packing_fraction:.3f}), "
+              f"r_min {r_min:g}, s {s:g}: a period of {migrating.migration.turns} turns")
+        rows += [("sparser, rigid", TwistedBundle(migrating.bundle, args.pitch[0])), ("sparser, migrating", migrating)]
     for name, ply in rows:
         spec, _ = make_spec(cfg, ply, fiber)
         baker = tracer(ply, fiber, spec)
