@@ -81,13 +81,13 @@ def cross_section(ply) -> bundles.Bundle:
     return ply.bundle if isinstance(ply, bundles.TwistedBundle) else ply
 
 
-def exit_model(name: str, fiber: FiberTable, estimator: str = "fast", twisted: bool = False) -> str:
+def exit_model(name: str, fiber: FiberTable, estimator: str = "fast") -> str:
     """The exit model a bake uses: ``auto`` is the one that agrees with exact geometry where
-    the fiber knows its paths (``lobe`` for ray fibers with the fast estimator, parallel
-    fibers), else ``uniform`` (measured on the ray model's smooth limit: docs/BENCHMARKS.md,
-    "Exit models"; the twisted bake has the uniform exit only)."""
+    the fiber knows its paths (``lobe`` for ray fibers with the fast estimator, parallel or
+    twisted), else ``uniform`` (measured on the ray model's smooth limit: docs/BENCHMARKS.md,
+    "Exit models")."""
     if name == "auto":
-        return "lobe" if fiber.meta.get("model") == "ray" and estimator == "fast" and not twisted else "uniform"
+        return "lobe" if fiber.meta.get("model") == "ray" and estimator == "fast" else "uniform"
     return name  # an impossible choice is refused by the config (and by BakeSpec and the ray sampler)
 
 
@@ -112,7 +112,7 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     phi_reduction = "rotation" if bundle.is_circle else "half_turns" if twisted else "mirror_xz"
     spec = BakeSpec(theta_i, phi_i, c.n_theta_o, c.n_phi_o, relative_phi=bundle.is_circle,
                     estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
-                    exit=exit_model(c.exit, fiber, c.estimator, twisted), theta_o_edges=c.theta_o_edges())
+                    exit=exit_model(c.exit, fiber, c.estimator), theta_o_edges=c.theta_o_edges())
     reductions = {"theta_i": "mirror" if mirror_theta else None, "phi_i": phi_reduction,
                   "phi_o": "relative" if bundle.is_circle else "absolute"}
     return spec, reductions

@@ -589,10 +589,8 @@ class Config(Strict):
                              "uniform or entry")
         if b.exit in ("entry", "lobe") and b.estimator != "fast":
             raise ValueError(f"bake.exit: {b.exit} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
-        if self.bundle is not None and self.bundle.twist is not None and (b.exit in ("entry", "lobe")
-                                                                          or b.estimator != "fast"):
-            raise ValueError("bundle.twist: a twisted ply is baked with bake.estimator: fast and the uniform exit "
-                             f"(got estimator {b.estimator!r}, exit {b.exit!r}); use exit: auto or uniform")
+        if self.bundle is not None and self.bundle.twist is not None and b.estimator != "fast":
+            raise ValueError(f"bundle.twist: a twisted ply is baked with bake.estimator: fast (got {b.estimator!r})")
         return self
 
     @model_validator(mode="after")

@@ -99,10 +99,11 @@ def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) ->
 
 
 def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, turn: float = 0.0,
-                   plugin: str = "fiber_table", curve_file=None) -> dict:
+                   plugin: str = "fiber_table", curve_file=None, shift: float = 0.0) -> dict:
     """The same ply, every fiber its own shape with the fiber model (``plugin``:
     ``fiber_table``, or ``fiber_ray`` for a bake with the h-resolved exit), the
-    arrangement turned by ``turn`` (radians) about the ply's axis.
+    arrangement turned by ``turn`` (radians) about the ply's axis and, a twisted one,
+    moved by ``shift`` (scene units) along it (``closure.view_placements``).
 
     Parallel fibers (a :class:`~models.bundle.Bundle`) are cylinders, not one
     ``bsplinecurve`` of all fibers: rays that leave a fiber next to a touching neighbour
@@ -124,12 +125,13 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, t
     if isinstance(bundle, TwistedBundle):
         if curve_file is None:
             raise ValueError("explicit_scene: a twisted ply's helices need a curve_file to be written to")
-        write_curves(helix_control_points(bundle, 0.6 * L, UM), curve_file)
+        write_curves(helix_control_points(bundle, 0.6 * L + abs(shift), UM), curve_file)
         T = mi.ScalarTransform4f
         to_scene = T([[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]])  # (x, y, z) -> (y, x, -z): a rotation
         # turned by +turn in phi = atan2(z, x) of the bundle frame: -turn about the scene's x
         scene["fibers"] = {"type": "bsplinecurve", "filename": str(curve_file), "bsdf": fiber,
-                           "to_world": T().rotate([1.0, 0.0, 0.0], -float(np.rad2deg(turn))) @ to_scene}
+                           "to_world": T().translate([float(shift), 0.0, 0.0])
+                           @ T().rotate([1.0, 0.0, 0.0], -float(np.rad2deg(turn))) @ to_scene}
         return scene
     c, s = np.cos(turn), np.sin(turn)
     centers = np.asarray(bundle.centers, float) @ np.array([[c, s], [-s, c]])  # (x, z) turned by +turn

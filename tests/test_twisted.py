@@ -164,9 +164,14 @@ def test_migration_that_collides_is_refused_with_the_amount():
 
 # -- the 3D bake ---------------------------------------------------------------------
 
-def test_untwisted_limit_is_the_parallel_bake(ray_fiber):
+@pytest.mark.parametrize("exit_model", ["uniform", "lobe"])
+def test_untwisted_limit_is_the_parallel_bake(ray_fiber, exit_model):
+    """Nearly straight helices (pitch 1e8 um) against the 2D bake of the same cross-section,
+    with the uniform exit and with the lobe exit (each path sampled at its own offset ``h``
+    and leaving where its lobe leaves: the 3D tracer's ``h`` and exit point must be the 2D
+    bake's for the many-fiber paths to agree)."""
     b = poisson((100.0, 100.0), 20.0, seed=1)
-    spec = BakeSpec(np.deg2rad([0.0, 30.0, 60.0]), [0.0], 12, 24, relative_phi=True)
+    spec = BakeSpec(np.deg2rad([0.0, 30.0, 60.0]), [0.0], 12, 24, relative_phi=True, exit=exit_model)
     flat = table_of(Baker(b, ray_fiber, spec).trace(0, 200_000, 1), spec, ray_fiber)
     tw = TwistedBaker(TwistedBundle(b, 1e8), ray_fiber, spec).trace(0, 300_000, 2)
     twisted = table_of(tw, spec, ray_fiber)
@@ -179,17 +184,19 @@ def test_untwisted_limit_is_the_parallel_bake(ray_fiber):
     assert np.allclose(twisted.absorbed, flat.absorbed, rtol=0.02, atol=1e-4)
 
 
-@pytest.mark.parametrize("layout", ["uniform", "cone"])
-def test_single_tilted_fiber_is_the_fiber_model_rotated(ray_fiber, layout):
+@pytest.mark.parametrize("layout,exit_model", [("uniform", "uniform"), ("cone", "uniform"), ("uniform", "lobe")])
+def test_single_tilted_fiber_is_the_fiber_model_rotated(ray_fiber, layout, exit_model):
     """The 3D bake of one helical fiber against the fiber model rotated into the ply frame
     and averaged over its turn, bin by bin: in 12 equal theta_o bins, and in the cone
     layout's unequal ones (a 4-deg bin on the cones of nodes 10 deg apart, 6 deg between;
-    five times the paths, so that no bin of 0.2% of the peak is left empty)."""
+    five times the paths, so that no bin of 0.2% of the peak is left empty). With the lobe
+    exit the fiber is sampled resolved in the ray's offset ``h``, which averages to the
+    model only if ``h`` is the hit's true offset (uniform over the fiber's projected width)."""
     from models.grid import cone_edges
 
     rho, r, Rb, pitch = 60.0, 20.0, 80.0, 1500.0
     ply = TwistedBundle(Bundle(np.array([[rho, 0.0]]), r, (Rb, Rb)), pitch)
-    spec = BakeSpec(np.deg2rad([0.0, 30.0, 50.0]), [0.0], 12, 24, relative_phi=True,
+    spec = BakeSpec(np.deg2rad([0.0, 30.0, 50.0]), [0.0], 12, 24, relative_phi=True, exit=exit_model,
                     theta_o_edges=cone_edges(np.deg2rad(10.0), np.deg2rad(4.0)) if layout == "cone" else None)
     paths = 400_000 if layout == "uniform" else 2_000_000  # narrower bins: no empty bin of 0.2% of the peak
     table = table_of(TwistedBaker(ply, ray_fiber, spec).trace(0, paths, 2), spec, ray_fiber)
@@ -333,7 +340,7 @@ def test_a_bad_twist_is_refused_naming_the_key(twist, message):
         build_ply(load_config("configs/default.yaml", [f"bundle.twist={twist}"]))
 
 
-def test_a_twisted_ellipse_keeps_its_azimuths_and_a_twist_needs_the_uniform_exit():
+def test_a_twisted_ellipse_keeps_its_azimuths_and_a_twist_needs_the_fast_estimator():
     from pipeline.build import build_ply, make_spec
     from pipeline.config import ConfigError, load_config
 
@@ -344,8 +351,10 @@ def test_a_twisted_ellipse_keeps_its_azimuths_and_a_twist_needs_the_uniform_exit
     spec, reductions = make_spec(cfg, ply, PatternFiber(WL, "isotropic").tabulate(NODES))
     assert reductions == {"theta_i": None, "phi_i": "half_turns", "phi_o": "absolute"} and not spec.relative_phi
     assert np.allclose(np.rad2deg(spec.phi_i), np.arange(0, 91, 15)) and np.allclose(spec.theta_i, -spec.theta_i[::-1])
-    with pytest.raises(ConfigError, match="uniform exit"):
-        load_config("configs/ray_ply.yaml", ["bundle.twist={pitch_um: 3000}", "bake.exit=lobe"])
+    with pytest.raises(ConfigError, match="estimator: fast"):
+        load_config("configs/ray_ply.yaml", ["bundle.twist={pitch_um: 3000}", "bake.estimator=thesis"])
+    ray = load_config("configs/ray_ply.yaml", ["bundle.twist={pitch_um: 3000}"])  # auto: the lobe exit, as parallel
+    assert ray.bake.exit == "auto"
 
 
 def test_a_zhao_yarn_gives_its_lean_and_the_spec_keeps_every_theta_i_but_the_poles():

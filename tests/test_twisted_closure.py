@@ -11,17 +11,18 @@ from models.bundle import Migration, TwistedBundle, poisson
 from tests.test_twisted import table_of
 
 
-CLOSURE_PLIES = {  # (fiber, pitch um, migration): two twists, both senses; the rim leans 14 and 28 deg
-    "ray, pitch +1500 um": ("ray", 1500.0, None),
-    "mie, pitch -700 um": ("mie", -700.0, None),
-    "ray, pitch -1000 um, migrating": ("ray", -1000.0, Migration(0.8, 1.5, seed=3)),
+CLOSURE_PLIES = {  # (fiber, pitch um, migration, exit): two twists, both senses; the rim leans 14 and 28 deg
+    "ray, pitch +1500 um, lobe exit": ("ray", 1500.0, None, "lobe"),
+    "mie, pitch -700 um": ("mie", -700.0, None, "uniform"),
+    "ray, pitch -1000 um, migrating": ("ray", -1000.0, Migration(0.8, 1.5, seed=3), "uniform"),
 }
 
 
 @pytest.mark.parametrize("name", list(CLOSURE_PLIES))
 def test_explicit_twisted_ply_renders_its_bake(mono, tmp_path, name):
     """Closure of the 3D bake (issue 26): every fiber of a twisted ply a Mitsuba
-    ``bsplinecurve`` along its helix with ``fiber_table``, over 5 periods or more, rendered
+    ``bsplinecurve`` along its helix with ``fiber_table`` (``fiber_ray``, resolved in the
+    offset of each hit, for the lobe exit), over 5 periods or more, rendered
     in the closure scene (``pipeline.closure``: 16 evenly spaced turns of the ply, for a
     twisted ply a shift along its axis, each seen from its own direction of a 4 x 4
     stratification of the bin) against ``E 2 R_b cos(theta_i) S_bin`` of the twisted table,
@@ -37,7 +38,7 @@ def test_explicit_twisted_ply_renders_its_bake(mono, tmp_path, name):
     from pipeline import closure
     from tests.test_closure import LAM, WL as WL3, fiber_models
 
-    kind, pitch, migration = CLOSURE_PLIES[name]
+    kind, pitch, migration, exit_model = CLOSURE_PLIES[name]
     fiber = fiber_models()[kind]()
     fiber.save(tmp_path / "fiber.npz")
     r = 20.0 if migration is None else 15.0
@@ -46,7 +47,7 @@ def test_explicit_twisted_ply_renders_its_bake(mono, tmp_path, name):
     ply = TwistedBundle(poisson((80.0, 80.0), r, gap=gap, packing=0.3 if migration is None else 0.25, seed=2),
                         pitch, migration)
     assert len(ply.bundle.radii) >= 5
-    spec = BakeSpec(np.deg2rad([-30.0, 20.0, 60.0]), [0.0], 18, 36, relative_phi=True)
+    spec = BakeSpec(np.deg2rad([-30.0, 20.0, 60.0]), [0.0], 18, 36, relative_phi=True, exit=exit_model)
     mi.set_variant("llvm_ad_rgb")  # the baker's own variant
     baker = TwistedBaker(ply, fiber, spec)
     tally = baker.trace(0, 900_000, 1)
@@ -57,7 +58,8 @@ def test_explicit_twisted_ply_renders_its_bake(mono, tmp_path, name):
 
     mitsuba_ext.register()
     lam = list(WL3).index(LAM)
-    bsdf = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": LAM, "up": closure.UP}
+    # the explicit fibers leave as the bake did: fiber_ray (each path from its own exit) for the lobe exit
+    bsdf = closure.explicit_fiber(tmp_path / "fiber.npz", exit_model, LAM)
     n_t = len(table.theta_o_edges) - 1
     phi_bins = (9, 15, 20, 34)                                   # dphi -85, -25, +25, +165 deg
     cases = []

@@ -13,8 +13,10 @@ a chord of ``SEGMENTS`` per turn strays from the helix by ``rho (1 - cos(pi / SE
 At a hit the fiber is evaluated in its own frame: the tangent ``T`` is the segment's axis,
 ``theta`` is measured from the plane normal to ``T`` and ``phi`` in that plane; the
 outgoing direction is importance-sampled from the fiber table at the local ``theta_in``
-and leaves from the fiber's surface as the parallel bake's ``uniform`` exit does (offset
-``h r`` along ``T x w_o``, ``h`` uniform). An escaping path is tallied in the ply's frame
+and leaves from the fiber's surface by the bake's exit model, in the plane normal to ``T`` as
+the parallel bake does: ``uniform`` (offset ``h r`` along ``T x w_o``, ``h`` uniform),
+``entry`` (where the light entered) or ``lobe`` (the ray fiber resolved in the ray's own
+offset ``h``: a path sampled at that ``h``, leaving where that path leaves). An escaping path is tallied in the ply's frame
 (``theta_o = asin(w_o . y)``, ``phi_o`` from ``+x``) into the parallel table's bins, per
 ``theta_i`` node; the passthrough now depends on ``theta_i`` too.
 
@@ -128,12 +130,13 @@ class TwistedBaker:
     TAIL_LANES = 4096  # with this few paths left, the last round runs to the end
 
     def __init__(self, ply: TwistedBundle, fiber: FiberTable, spec: BakeSpec):
-        if spec.estimator != "fast" or spec.exit != "uniform":
-            raise ValueError("a twisted ply is traced with the fast estimator and the uniform exit "
-                             f"(got estimator {spec.estimator!r}, exit {spec.exit!r})")
+        if spec.estimator != "fast":
+            raise ValueError(f"a twisted ply is traced with the fast estimator (got {spec.estimator!r})")
         self.ply, self.fiber, self.spec = ply, fiber, spec
         self.geometry = TwistedScene(ply)
         self.twin = DrJitFiber(fiber, FiberSampler(fiber), mi.Float)
+        # the h-resolved ray fiber for the lobe exit (refuses any other fiber, with the reason)
+        self.lobes = lobes.LobeSampler(fiber.meta, fiber.wavelength, mi.Float) if spec.exit == "lobe" else None
         self.n_lambda = len(fiber.wavelength)
 
     # -- entry -----------------------------------------------------------------------
@@ -260,11 +263,19 @@ class TwistedBaker:
         theta_in = dr.safe_asin(dr.dot(wi, T))
         phi_wi = dr.atan2(dr.dot(wi, e2), dr.dot(wi, e1))
 
+        # the ray's offset h across the fiber, in the plane normal to T (the 2D bake's, per fiber)
+        s_d, c_d = dr.sincos(phi_wi + np.pi)                      # the ray's travel in that plane
+        h_in = lobes.entry_offset(0.0, 0.0, r, r * dr.dot(n, e1), r * dr.dot(n, e2), c_d, s_d, dr)
+
         rng = mi.PCG32()
         rng.seed(up.seed + mi.UInt64(p.depth), mi.UInt64(p.pid))
         u = [rng.next_float32() for _ in range(5)]
         x6, x7 = rng.next_float32(), rng.next_float32()
-        theta_out, dphi, pdf, f, alb = self.twin.event(theta_in, u)
+        if self.lobes is not None:  # a path (lobe) at the ray's own offset, and where it leaves
+            path, theta_out, dphi, pdf = self.lobes.sample(theta_in, h_in, u[:4])
+            f, alb = self.lobes.eval_spectrum(theta_in, h_in, path, theta_out, dphi)
+        else:
+            theta_out, dphi, pdf, f, alb = self.twin.event(theta_in, u)
 
         # Phase 4: the weight (B carries f cos / pdf, R the expected absorption) and roulette
         p.B, p.R, kept, roulette = weights.scatter(p.B, p.R, f, alb, theta_out, pdf, go, p.depth, spec.rr_start, x6)
@@ -272,10 +283,20 @@ class TwistedBaker:
         alive = go & kept
         h_u = dr.select(roulette, x7, x6)
 
-        # Phase 5: leave the fiber's surface on the outgoing side (the uniform exit)
+        # Phase 5: leave the fiber's surface (the exit model, in the plane normal to T): anywhere
+        # on the outgoing side, where the light entered, or where its path leaves
         phi_wo = phi_wi + dphi
         s_o, c_o = dr.sincos(phi_wo)
         ex, ez = lobes.leave_uniform(0.0, 0.0, r, 2 * h_u - 1, c_o, s_o, dr)
+        if spec.exit != "uniform":
+            nx, nz = lobes.entry_normal(h_in, c_d, s_d, dr)
+            if self.lobes is not None:
+                nx, nz = self.lobes.exit_normal(nx, nz, path, h_in, theta_in, dr)
+            lx, lz = lobes.leave(0.0, 0.0, r, nx, nz, c_o, s_o, dr)
+            if self.lobes is not None:  # the residual has no single exit: it keeps the uniform one
+                placed = path != self.lobes.p_max
+                lx, lz = dr.select(placed, lx, ex), dr.select(placed, lz, ez)
+            ex, ez = lx, lz
         exit_point = centre + e1 * ex + e2 * ez
         wo = e1 * (dr.cos(theta_out) * c_o) + e2 * (dr.cos(theta_out) * s_o) + T * dr.sin(theta_out)
         # an exit point beyond the period's ends is the same point a period away

@@ -11,8 +11,9 @@ table's paths carry every theta_i, a twisted table's one each.
 
 ``--migration R_MIN S`` adds two rows at the first pitch: the cross-section that
 ``pipeline.build`` spaces out until fibers migrating so clear each other (sparser), twisted
-rigidly and with the migration (a period of several turns), so that migration's own cost is
-read from one cross-section.
+rigidly (in its own one-turn scene, and in a scene as long as the migrating period) and with
+the migration (a period of several turns), so that migration's own cost is read from one
+cross-section.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ def main(argv=None):
 
     from models import fiber as fiber_models
     from models.bake import Tally
-    from models.bundle import TwistedBundle
+    from models.bundle import Migration, TwistedBundle
     from pipeline.build import build_bundle, build_ply, make_spec, tracer
     from pipeline.config import load_config
 
@@ -59,7 +60,7 @@ def main(argv=None):
           f"(packing {bundle.packing_fraction:.3f}), {len(wl)} wavelengths, {cfg.fiber.model} fiber; "
           f"target {args.target:.0%} median relative error over the bins of 90% of the energy; "
           f"budget {args.budget:.0f} s per row; {os.cpu_count()} cores")
-    print(f"{'ply':>22s} {'lean':>6s} {'theta_i':>7s} {'paths/s':>9s} {'vertices/s':>11s} {'paths':>9s} "
+    print(f"{'ply':>26s} {'lean':>6s} {'theta_i':>7s} {'paths/s':>9s} {'vertices/s':>11s} {'paths':>9s} "
           f"{'error':>7s} {'time to target':>15s}")
     rows = [("parallel", bundle)] + [(f"twisted, pitch {p:+.0f} um", TwistedBundle(bundle, p)) for p in args.pitch]
     if args.migration:
@@ -68,7 +69,11 @@ def main(argv=None):
             f"bundle.twist={{pitch_um: {args.pitch[0]}, migration: {{r_min: {r_min}, s: {s}}}}}"]))
         print(f"migrating: {len(migrating.bundle.radii)} fibers (packing {migrating.bundle.packing_fraction:.3f}), "
               f"r_min {r_min:g}, s {s:g}: a period of {migrating.migration.turns} turns")
-        rows += [("sparser, rigid", TwistedBundle(migrating.bundle, args.pitch[0])), ("sparser, migrating", migrating)]
+        # the rigid twist traced through a scene as long as the migrating period (a migration
+        # of 1e-9: the same helices to 0.0002 um), to part the period's cost from migration's
+        long_rigid = TwistedBundle(migrating.bundle, args.pitch[0], Migration(1 - 1e-9, s), checked=False)
+        rows += [("sparser, rigid", TwistedBundle(migrating.bundle, args.pitch[0])),
+                 ("sparser, rigid, long scene", long_rigid), ("sparser, migrating", migrating)]
     for name, ply in rows:
         spec, _ = make_spec(cfg, ply, fiber)
         baker = tracer(ply, fiber, spec)
@@ -89,7 +94,7 @@ def main(argv=None):
         reached = err <= args.target
         t_target = elapsed if reached else elapsed * (err / args.target) ** 2
         lean = np.degrees(ply.max_lean) if isinstance(ply, TwistedBundle) else 0.0
-        print(f"{name:>22s} {lean:5.1f}d {len(spec.theta_i):7d} {tally.paths.sum() / elapsed:9.0f} "
+        print(f"{name:>26s} {lean:5.1f}d {len(spec.theta_i):7d} {tally.paths.sum() / elapsed:9.0f} "
               f"{tally.vertices / elapsed:11.0f} {int(tally.paths.sum()):9d} {err:7.2%} {t_target:13.1f} s"
               f"{'' if reached else ' (extrapolated)'}")
 

@@ -311,8 +311,10 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     * **explicit fibers against the bake**, bin by bin (mono): the bake's own arrangement
       and fiber, each fiber a cylinder, 16 turns x 16 views per bin beside the cone;
     * **the ply scene** (this stage's variant, sun and sky): the explicit fibers averaged
-      over 16 turns of the arrangement (a circle's table is the rotation average) against
-      the bundle with the table and with the MLP: mean radiance over the ply, FLIP.
+      over 16 views of the arrangement (a circle's turns: its table is the rotation average;
+      an ellipse keeps its orientation; a twisted ply's views spread over its period's
+      heights where a turn is no shift) against the bundle with the table and with the
+      MLP: mean radiance over the ply, FLIP.
 
     Writes ``closure.png`` (the first two) and ``explicit_vs_bundle.png``.
     """
@@ -364,15 +366,20 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     print(f"[render] closure: far field {ff.min():.4f} .. {ff.max():.4f} ({len(ff)} renders); explicit fibers vs "
           f"bake {within:.0%} of {len(explicit)} bins within 3 sigma + 2%")
 
-    # -- the ply scene: explicit fibers, 16 turns, against the bundle ----------------------
+    # -- the ply scene: explicit fibers, 16 views, against the bundle ----------------------
+    # a circle's table holds every turn of its arrangement, an ellipse's its one orientation;
+    # a twisted ply's views also spread over the heights of its period where a turn is no shift
     mi.set_variant(r.variant)
     mitsuba_ext.register()
     turns = 16
     per_turn = max(1, r.explicit_spp // turns)
+    placements = (closure.view_placements(ply_model, turns, scenes.UM, bundle.is_circle) if twisted
+                  else [(2 * np.pi * k / turns if bundle.is_circle else 0.0, 0.0) for k in range(turns)])
     imgs, t_explicit = [], 0.0
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
-        for k in tqdm(range(turns), desc="explicit fibers", unit="turn"):
-            scene = scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn, k, turn=2 * np.pi * k / turns,
+        for k in tqdm(range(turns), desc="explicit fibers", unit="view"):
+            turn, shift = placements[k]
+            scene = scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn, k, turn=turn, shift=shift,
                                           plugin=fiber_bsdf["type"], curve_file=Path(tmp) / "helices.txt")
             img, seconds, _ = render_timed(mi, scene)
             imgs.append(img)
@@ -393,7 +400,7 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
         ply[backend] = {"spp": r.spp, "seconds": seconds, "mean_radiance": mean.tolist(),
                         "mean_vs_explicit": ratio, "flip_vs_explicit": flip}
         strip.append(to_srgb(img, expo))
-        print(f"[render] ply: bundle ({backend}) / explicit fibers (16 turns) mean radiance {ratio:.4f}, "
+        print(f"[render] ply: bundle ({backend}) / explicit fibers (16 views) mean radiance {ratio:.4f}, "
               f"FLIP {flip:.4f}; {seconds:.2f} s against {t_explicit:.1f} s")
     save_png(np.concatenate(strip, 0), out / "explicit_vs_bundle.png")
     result["ply"] = ply
@@ -431,6 +438,8 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
     # paths makes the parallel table about as precise as the twisted one
     paths = max(cfg.bake.paths_per_phi_i // len(spec.theta_i), 1)
     parallel = bake_unreduced(ply_model.bundle, fiber, spec, paths, seed=cfg.bake.seed)
+    if not ply_model.bundle.is_circle:  # phi_i over 0..90 deg: the parallel ellipse's mirrors give the rest
+        parallel.meta["reductions"] = dict(parallel.meta["reductions"], phi_i="mirror_xz")
     t_bake = time.perf_counter() - t0
     parallel.save(out / "parallel_table.npz")
     tables = {"twisted table": table_props["table"], "parallel table": out / "parallel_table.npz"}

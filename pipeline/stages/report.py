@@ -369,19 +369,20 @@ def render_section(cfg, root: Path, out: Path) -> str:
         within = np.mean([abs(b["ratio"] - 1) <= 0.02 + 3 * b["sigma"] for b in bins])
         shape = "a B-spline curve along its helix" if twisted else "a cylinder"
         body += (f" The bake's own {e['fibers']} fibers, "
-                 f"each rendered as {shape} with the fiber model and averaged over the bin and 16 turns of the "
-                 f"arrangement, against the bake: {within:.0%} of {len(bins)} bins within 3 standard errors + 2% "
+                 f"each rendered as {shape} with the fiber model and averaged over the bin and 16 views "
+                 f"(turns, or heights) of the arrangement, against the bake: {within:.0%} of {len(bins)} bins within 3 standard errors + 2% "
                  f"(right, error bars 1 sigma of bake and render).</p>")
         body += img_tag(out, root / "render" / "closure.png", "closure: far field and explicit fibers against the bake")
         p_ = e["ply"]
-        body += ("<p>The ply scene (sun and sky): every fiber its own cylinder, averaged over 16 turns of the "
-                 f"arrangement ({p_['explicit']['spp']} samples in all, {p_['explicit']['seconds']:.1f} s; top), "
+        body += ("<p>The ply scene (sun and sky): every fiber its own cylinder, averaged over 16 views of the "
+                 "arrangement (a circle's turns; a twisted ply's heights along its period where a turn is no shift) "
+                 f"({p_['explicit']['spp']} samples in all, {p_['explicit']['seconds']:.1f} s; top), "
                  "against the bundle BSDF: "
                  + "; ".join(f"{k}: mean radiance x{v['mean_vs_explicit']:.3f}, FLIP {v['flip_vs_explicit']:.3f}, "
                              f"{v['seconds']:.2f} s" for k, v in p_.items() if k != "explicit")
                  + " (the explicit fibers are resolved, the bundle is its far field).</p>")
         body += img_tag(out, root / "render" / "explicit_vs_bundle.png",
-                     "explicit fibers (16 turns) against the bundle with the table and the MLP")
+                     "explicit fibers (16 views) against the bundle with the table and the MLP")
         if twisted:
             par = e["parallel"]
             cut = par["cut"]
