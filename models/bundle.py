@@ -409,16 +409,26 @@ class TwistedBundle:
             return np.inf, -1, -1
         i, j = pairs.T
 
-        def dist(y, dy, i=i, j=j):  # [..., pairs] each
-            d = self.centers_at(y, i) - self.centers_at(y + dy, j)
-            return np.sqrt(np.sum(d**2, -1) + dy**2)
-
         span = 2 * reach * np.tan(self.max_lean) + 1e-9
         if self.screw:
             grid = (np.zeros(1), np.linspace(-span, span, 801))
         else:
             n_y = 32 * round(self.period / self.turn_length)
             grid = (np.arange(n_y) * self.period / n_y, np.linspace(-span, span, 121))
+            # drop the pairs that cannot be the closest: centre lines leaning by at most L that
+            # lie D apart at equal heights are nowhere nearer than D cos L, and D moves by at
+            # most 2 tan L per unit height between the samples; the equal-height samples are
+            # themselves distances, so a pair whose bound exceeds the least of them is out
+            t = np.tan(self.max_lean)
+            D = np.min(np.linalg.norm(self.centers_at(grid[0][:, None], i) - self.centers_at(grid[0][:, None], j),
+                                      axis=-1), 0)
+            lower = np.maximum(D - t * (grid[0][1] - grid[0][0]), 0.0) * np.cos(self.max_lean) - r[i] - r[j]
+            keep = lower <= np.min(D - r[i] - r[j])
+            i, j = i[keep], j[keep]
+        def dist(y, dy, i=i, j=j):  # [..., pairs] each
+            d = self.centers_at(y, i) - self.centers_at(y + dy, j)
+            return np.sqrt(np.sum(d**2, -1) + dy**2)
+
         steps = [g[1] - g[0] if len(g) > 1 else 0.0 for g in grid]
         Y, DY = (g.reshape(-1, 1) for g in np.meshgrid(*grid, indexing="ij"))
         best = np.empty((2, len(i)))
