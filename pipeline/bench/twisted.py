@@ -94,6 +94,8 @@ def main(argv=None):
         reached = err <= args.target
         t_target = elapsed if reached else elapsed * (err / args.target) ** 2
         lean = np.degrees(ply.max_lean) if isinstance(ply, TwistedBundle) else 0.0
+        if isinstance(ply, TwistedBundle):
+            print(f"{name}: {len(baker.geometry.fiber_of)} cylinders over {ply.period / ply.turn_length:.0f} turn(s)")
         print(f"{name:>26s} {lean:5.1f}d {len(spec.theta_i):7d} {tally.paths.sum() / elapsed:9.0f} "
               f"{tally.vertices / elapsed:11.0f} {int(tally.paths.sum()):9d} {err:7.2%} {t_target:13.1f} s"
               f"{'' if reached else ' (extrapolated)'}")
