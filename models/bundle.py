@@ -442,7 +442,8 @@ class TwistedBundle:
             gdy = best[1] + steps[1] * u[None, :, None] + 0 * u[:, None, None]
             d = dist(gy, gdy).reshape(-1, len(i))
             k = np.argmin(d, 0)
-            best = np.stack([gy.reshape(-1, len(i))[k, np.arange(len(i))], gdy.reshape(-1, len(i))[k, np.arange(len(i))]])
+            at = (k, np.arange(len(i)))
+            best = np.stack([gy.reshape(-1, len(i))[at], gdy.reshape(-1, len(i))[at]])
             steps = [s / 10 for s in steps]
         gap = dist(best[0], best[1]) - r[i] - r[j]
         worst = int(np.argmin(gap))

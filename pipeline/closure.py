@@ -227,7 +227,8 @@ def view_placements(ply, n_views: int, unit: float, turns: bool = True) -> list[
     placed = [2 * np.pi * k / n_views for k in range(n_views)]
     if ply.screw:
         return [(t, 0.0) for t in placed]
-    return [(t, (5 * k % n_views) / n_views * P) for k, t in enumerate(placed)]
+    a = next(a for a in (5, 3, 7, 11, 13, 1) if np.gcd(a, n_views) == 1)  # k -> a k mod n: a permutation
+    return [(t, (a * k % n_views) / n_views * P) for k, t in enumerate(placed)]
 
 
 def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, resolution: int = 48,

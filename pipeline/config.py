@@ -201,8 +201,8 @@ class TwistCfg(Strict):
             raise ValueError(f"bundle.twist.pitch_um: {self.pitch_um} um; the pitch must be a non-zero length "
                              "(at least 1 um either way); leave bundle.twist out for parallel fibers")
         if self.migration is True and self.yarn is None:
-            raise ValueError("bundle.twist.migration: true takes R_min and s from a Zhao 2016 yarn (bundle.twist.yarn); "
-                             "with pitch_um give them directly: migration: {r_min: 0.8, s: 1.1}")
+            raise ValueError("bundle.twist.migration: true takes R_min and s from a Zhao 2016 yarn "
+                             "(bundle.twist.yarn); with pitch_um give them directly: migration: {r_min: 0.8, s: 1.1}")
         if not isinstance(self.migration, bool):
             from models.bundle import Migration
             Migration(self.migration.r_min, self.migration.s)  # s must repeat within a few turns

@@ -3,26 +3,27 @@
 The fibers of a :class:`~models.bundle.TwistedBundle` are helices, so a path's geometry
 depends on its longitude: each path carries one incident ``theta_i`` (and, as in the
 parallel bake, every wavelength). The ply repeats every ``|pitch|`` along its axis (with
-migration, every few turns: ``TwistedBundle.period``), so one period is built, as Mitsuba ``cylinder`` segments along each helix, and a ray that
-leaves the period through its top or bottom re-enters through the other side (the axis
-coordinate is wrapped). Cylinders rather than curves: Mitsuba 3.9's curve intersection
-reads past its segment array where fibers touch (``pipeline.scenes.explicit_scene``), and
-a chord of ``SEGMENTS`` per turn strays from the helix by ``rho (1 - cos(pi / SEGMENTS))``
-(0.08 um at ``rho`` = 260 um).
+migration, every few turns: ``TwistedBundle.period``), so one period is built, as Mitsuba
+``cylinder`` segments along each helix, and a ray that leaves the period through its top or
+bottom re-enters through the other side (the axis coordinate is wrapped). Cylinders rather
+than curves: Mitsuba 3.9's curve intersection reads past its segment array where fibers
+touch (``pipeline.scenes.explicit_scene``), and a chord of ``SEGMENTS`` per turn strays from
+the helix by ``rho (1 - cos(pi / SEGMENTS))`` (0.08 um at ``rho`` = 260 um).
 
 At a hit the fiber is evaluated in its own frame: the tangent ``T`` is the segment's axis,
-``theta`` is measured from the plane normal to ``T`` and ``phi`` in that plane; the
-outgoing direction is importance-sampled from the fiber table at the local ``theta_in``
-and leaves from the fiber's surface by the bake's exit model, in the plane normal to ``T`` as
-the parallel bake does: ``uniform`` (offset ``h r`` along ``T x w_o``, ``h`` uniform),
-``entry`` (where the light entered) or ``lobe`` (the ray fiber resolved in the ray's own
-offset ``h``: a path sampled at that ``h``, leaving where that path leaves). An escaping path is tallied in the ply's frame
-(``theta_o = asin(w_o . y)``, ``phi_o`` from ``+x``) into the parallel table's bins, per
-``theta_i`` node; the passthrough now depends on ``theta_i`` too.
+``theta`` is measured from the plane normal to ``T`` and ``phi`` in that plane; the outgoing
+direction is importance-sampled from the fiber table at the local ``theta_in`` and leaves
+from the fiber's surface by the bake's exit model, in the plane normal to ``T`` as the
+parallel bake does: ``uniform`` (offset ``h r`` along ``T x w_o``, ``h`` uniform), ``entry``
+(where the light entered) or ``lobe`` (the ray fiber resolved in the ray's own offset ``h``:
+a path sampled at that ``h``, leaving where that path leaves). An escaping path is tallied
+in the ply's frame (``theta_o = asin(w_o . y)``, ``phi_o`` from ``+x``) into the parallel
+table's bins, per ``theta_i`` node; the passthrough now depends on ``theta_i`` too.
 
-Rays enter across the bounding width ``2 R_b`` at a height uniform over one period and,
-for a circle (statistically rotation invariant: a turn is a shift along the axis), from
-an azimuth stratified over the circle, binned at ``phi_o - phi_i``.
+Rays enter across the bounding width ``2 R_b`` at a height uniform over one period and, for
+a circle (statistically rotation invariant: a turn is a shift along the axis), from an
+azimuth stratified over the circle, binned at ``phi_o - phi_i``; for an ellipse (whose
+fibers turn through it) from the spec's azimuth node, binned at ``phi_o``.
 """
 
 from __future__ import annotations

@@ -370,7 +370,8 @@ def render_section(cfg, root: Path, out: Path) -> str:
         shape = "a B-spline curve along its helix" if twisted else "a cylinder"
         body += (f" The bake's own {e['fibers']} fibers, "
                  f"each rendered as {shape} with the fiber model and averaged over the bin and 16 views "
-                 f"(turns, or heights) of the arrangement, against the bake: {within:.0%} of {len(bins)} bins within 3 standard errors + 2% "
+                 f"(turns, or heights) of the arrangement, against the bake: {within:.0%} of {len(bins)} bins "
+                 "within 3 standard errors + 2% "
                  f"(right, error bars 1 sigma of bake and render).</p>")
         body += img_tag(out, root / "render" / "closure.png", "closure: far field and explicit fibers against the bake")
         p_ = e["ply"]
