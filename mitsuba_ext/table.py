@@ -12,7 +12,7 @@ from __future__ import annotations
 import drjit as dr  # the plugins import this module once a Mitsuba variant is chosen
 import numpy as np
 
-from models.bundle_table import BundleTable, bin_slopes, cell_offsets, cone_lookup
+from models.bundle_table import BundleTable, bin_slopes, cell_offsets, cone_lookup, needs_expanding
 from models.grid import Cells
 
 
@@ -23,7 +23,7 @@ class DrJitTable:
 
     def __init__(self, table: BundleTable, Float):
         red = table.meta.get("reductions", {})
-        if red.get("theta_i") == "mirror" or red.get("phi_i") in ("mirror_xz", "half_turns"):
+        if needs_expanding(red):
             raise ValueError("DrJitTable needs an expanded table: BundleTable.load(path, expand=True)")
         self.Float = Float
         self.relative = red["phi_o"] == "relative"

@@ -357,8 +357,8 @@ class TwistedBundle:
         return self.turn_length * (1 if self.migration is None else self.migration.turns)
 
     def radius_at(self, y, k=None) -> np.ndarray:
-        """Every fiber's radius in the unit disk at heights ``y`` (``[..., n]``), or fibers
-        ``k``' (an index array broadcast against ``y``: ``[...]``)."""
+        """Every fiber's radius in the unit disk at heights ``y`` (``[..., n]``), or that of
+        fibers ``k`` (an index array broadcast against ``y``: ``[...]``)."""
         y = np.asarray(y, float)
         rho = self._rho if k is None else self._rho[k]
         if self.migration is None:
@@ -398,7 +398,8 @@ class TwistedBundle:
         """
         b = self.bundle
         c, r = b.centers, b.radii
-        reach = 1.5 * (2 * r.max()) / np.cos(self.max_lean)  # beyond it, no pair comes near touching
+        lean = self.max_lean  # sampled over the period where a turn is no shift: computed once
+        reach = 1.5 * (2 * r.max()) / np.cos(lean)  # beyond it, no pair comes near touching
         if self.migration is not None:  # fibers move towards the axis by up to (1 - r_min) rho
             reach += (1.0 - self.migration.r_min) * 2 * b.bounding_radius
         reach *= self._axes.max() / self._axes.min()  # an ellipse brings fibers closer by up to b / a
@@ -409,7 +410,7 @@ class TwistedBundle:
             return np.inf, -1, -1
         i, j = pairs.T
 
-        span = 2 * reach * np.tan(self.max_lean) + 1e-9
+        span = 2 * reach * np.tan(lean) + 1e-9
         if self.screw:
             grid = (np.zeros(1), np.linspace(-span, span, 801))
         else:
@@ -419,12 +420,13 @@ class TwistedBundle:
             # lie D apart at equal heights are nowhere nearer than D cos L, and D moves by at
             # most 2 tan L per unit height between the samples; the equal-height samples are
             # themselves distances, so a pair whose bound exceeds the least of them is out
-            t = np.tan(self.max_lean)
+            t = np.tan(lean)
             D = np.min(np.linalg.norm(self.centers_at(grid[0][:, None], i) - self.centers_at(grid[0][:, None], j),
                                       axis=-1), 0)
-            lower = np.maximum(D - t * (grid[0][1] - grid[0][0]), 0.0) * np.cos(self.max_lean) - r[i] - r[j]
+            lower = np.maximum(D - t * (grid[0][1] - grid[0][0]), 0.0) * np.cos(lean) - r[i] - r[j]
             keep = lower <= np.min(D - r[i] - r[j])
             i, j = i[keep], j[keep]
+
         def dist(y, dy, i=i, j=j):  # [..., pairs] each
             d = self.centers_at(y, i) - self.centers_at(y + dy, j)
             return np.sqrt(np.sum(d**2, -1) + dy**2)
@@ -436,14 +438,14 @@ class TwistedBundle:
             sl = slice(s0, s0 + 64)
             k = np.argmin(dist(Y, DY, i[sl], j[sl]), 0)
             best[:, sl] = Y[k, 0], DY[k, 0]
-        u = np.linspace(-1.0, 1.0, 21)
+        U, V = (g.reshape(-1, 1) for g in np.meshgrid(np.linspace(-1.0, 1.0, 21), np.linspace(-1.0, 1.0, 21),
+                                                         indexing="ij"))
         for _ in range(4):  # zoom in about each pair's minimum, 10x per round
-            gy = best[0] + steps[0] * u[:, None, None] + 0 * u[None, :, None]
-            gdy = best[1] + steps[1] * u[None, :, None] + 0 * u[:, None, None]
-            d = dist(gy, gdy).reshape(-1, len(i))
+            gy, gdy = best[0] + steps[0] * U, best[1] + steps[1] * V      # [21 x 21, pairs]
+            d = dist(gy, gdy)
             k = np.argmin(d, 0)
             at = (k, np.arange(len(i)))
-            best = np.stack([gy.reshape(-1, len(i))[at], gdy.reshape(-1, len(i))[at]])
+            best = np.stack([gy[at], gdy[at]])
             steps = [s / 10 for s in steps]
         gap = dist(best[0], best[1]) - r[i] - r[j]
         worst = int(np.argmin(gap))

@@ -51,6 +51,12 @@ FORMAT = "bcsdf.bundle_table/1"
 MAX_VALUE = 1e20   # 1/sr: far beyond any physical lobe, far below float32's 3.4e38
 REDUCTIONS = {"theta_i": (None, "mirror"), "phi_i": (None, "rotation", "mirror_xz", "half_turns"),
               "phi_o": ("relative", "absolute")}
+PHI_I_FOLDS = ("mirror_xz", "half_turns")  # the phi_i reductions that BundleTable.expanded unfolds
+
+
+def needs_expanding(reductions: dict) -> bool:
+    """Whether a table of these reductions must be expanded before a lookup reads it."""
+    return reductions.get("theta_i") == "mirror" or reductions.get("phi_i") in PHI_I_FOLDS
 ARRAYS = ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost",
           "phi_i", "theta_i", "phi_o_edges", "theta_o_edges", "wavelength")
 
@@ -187,7 +193,7 @@ class BundleTable:
         if red.get("theta_i") == "mirror":
             t = t._mirror_theta()
             red["theta_i"] = None
-        if red.get("phi_i") in ("mirror_xz", "half_turns"):
+        if red.get("phi_i") in PHI_I_FOLDS:
             t = t._mirror_phi(twisted=red["phi_i"] == "half_turns")
             red["phi_i"] = None
         t.meta = dict(t.meta, reductions=red)
@@ -356,7 +362,7 @@ def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "line
     the algorithm is :func:`cone_lookup`, shared.
     """
     reductions = table.meta.get("reductions", {})
-    if reductions.get("theta_i") == "mirror" or reductions.get("phi_i") in ("mirror_xz", "half_turns"):
+    if needs_expanding(reductions):
         raise ValueError("lookup needs an expanded table: BundleTable.load(path, expand=True)")
     if mode not in ("nearest", "linear"):
         raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")

@@ -19,14 +19,16 @@ from models.fiber.base import FiberTable
 from .config import theta_nodes
 
 
-def build_bundle(cfg) -> bundles.Bundle:
-    """The cross-section (of a twisted ply: at height 0, spaced so that its leaning fibers clear)."""
+def build_bundle(cfg, gap: float | None = None) -> bundles.Bundle:
+    """The cross-section (of a twisted ply: at height 0, spaced so that its leaning fibers
+    clear). ``gap``: a Poisson arrangement's gap (um) instead of :func:`_poisson_gap`'s."""
     b, r = cfg.bundle, cfg.fiber.radius_um
     if b.arrangement == "zhao2016":
         return bundles.zhao2016(b.yarn, r, seed=b.seed, name=f"{cfg.name} ({b.yarn})")
     if b.arrangement == "file":
         return bundles.from_file(b.file, b.semi_axes(), name=cfg.name)
-    return bundles.poisson(b.semi_axes(), r, gap=_poisson_gap(cfg), packing=b.packing, seed=b.seed, name=cfg.name)
+    gap = _poisson_gap(cfg) if gap is None else gap
+    return bundles.poisson(b.semi_axes(), r, gap=gap, packing=b.packing, seed=b.seed, name=cfg.name)
 
 
 def _poisson_gap(cfg) -> float:
@@ -62,9 +64,7 @@ def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
         if overlap <= 0:
             return ply  # checked: its closest approach is a gap
         gap += overlap + 0.01 * cfg.fiber.radius_um
-        b = cfg.bundle
-        bundle = bundles.poisson(b.semi_axes(), cfg.fiber.radius_um, gap=gap, packing=b.packing, seed=b.seed,
-                                 name=cfg.name)
+        bundle = build_bundle(cfg, gap)
     raise ValueError(f"bundle.twist: no Poisson cross-section with gaps from {bundle_gap:.3g} to {gap:.3g} "
                      "um clears its turning fibers; migrate less (r_min nearer 1) or lengthen the pitch")
 

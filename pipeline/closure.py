@@ -215,17 +215,21 @@ def explicit_twisted_shapes(curve_file, fiber_bsdf: dict, turn: float, shift: fl
 
 
 def view_placements(ply, n_views: int, unit: float, turns: bool = True) -> list[tuple[float, float]]:
-    """``(turn, shift)`` of each view of an explicit twisted ply, averaging over what its
-    bake averages over: the incident azimuth (turns, a circle's) and the height within the
-    period (shifts, scene units). A rigid circular twist needs the turns alone (a turn is a
-    shift); an ellipse, whose bake keeps its azimuth, the shifts alone; a migrating circle
-    both, as a rank-1 lattice over (turn, height) whose every projection, and the shift a
-    turn amounts to, are stratified."""
-    P = ply.period * unit
+    """``(turn, shift)`` of each view of an explicit ply, averaging over what its bake
+    averages over: the incident azimuth (turns, a circle's: ``turns``) and, for a twisted ply
+    (a :class:`~models.bundle.TwistedBundle`), the height within the period (shifts, scene
+    units). Parallel fibers and a rigid circular twist need the turns alone (for the latter
+    a turn is a shift); an ellipse, whose bake keeps its azimuth, the shifts alone (none if
+    parallel); a migrating circle both, as a rank-1 lattice over (turn, height) whose every
+    projection, and the shift a turn amounts to, are stratified."""
+    from models.bundle import TwistedBundle
+
+    twisted = isinstance(ply, TwistedBundle)
+    P = ply.period * unit if twisted else 0.0
     if not turns:
         return [(0.0, k / n_views * P) for k in range(n_views)]
     placed = [2 * np.pi * k / n_views for k in range(n_views)]
-    if ply.screw:
+    if not twisted or ply.screw:
         return [(t, 0.0) for t in placed]
     a = next(a for a in (5, 3, 7, 11, 13, 1) if np.gcd(a, n_views) == 1)  # k -> a k mod n: a permutation
     return [(t, (a * k % n_views) / n_views * P) for k, t in enumerate(placed)]
@@ -263,8 +267,8 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     section = bundle.bundle if twisted else bundle
     hs = 1.2 * section.bounding_radius * unit
     half_length = 40 * hs
-    placements = view_placements(bundle, len(requests[0][1]), unit, turns) if twisted else None
     n_views = len(requests[0][1])
+    placements = view_placements(bundle, n_views, unit, turns)
     if any(len(views) != n_views for _, views in requests):
         raise ValueError("explicit_intensities: every request needs as many views")
     values = np.zeros((len(requests), n_views))
@@ -274,9 +278,8 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
         if twisted:  # long enough for every shift: the view stays 40 hs from either end
             reach = max(shift for _, shift in placements)
             write_curves(helix_control_points(bundle, half_length + reach, unit), curve_file)
-        for k in range(n_views):
-            turn = 2 * np.pi * k / n_views if turns else 0.0
-            shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, *placements[k]) if twisted
+        for k, (turn, shift) in enumerate(placements):
+            shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, turn, shift) if twisted
                       else explicit_shapes(bundle, fiber_bsdf, turn, half_length, unit))
             w_i0, views0 = requests[0]
             loaded = mi.load_dict(scene(mi, shapes, w_i0, views0[k], hs, resolution=resolution, spp=spp, seed=k))

@@ -373,12 +373,10 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     mitsuba_ext.register()
     turns = 16
     per_turn = max(1, r.explicit_spp // turns)
-    placements = (closure.view_placements(ply_model, turns, scenes.UM, bundle.is_circle) if twisted
-                  else [(2 * np.pi * k / turns if bundle.is_circle else 0.0, 0.0) for k in range(turns)])
+    placements = closure.view_placements(ply_model, turns, scenes.UM, bundle.is_circle)
     imgs, t_explicit = [], 0.0
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
-        for k in tqdm(range(turns), desc="explicit fibers", unit="view"):
-            turn, shift = placements[k]
+        for k, (turn, shift) in enumerate(tqdm(placements, desc="explicit fibers", unit="view")):
             scene = scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn, k, turn=turn, shift=shift,
                                           plugin=fiber_bsdf["type"], curve_file=Path(tmp) / "helices.txt")
             img, seconds, _ = render_timed(mi, scene)
