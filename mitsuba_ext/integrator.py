@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_ext.crossing import bundle_axis, check_bundles, displaced_exit, far_side, mis_weight, offset_ray
-from mitsuba_ext.params import boolean, integer
+from mitsuba_ext.params import boolean, integer, number
 
 if mi.variant() is None:
     raise ImportError("mitsuba_ext.integrator: choose a Mitsuba variant first (mi.set_variant), then "
@@ -32,7 +32,8 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
       the far wall of the bundle is crossed as a null interface. Passthrough events
       do not count as bounces and leave the MIS state of the last real vertex alone.
       Shadow rays cross bundles with transmittance ``P_pass`` (``path`` would treat
-      them as opaque and find those paths by BSDF sampling only).
+      them as opaque and find those paths by BSDF sampling only), with Russian
+      roulette once the product falls below ``shadow_rr``.
     * **displaced exit**: scattered light, and the shadow ray of next-event
       estimation, leave from :func:`displaced_exit`, with ``h`` uniform in [-1, 1].
       The radius comes from the shape (``|dp/du| = 2 pi r`` per hit on
@@ -54,6 +55,10 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
          - Leave bundles from the displaced exit point (default ``true``).
        * - max_passes
          - Most bundle crossings of one path or shadow ray (default 64).
+       * - shadow_rr
+         - Shadow-ray transmittance below which each further crossing is survived
+           with probability ``T / shadow_rr`` (Russian roulette, unbiased; default
+           0.1; 0 traces every crossing).
 
     Not supported: ``hide_emitters`` (refused at load). Bundles belong on
     ``cylinder`` and ``bsplinecurve`` shapes; the first render of a scene warns
@@ -73,6 +78,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         self.rr_depth = integer("bundle_path", "rr_depth", props.get("rr_depth", 5), lo=1)
         self.displace = boolean("bundle_path", "displaced_exit", props.get("displaced_exit", True))
         self.max_passes = integer("bundle_path", "max_passes", props.get("max_passes", 64), lo=1)
+        self.shadow_rr = number("bundle_path", "shadow_rr", props.get("shadow_rr", 0.1), 0.0, 1.0)
         if boolean("bundle_path", "hide_emitters", props.get("hide_emitters", False)):
             raise ValueError("bundle_path: hide_emitters is not supported (directly visible emitters are "
                              "always shown); leave it out")
@@ -81,7 +87,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
 
     def _check(self, scene):
         """Warn once per scene about bundles on shapes they are not defined on; count the
-        paths of the scene's h-resolved fibers (``fiber_ray``: one emitter sample per path)."""
+        paths of the scene's h-resolved fibers (``fiber_ray``: the paths an emitter sample chooses among)."""
         if id(scene) not in self._checked:
             for line in check_bundles(scene):
                 mi.Log(mi.LogLevel.Warn, "bundle_path: " + line)
@@ -110,26 +116,44 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             p_out, n_out, ok = dr.select(mine, q, p_out), dr.select(mine, n, n_out), ok | (mine & good)
         return p_out, n_out, ok
 
-    def _emitter_paths(self, scene, si, bsdf, ds, radius, h, active):
-        """The emitter sample's contribution through every path of an h-resolved fiber,
-        each with its shadow ray from that path's exit and its own MIS weight."""
+    def _emitter_paths(self, scene, sampler, si, bsdf, ds, radius, h, active):
+        """The emitter sample's contribution through an h-resolved fiber: each path leaves
+        from its own exit, with its own MIS weight. One path is chosen, in proportion to
+        its term ``f_p mis_p`` (summed over the spectrum), and its shadow ray traced; its
+        term divided by the probability of the choice is an unbiased estimate of the sum
+        over paths, at one shadow ray instead of one per path."""
         wo = si.to_local(ds.d)
-        total = mi.Spectrum(0.0)
-        p_res, r_res = displaced_exit(si, radius, h, ds.d)  # where the residual leaves
+
+        # the paths' terms and the choice (u against their running sum)
+        terms, sums = [], []
         for p in range(self._paths):
             ctx = mi.BSDFContext()
             ctx.component = p
             f = bsdf.eval(ctx, si, wo, active)
-            pdf = bsdf.pdf(ctx, si, wo, active)
-            p_exit, radial, ok = self._path_exit(si, bsdf, radius, p, ds.d, active)
-            p_exit, radial = dr.select(ok, p_exit, p_res), dr.select(ok, radial, r_res)
-            dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
-            d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
-            shadow = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
-            T = self._transmittance(scene, shadow, active)
-            mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, pdf))
-            total += f * T * mis
-        return total
+            mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf.pdf(ctx, si, wo, active)))
+            terms.append(f * mis)
+            sums.append(dr.sum(mi.unpolarized_spectrum(terms[-1])))
+        total = mi.Float(0.0)
+        for w in sums:
+            total += w
+        u = sampler.next_1d(active) * total
+        term, weight = dr.zeros(mi.Spectrum), mi.Float(0.0)
+        p_res, r_res = displaced_exit(si, radius, h, ds.d)  # where the residual leaves
+        p_exit, radial, picked, acc = p_res, r_res, mi.Bool(False), mi.Float(0.0)
+        for p, (t, w) in enumerate(zip(terms, sums)):
+            acc += w
+            pick = active & ~picked & (w > 0) & (u < acc)
+            q, n, ok = self._path_exit(si, bsdf, radius, p, ds.d, pick)
+            p_exit, radial = dr.select(pick & ok, q, p_exit), dr.select(pick & ok, n, radial)
+            term, weight = dr.select(pick, t, term), dr.select(pick, w, weight)
+            picked |= pick
+
+        # its shadow ray
+        dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
+        d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
+        shadow = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
+        T = self._transmittance(scene, sampler, shadow, picked)
+        return dr.select(picked, term * T * (total / weight), 0.0)
 
     # -- helpers ----------------------------------------------------------
     # what the BSDFs read (UV for the twist, the shading frame for the tangent); the
@@ -157,8 +181,13 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         return dr.select(need, measured, r)
 
     @dr.syntax
-    def _transmittance(self, scene, ray, active):
-        """Fraction of light crossing ``ray``: product of ``P_pass`` of the bundles on it."""
+    def _transmittance(self, scene, sampler, ray, active):
+        """Fraction of light crossing ``ray``: product of ``P_pass`` of the bundles on it.
+
+        Once the product falls below ``shadow_rr``, each further crossing is survived with
+        probability ``T / shadow_rr`` at ``T = shadow_rr`` (Russian roulette: unbiased). A
+        shadow ray through a knitted garment crosses dozens of plies, and without it the
+        loop runs to ``max_passes`` for light that has long been negligible."""
         ray = mi.Ray3f(ray)
         active = mi.Bool(active)
         T = dr.select(active, mi.Float(1.0), 0.0)
@@ -171,6 +200,10 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             bundle = hit & bsdf.has_attribute("passthrough", hit)
             P = bsdf.eval_attribute_1("passthrough", si, bundle)
             T = dr.select(hit, dr.select(bundle, T * P, 0.0), T)
+            if dr.hint(self.shadow_rr > 0, mode="scalar"):
+                roulette = bundle & (T < self.shadow_rr)
+                survive = sampler.next_1d(roulette) * self.shadow_rr < T
+                T = dr.select(roulette, dr.select(survive, self.shadow_rr, 0.0), T)
             steps += 1
             active = bundle & (T > 0) & (steps < self.max_passes)
             nxt = si.spawn_ray(ray.d)
@@ -234,7 +267,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
                 d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
                 moved = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
                 shadow = dr.select(bundle & (radius > 0), moved, shadow)
-            T = self._transmittance(scene, shadow, active_em)
+            T = self._transmittance(scene, sampler, shadow, active_em)
             wo = si.to_local(ds.d)
 
             # ------------- BSDF evaluation and sampling -------------
@@ -245,7 +278,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             nee = bsdf_val * T * mis_em
             if dr.hint((self._paths > 0) & self.displace, mode="scalar"):  # h-resolved fibers in the scene
                 lobed = active_em & bsdf.has_attribute("paths", active_em) & (radius > 0)
-                nee = dr.select(lobed, self._emitter_paths(scene, si, bsdf, ds, radius, h, lobed), nee)
+                nee = dr.select(lobed, self._emitter_paths(scene, sampler, si, bsdf, ds, radius, h, lobed), nee)
             result = dr.select(active_em, dr.fma(throughput, nee * em_weight, result), result)
 
             # ------------------ the next ray ------------------

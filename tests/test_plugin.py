@@ -294,6 +294,38 @@ def test_passthrough_shadow_transmittance_is_unbiased(mi_plug, tables):
     assert abs(a.mean() / b.mean() - 1) < 0.03, (a.mean(), b.mean())
 
 
+def test_shadow_roulette_is_unbiased_through_many_bundles(mi_plug, tables):
+    """A shadow ray across K bundles carries T = P_pass^K (each crossing at the same angles);
+    with Russian roulette (``shadow_rr``) its mean over many rays is the same product."""
+    import drjit as dr
+
+    mi = mi_plug
+    bundle = {"type": "fiber_bundle", "table": str(tables["circle"])}
+
+    def transmittance(K, shadow_rr, n=200_000):
+        scene = mi.load_dict({"type": "scene", **{
+            f"c{k}": {"type": "cylinder", "p0": [0, -1, 0.5 * k], "p1": [0, 1, 0.5 * k], "radius": 0.2, "bsdf": bundle}
+            for k in range(K)}})
+        integrator = mi.load_dict({"type": "bundle_path", "shadow_rr": shadow_rr})
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(0, n)
+        ray = mi.Ray3f(mi.Point3f(0.05, 0.1, -1.0), mi.Vector3f(0, 0, 1))
+        ray.maxt = 100.0
+        T = integrator._transmittance(scene, sampler, ray, dr.full(mi.Bool, True, n))
+        return np.array(T)
+
+    P = transmittance(1, 0.0)
+    assert np.allclose(P, P[0]) and 0.2 < P[0] < 0.95, P[0]
+    K = 4
+    exact = transmittance(K, 0.0)
+    assert np.allclose(exact, P[0] ** K, rtol=1e-4), (exact[0], P[0] ** K)
+    T = transmittance(K, 0.3)
+    survived = T > 0
+    assert 0.002 < survived.mean() < 0.5, (P[0], survived.mean())  # the roulette ran
+    se = T.std() / np.sqrt(len(T))
+    assert abs(T.mean() - P[0] ** K) < 4 * se, (T.mean(), P[0] ** K, se)
+
+
 @pytest.fixture
 def variant_guard(mi_plug):
     """Tests that switch variants put the session's variant (and plugins) back."""
