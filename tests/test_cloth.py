@@ -392,6 +392,21 @@ def test_explicit_fibers_of_a_twisted_ply_are_helices_of_its_handedness_and_lean
         lean = np.arccos(np.abs(d1[:, 2]) / np.linalg.norm(d1, axis=1))[5:-5]
         assert np.allclose(lean, np.arctan(2 * np.pi * rho / abs(pitch_um)), atol=2e-3)
 
+@pytest.mark.parametrize("pitch_um", [None, -2838.0])
+def test_explicit_point_count_is_what_explicit_fibers_make(pitch_um):
+    """The whole garment's fiber count (memory figures) without making its fibers: the
+    count of the curves :func:`explicit_fibers` makes, on plies bent differently."""
+    from models.cloth.curves import interpolate_bspline
+    from models.cloth.fibers import explicit_fibers, explicit_point_count
+
+    t = np.linspace(0, 3, 40)
+    plies = [interpolate_bspline(np.stack([np.cos(a * t), np.sin(a * t), t], -1), closed=False)
+             for a in (0.5, 2.0)]
+    centres, radii = np.array([[120.0, 0.0], [0.0, -90.0], [30.0, 40.0]]), np.full(3, 20.0)
+    curves, _ = explicit_fibers(plies, 0.2, centres, radii, R_b=200.0, pitch_um=pitch_um)
+    assert explicit_point_count(plies, 0.2, 3, R_b=200.0, pitch_um=pitch_um) == sum(len(c) for c in curves)
+
+
 def test_patch_cuts_runs_inside_the_sphere():
     from models.cloth.fibers import patch
 

@@ -32,14 +32,10 @@ def explicit_fibers(plies: list[np.ndarray], r_ply: float, centres, radii, R_b: 
     scale = r_ply / R_b
     centres = np.asarray(centres, float) * scale
     radii = np.asarray(radii, float) * scale
-    omega = None if pitch_um is None else -2 * np.pi / (float(pitch_um) * scale)  # turn per scene unit
+    omega = _turn_rate(pitch_um, scale)
     curves, r_out = [], []
     for C in plies:
-        m = per_segment
-        if omega is not None:  # enough samples along the ply for every turn of the helices
-            step = np.linalg.norm(np.diff(bspline_samples(C, 1), axis=0), axis=1).max()
-            m = max(m, int(np.ceil(step * abs(omega) * SAMPLES_PER_TURN / (2 * np.pi))))
-        p = bspline_samples(C, m)
+        p = bspline_samples(C, _samples_per_segment(C, omega, per_segment))
         f = transport_frames(p, closed=False)
         a = np.zeros(len(p)) if omega is None else omega * f.s
         c, s = np.cos(a)[:, None], np.sin(a)[:, None]
@@ -48,6 +44,30 @@ def explicit_fibers(plies: list[np.ndarray], r_ply: float, centres, radii, R_b: 
             curves.append(interpolate_bspline(p + (c * x - s * z) * f.n - (s * x + c * z) * f.b, closed=False))
             r_out.append(r)
     return curves, np.array(r_out)
+
+
+def _turn_rate(pitch_um, scale):
+    """The helices' turn per scene unit of ply length (``None``: parallel fibers)."""
+    return None if pitch_um is None else -2 * np.pi / (float(pitch_um) * scale)
+
+
+def _samples_per_segment(C, omega, per_segment: int) -> int:
+    """Samples per ply segment: enough for every turn of the helices."""
+    if omega is None:
+        return per_segment
+    step = np.linalg.norm(np.diff(bspline_samples(C, 1), axis=0), axis=1).max()
+    return max(per_segment, int(np.ceil(step * abs(omega) * SAMPLES_PER_TURN / (2 * np.pi))))
+
+
+def explicit_point_count(plies: list[np.ndarray], r_ply: float, n_fibers: int, R_b: float,
+                         per_segment: int = 2, pitch_um: float | None = None) -> int:
+    """Control points :func:`explicit_fibers` would make for ``n_fibers`` fibers in every
+    ply, without making them (a whole garment's fibers do not fit in memory)."""
+    omega = _turn_rate(pitch_um, r_ply / R_b)
+    # interpolate_bspline of the samples (the end included) adds the two natural ends; a
+    # closed loop's fibers, closed, would hold as many (its three repeated points)
+    per_fiber = sum((len(C) - 3) * _samples_per_segment(C, omega, per_segment) + 3 for C in plies)
+    return int(n_fibers * per_fiber)
 
 
 def patch(collection: CurveCollection, centre, radius: float, min_points: int = 6) -> CurveCollection:

@@ -6,13 +6,17 @@ Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``exp
               construction, scene load and render time (320 x 240, 4 spp, the table)
               and the process's peak memory, each N in its own process.
 ``explicit``  a patch of the model (its curves within a sphere around a point on its
-              surface) rendered twice from the same camera: every fiber of every ply as
-              its own curve with the single-fiber model (the bake's arrangement scaled to
-              the ply, parallel to it, as the bake assumes) and the plies with the bundle
-              table. FLIP of the bundle against the explicit reference, mean radiance, and
-              time and peak memory *at equal noise* (the noise of each from two seeds, the
-              time scaled by the ratio of the variances: Monte Carlo variance falls as
-              1/spp), at camera distances where a ply spans 1 .. 16 pixels.
+              surface), with its flyaways, rendered from the same camera twice: every
+              fiber of every ply as its own curve with the single-fiber model (the bake's
+              arrangement scaled to the ply, turned along it as the bake's helices) and
+              the plies with the bundle table. Each is the mean of many seeds, so that
+              the explicit reference converges; the means of its two halves against each
+              other measure each side's own noise. FLIP of the bundle against the
+              explicit reference, mean radiance, time *at equal noise* (variance per
+              sample x seconds per sample: Monte Carlo variance falls as 1/spp) and peak
+              memory, at camera distances where a ply spans 1 .. 16 pixels.
+``memory``    the whole model, counted: its plies' control points with the table (or
+              the MLP) against every fiber of every ply as a curve.
 
 Writes ``docs/cloth.json`` and ``docs/images/cloth_scale.png``, ``cloth_explicit.png``::
 
@@ -33,6 +37,9 @@ from pathlib import Path
 import numpy as np
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
+PLY_PX = (1, 2, 4, 8, 16)   # the camera distances: a ply's width in pixels
+BUNDLE_SPP = (64, 8)        # (spp, seeds) of the bundle render ...
+EXPLICIT_SPP = (64, 32)     # ... and of the explicit reference: converged, its noise measured
 
 
 def peak_mb() -> float:
@@ -97,17 +104,14 @@ def child_scale(config, root, n_curves, out):
             "render_s": rendered, "peak_mb": peak_mb(), "base_mb": base}
 
 
-def child_explicit(config, root, which, ply_px, spp, out):
-    """One render pair (two seeds) of the patch: ``which`` = bundle or explicit."""
-    from models.cloth.fibers import explicit_fibers, patch
-    from models.cloth.yarn import PlyGeometry, build_plies, write_curves
-    from pipeline import closure, scenes
-    from pipeline.artifacts import fiber_table_path, load_bundle_table
-    from pipeline.build import build_bundle
+def patch_scene(cfg, ply_px, out: Path):
+    """The patch of the model (every yarn's control points within 16 yarn radii of a point
+    on its upper surface), its plies, its flyaways (the cloth stage's, drawn about the
+    patch's plies) and a camera at which a ply spans ``ply_px`` pixels."""
+    from models.cloth.fibers import patch
+    from models.cloth.yarn import build_plies
     from pipeline.stages.cloth import yarn_model, yarn_spec
 
-    mi, cfg, props = _setup(config, root)
-    base = peak_mb()
     c = cfg.cloth.model_copy(update={"curves": None, "width": 192, "height": 192, "ground": False})
     model = yarn_model(c)
     pts = np.concatenate([cv.points for cv in model.curves])
@@ -121,11 +125,35 @@ def child_explicit(config, root, which, ply_px, spp, out):
     outward = outward / np.linalg.norm(outward) + np.array([0.0, 0.6, 0.0])
     outward /= np.linalg.norm(outward)
     distance = yarn.r_ply * c.width / (ply_px * np.tan(np.radians(c.fov_deg / 2)))
-    view = (target + distance * outward, target)
+    return c, yarn, g, (lo, hi), (target + distance * outward, target)
+
+
+def child_explicit(config, root, which, ply_px, spp, seeds, out):
+    """The patch rendered ``seeds`` times at ``spp`` each: ``which`` = ``bundle`` (the plies
+    with the bake's table) or ``explicit`` (every fiber of every ply as its own curve with
+    the single-fiber model). Both carry the same flyaways. Saves the means of the two halves
+    of the seeds (their difference is the noise of the mean)."""
+    from models.cloth.fibers import explicit_fibers
+    from models.cloth.flyaways import tapered
+    from models.cloth.curves import write_mitsuba_curves
+    from models.cloth.yarn import write_curves
+    from models.io import atomic_path
+    from pipeline import closure, scenes
+    from pipeline.artifacts import fiber_table_path, load_bundle_table
+    from pipeline.build import build_bundle
+    from pipeline.stages.cloth import flyaways
+
+    import drjit as dr
+
+    mi, cfg, props = _setup(config, root)
+    base = peak_mb()
     out = Path(out)
+    c, yarn, g, bbox, view = patch_scene(cfg, ply_px, out)
+    fly_info, fly_shape = flyaways(cfg.model_copy(update={"cloth": c}), out, g, yarn, root)
+    shapes = {"flyaways": fly_shape} if fly_shape else {}
     if which == "bundle":
         write_curves(out / "patch_plies.txt", g)
-        shapes = {"yarn": scenes.ply_shape(out / "patch_plies.txt", props, g.radius)}
+        shapes["yarn"] = scenes.ply_shape(out / "patch_plies.txt", props, g.radius)
         geometry_points = g.control_points
     else:
         bundle = build_bundle(cfg)
@@ -137,19 +165,73 @@ def child_explicit(config, root, which, ply_px, spp, out):
         curves, radii = explicit_fibers(g.curves, g.radius, bundle.centers, bundle.radii, bundle.bounding_radius,
                                         per_segment=1,
                                         pitch_um=None if twist is None else twist.pitch(bundle.bounding_radius))
-        # one file per fiber radius (a Poisson arrangement has one)
-        shapes = {}
+        # one file per fiber radius (a Poisson arrangement has one); the ends at the patch's
+        # cut tapered over a short tip (Mitsuba 3.9's bsplinecurve can crash on blunt ends)
         for k, r in enumerate(np.unique(radii)):
-            sel = [cv for cv, ri in zip(curves, radii) if ri == r]
-            write_curves(out / f"patch_fibers_{k}.txt", PlyGeometry(sel, float(r), 0.0, np.inf, 0.0))
+            with atomic_path(out / f"patch_fibers_{k}.txt") as tmp, open(tmp, "w") as fh:
+                write_mitsuba_curves(fh, (tapered(cv, float(r)) for cv, ri in zip(curves, radii) if ri == r))
             shapes[f"fibers_{k}"] = {"type": "bsplinecurve", "filename": str(out / f"patch_fibers_{k}.txt"),
                                      "bsdf": {**fiber, "radius": float(r)}}
-        geometry_points = sum(len(cv) for cv in curves)
-    scene = scenes.cloth_scene(mi, c, shapes, (lo, hi), spp, view=view)
-    images, seconds = _render(mi, scene)
-    np.savez(out / f"{which}_{ply_px}.npz", a=images[0], b=images[1])
-    return {"which": which, "ply_px": ply_px, "spp": spp, "seconds": seconds, "peak_mb": peak_mb(), "base_mb": base,
-            "control_points": geometry_points, "plies": len(g.curves)}
+        geometry_points = sum(len(cv) + 6 for cv in curves)  # with the tips
+    scene = mi.load_dict(scenes.cloth_scene(mi, c, shapes, bbox, spp, view=view))
+    loaded = peak_mb()
+
+    # -- the renders: the first (its kernel compiled) apart, the rest timed together
+    t0 = time.perf_counter()
+    dr.eval(mi.render(scene, seed=10_000))
+    dr.sync_thread()
+    first = time.perf_counter() - t0
+    halves = [0.0, 0.0]
+    t0 = time.perf_counter()
+    for seed in range(seeds):
+        img = mi.render(scene, seed=seed)
+        dr.eval(img)
+        halves[seed % 2] = halves[seed % 2] + np.array(img, np.float64)[..., :3] / (seeds // 2)
+    seconds = time.perf_counter() - t0
+    if not all(np.all(np.isfinite(h)) for h in halves):
+        raise FloatingPointError("a cloth render holds NaN or Inf")
+    np.savez(out / f"{which}_{ply_px}.npz", a=halves[0], b=halves[1])
+    return {"which": which, "ply_px": ply_px, "spp": spp * seeds, "seconds": seconds, "first_render_s": first,
+            "seconds_per_spp": seconds / (spp * seeds), "peak_mb": peak_mb(), "base_mb": base,
+            "loaded_mb": loaded, "control_points": geometry_points, "plies": len(g.curves),
+            "hairs": fly_info.get("hairs", 0)}
+
+
+def child_memory(config, root, out):
+    """The whole model's memory, counted: its plies' control points with the table (or the
+    MLP), against every fiber of every ply as its own curve (the bake's fiber count, and the
+    Zhao yarn's fibers per ply), at 20 bytes a control point (x, y, z, r and a segment index
+    in float32 / uint32: what a curve renderer holds at least; the BVH comes on top of both)."""
+    from mitsuba_ext.backends import load_backend
+    from models.bundle import zhao2016_row
+    from models.cloth.fibers import explicit_point_count
+    from pipeline.build import build_bundle
+    from pipeline.stages.cloth import build
+    from pipeline.stages.render import backend_props
+
+    mi, cfg, props = _setup(config, root)
+    _, g = build(cfg, Path(out))
+    bundle = build_bundle(cfg)
+    twist = cfg.bundle.twist
+    per_fiber = explicit_point_count(g.curves, g.radius, 1, bundle.bounding_radius, per_segment=1,
+                                     pitch_um=None if twist is None else twist.pitch(bundle.bounding_radius))
+    table = load_backend("table", mi.Float, table=props["table"])
+    result = {"ply_points": g.control_points, "fiber_points_per_fiber": per_fiber, "fibers_bake": len(bundle.radii),
+              "fibers_zhao": int(zhao2016_row(cfg.cloth.yarn)["m_fibers_per_ply"]), "bytes_per_point": 20,
+              "table_bytes": table.nbytes + table.sampling_grid(0.1).nbytes}
+    try:
+        mlp = load_backend("mlp", mi.Float, model=backend_props(cfg, root, "mlp")["model"])
+        result["mlp_bytes"] = mlp.nbytes + mlp.sampling_grid(0.1).nbytes
+    except (FileNotFoundError, ValueError, KeyError):  # no exported model in this root
+        pass
+    plies = 20 * result["ply_points"]
+    for n in ("bake", "zhao"):
+        fibers = 20 * per_fiber * result[f"fibers_{n}"]
+        result[f"explicit_bytes_{n}"] = fibers
+        result[f"ratio_table_{n}"] = fibers / (plies + result["table_bytes"])
+        if "mlp_bytes" in result:
+            result[f"ratio_mlp_{n}"] = fibers / (plies + result["mlp_bytes"])
+    return result
 
 
 def _child(kind, *args):
@@ -191,15 +273,16 @@ def measure(config, root, quick, tmp) -> dict:
         scale.append(_child("scale", config, root, n, tmp))
         print(f"[scale] {n} curves: {scale[-1]}", flush=True)
     explicit = []
-    for px in ((4,) if quick else (1, 2, 4, 8, 16)):
+    for px in ((4,) if quick else PLY_PX):
         row = {"ply_px": px}
         pair = {}
         try:
-            for which, spp in (("bundle", 16), ("explicit", 64)):
-                m = _child("explicit", config, root, which, px, spp, tmp)
+            for which, (spp, seeds) in (("bundle", BUNDLE_SPP), ("explicit", EXPLICIT_SPP)):
+                m = _child("explicit", config, root, which, px, spp // 4 if quick else spp, seeds, tmp)
                 data = np.load(Path(tmp) / f"{which}_{px}.npz")
                 pair[which] = (data["a"], data["b"])
-                row[which] = {**m, "noise": noise(pair[which]), "mean": float(np.mean(data["a"] + data["b"]) / 2)}
+                row[which] = {**m, "variance_per_spp": m["spp"] * float(np.mean((data["a"] - data["b"]) ** 2)) / 4,
+                              "mean": float(np.mean(data["a"] + data["b"]) / 2)}
                 print(f"[explicit] {px} px {which}: {row[which]}", flush=True)
         except RuntimeError as e:
             # Mitsuba 3.9's curve intersection can crash the process on touching fibers (a
@@ -215,21 +298,27 @@ def measure(config, root, quick, tmp) -> dict:
         mask = Y > 1e-3 * Y.max()
         row["flip_image"], row["psnr"], _ = flip_and_psnr(ref, test, exposure)
         row["flip"] = masked_flip(ref, test, exposure, mask)
-        # the explicit reference's own noise in FLIP: its two seeds against each other
+        # each side's own noise in FLIP: the means of its two halves against each other (each
+        # half has twice the variance of the whole: an upper bound on the whole's noise)
         row["flip_explicit_noise"] = masked_flip(*pair["explicit"], exposure, mask)
+        row["flip_bundle_noise"] = masked_flip(*pair["bundle"], exposure, mask)
         row["yarn_pixels"] = int(mask.sum())
         row["mean_ratio"] = row["bundle"]["mean"] / row["explicit"]["mean"]
-        var_b, var_e = row["bundle"]["noise"], row["explicit"]["noise"]
-        row["time_ratio_equal_noise"] = row["explicit"]["seconds"] * (var_e / var_b) / row["bundle"]["seconds"]
+        # time to equal noise: variance per sample x seconds per sample (variance falls as 1/spp)
+        cost = {w: row[w]["variance_per_spp"] * row[w]["seconds_per_spp"] for w in ("bundle", "explicit")}
+        row["time_ratio_equal_noise"] = cost["explicit"] / cost["bundle"]
         row["memory_ratio"] = (row["explicit"]["peak_mb"] - row["explicit"]["base_mb"]) / max(
             1.0, row["bundle"]["peak_mb"] - row["bundle"]["base_mb"])
         row["geometry_ratio"] = row["explicit"]["control_points"] / row["bundle"]["control_points"]
         explicit.append(row)
         np.save(Path(tmp) / f"pair_{px}.npy", np.stack([ref, test]))
-        print(f"[explicit] {px} px: FLIP {row['flip']:.3f} (explicit's own noise {row['flip_explicit_noise']:.3f}), "
-              f"mean x{row['mean_ratio']:.3f}, equal-noise time x{row['time_ratio_equal_noise']:.1f}, "
-              f"memory x{row['memory_ratio']:.1f}, geometry x{row['geometry_ratio']:.0f}", flush=True)
-    return {"config": str(config), "scale": scale, "explicit": explicit}
+        print(f"[explicit] {px} px: FLIP {row['flip']:.3f} (noise: explicit halves {row['flip_explicit_noise']:.3f}, "
+              f"bundle halves {row['flip_bundle_noise']:.3f}), mean x{row['mean_ratio']:.3f}, equal-noise time "
+              f"x{row['time_ratio_equal_noise']:.1f}, memory x{row['memory_ratio']:.1f}, geometry "
+              f"x{row['geometry_ratio']:.0f}", flush=True)
+    memory = _child("memory", config, root, tmp)
+    print(f"[memory] {memory}", flush=True)
+    return {"config": str(config), "scale": scale, "explicit": explicit, "memory": memory}
 
 
 def plot(result, tmp, path_scale, path_explicit):
@@ -259,7 +348,9 @@ def plot(result, tmp, path_scale, path_explicit):
     ax = np.atleast_1d(ax)
     ax[0].plot([r["ply_px"] for r in e], [r["flip"] for r in e], "o-", label="bundle vs explicit fibers")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_explicit_noise"] for r in e], "x--",
-               label="explicit: seed vs seed (its noise)")
+               label="explicit: half vs half (its noise)")
+    ax[0].plot([r["ply_px"] for r in e], [r["flip_bundle_noise"] for r in e], "+:",
+               label="bundle: half vs half (its noise)")
     ax[0].axhline(0.1, color="grey", lw=0.8)
     ax[0].set(xscale="log", xlabel="ply width (pixels)", ylabel="mean FLIP")
     ax[0].legend(fontsize=8)
@@ -283,7 +374,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.child:
         kind, *rest = json.loads(args.child)
-        print(json.dumps({"scale": child_scale, "explicit": child_explicit}[kind](*rest)))
+        print(json.dumps({"scale": child_scale, "explicit": child_explicit, "memory": child_memory}[kind](*rest)))
         return 0
     import tempfile
 
