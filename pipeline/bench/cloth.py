@@ -14,7 +14,7 @@ Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``exp
               other measure each side's own noise. FLIP of the bundle against the
               explicit reference, mean radiance, time *at equal noise* (variance per
               sample x seconds per sample: Monte Carlo variance falls as 1/spp) and peak
-              memory, at camera distances where a ply spans 1 .. 16 pixels.
+              memory, at camera distances where a ply spans 1 .. 8 pixels.
 ``memory``    the whole model, counted: its plies' control points with the table (or
               the MLP) against every fiber of every ply as a curve.
 
@@ -37,12 +37,17 @@ from pathlib import Path
 import numpy as np
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
-PLY_PX = (1, 2, 4, 8, 16)   # the camera distances: a ply's width in pixels
-BUNDLE_SPP = (64, 8)        # (spp, seeds) of the bundle render ...
-EXPLICIT_SPP = (64, 32)     # ... and of the explicit reference: converged, its noise measured
+PLY_PX = (1, 2, 4, 8)   # the camera distances: a ply's width in pixels
+BUNDLE_SPP = (32, 8)        # (spp, seeds) of the bundle render ...
+EXPLICIT_SPP = (32, 32)     # ... and of the explicit reference: its noise measured
 
 
 def peak_mb() -> float:
+    """This process's peak resident memory (``VmHWM``: reset by exec, where ``ru_maxrss``
+    keeps the parent's peak)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return float(line.split()[1]) / 1024.0
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
@@ -72,7 +77,7 @@ def _render(mi, scene_dict, spp_seeds=(0, 1)):
         dr.eval(img)
         dr.sync_thread()
         seconds = time.perf_counter() - t0
-        images.append(np.array(img, np.float32)[..., :3])
+        images.append(np.array(img, np.float64)[..., :3])
     if not all(np.all(np.isfinite(i)) for i in images):
         raise FloatingPointError("a cloth render holds NaN or Inf")
     return images, seconds
@@ -131,12 +136,12 @@ def patch_scene(cfg, ply_px, out: Path):
 def child_explicit(config, root, which, ply_px, spp, seeds, out):
     """The patch rendered ``seeds`` times at ``spp`` each: ``which`` = ``bundle`` (the plies
     with the bake's table) or ``explicit`` (every fiber of every ply as its own curve with
-    the single-fiber model). Both carry the same flyaways. Saves the means of the two halves
-    of the seeds (their difference is the noise of the mean)."""
+    the single-fiber model); both carry the same flyaways; ``sky``: nothing but the sky
+    (which pixels the cloth changes). Saves the means of the two halves of the seeds
+    (their difference is the noise of the mean)."""
     from models.cloth.fibers import explicit_fibers
     from models.cloth.flyaways import tapered
     from models.cloth.curves import write_mitsuba_curves
-    from models.cloth.yarn import write_curves
     from models.io import atomic_path
     from pipeline import closure, scenes
     from pipeline.artifacts import fiber_table_path, load_bundle_table
@@ -150,12 +155,16 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     out = Path(out)
     c, yarn, g, bbox, view = patch_scene(cfg, ply_px, out)
     fly_info, fly_shape = flyaways(cfg.model_copy(update={"cloth": c}), out, g, yarn, root)
-    shapes = {"flyaways": fly_shape} if fly_shape else {}
+    shapes = {"flyaways": fly_shape} if fly_shape and which != "sky" else {}
+    geometry_points = 0
+    # the curves' ends at the patch's cut tapered over a short tip: Mitsuba 3.9's
+    # bsplinecurve crashes now and then on rays that hit a blunt open end (its PR #1928)
     if which == "bundle":
-        write_curves(out / "patch_plies.txt", g)
+        with atomic_path(out / "patch_plies.txt") as tmp, open(tmp, "w") as fh:
+            write_mitsuba_curves(fh, (tapered(C, g.radius) for C in g.curves))
         shapes["yarn"] = scenes.ply_shape(out / "patch_plies.txt", props, g.radius)
-        geometry_points = g.control_points
-    else:
+        geometry_points = g.control_points + 6 * len(g.curves)
+    elif which == "explicit":
         bundle = build_bundle(cfg)
         table, _ = load_bundle_table(cfg, root)
         fiber = closure.explicit_fiber(fiber_table_path(cfg, root), table.meta.get("exit", "uniform"), 550.0)
@@ -165,8 +174,7 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
         curves, radii = explicit_fibers(g.curves, g.radius, bundle.centers, bundle.radii, bundle.bounding_radius,
                                         per_segment=1,
                                         pitch_um=None if twist is None else twist.pitch(bundle.bounding_radius))
-        # one file per fiber radius (a Poisson arrangement has one); the ends at the patch's
-        # cut tapered over a short tip (Mitsuba 3.9's bsplinecurve can crash on blunt ends)
+        # one file per fiber radius (a Poisson arrangement has one)
         for k, r in enumerate(np.unique(radii)):
             with atomic_path(out / f"patch_fibers_{k}.txt") as tmp, open(tmp, "w") as fh:
                 write_mitsuba_curves(fh, (tapered(cv, float(r)) for cv, ri in zip(curves, radii) if ri == r))
@@ -195,6 +203,29 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
             "seconds_per_spp": seconds / (spp * seeds), "peak_mb": peak_mb(), "base_mb": base,
             "loaded_mb": loaded, "control_points": geometry_points, "plies": len(g.curves),
             "hairs": fly_info.get("hairs", 0)}
+
+
+SPEED_SIZE, SPEED_SPP = (320, 240), 8
+SHADOW_RR = (0.0, 0.1, 0.3)   # bundle_path's shadow_rr compared (0: every crossing traced)
+
+
+def child_speed(config, root, shadow_rr, geometry, out):
+    """The whole model (plies and flyaways, ``geometry``: the files the parent built) at
+    ``SPEED_SIZE`` x ``SPEED_SPP`` with the integrator's ``shadow_rr``: seconds per render
+    (compiled), the mean and the variance per sample (from two seeds)."""
+    from pipeline import scenes
+
+    mi, cfg, props = _setup(config, root)
+    g = json.loads(Path(geometry).read_text())
+    shapes = {"yarn": scenes.ply_shape(g["plies"], props, g["radius"])}
+    if g["flyaways"]:
+        shapes["flyaways"] = g["flyaways"]
+    c = cfg.cloth.model_copy(update={"width": SPEED_SIZE[0], "height": SPEED_SIZE[1]})
+    scene = scenes.cloth_scene(mi, c, shapes, g["bbox"], SPEED_SPP)
+    scene["integrator"]["shadow_rr"] = shadow_rr
+    (a, b), seconds = _render(mi, scene)
+    return {"shadow_rr": shadow_rr, "seconds": seconds, "mean": float((a + b).mean() / 2),
+            "variance_per_spp": SPEED_SPP * float(np.mean((a - b) ** 2)) / 2}
 
 
 def child_memory(config, root, out):
@@ -260,10 +291,9 @@ def masked_flip(reference, test, exposure, mask) -> float:
     return float(np.mean(error_map[mask]))
 
 
-def measure(config, root, quick, tmp) -> dict:
+def measure_scale(config, root, quick, tmp) -> list:
     from models.cloth.bcc import read_bcc
     from pipeline.config import load_config
-    from pipeline.stages.render import exposure_of, flip_and_psnr
 
     cfg = load_config(config)
     total = len(read_bcc(cfg.cloth.model).curves) if cfg.cloth.model else cfg.cloth.swatch.courses
@@ -272,6 +302,37 @@ def measure(config, root, quick, tmp) -> dict:
     for n in sizes:
         scale.append(_child("scale", config, root, n, tmp))
         print(f"[scale] {n} curves: {scale[-1]}", flush=True)
+    return scale
+
+
+def measure_speed(config, root, quick, tmp) -> list:
+    """The whole model's render with and without the shadow rays' Russian roulette, side by
+    side (each in its own process): seconds, and the time to equal noise."""
+    from pipeline.config import load_config
+    from pipeline.stages.cloth import build, flyaways, yarn_spec
+
+    cfg = load_config(config)
+    _, g = build(cfg, Path(tmp))
+    _, fly = flyaways(cfg, Path(tmp), g, yarn_spec(cfg.cloth), root)
+    geometry = Path(tmp) / "geometry.json"
+    geometry.write_text(json.dumps({"plies": str(Path(tmp) / "plies.txt"), "radius": g.radius, "flyaways": fly,
+                                    "bbox": [np.concatenate(g.curves).min(0).tolist(),
+                                             np.concatenate(g.curves).max(0).tolist()]}))
+    rows = [_child("speed", config, root, rr, str(geometry), tmp) for rr in ((0.0, 0.1) if quick else SHADOW_RR)]
+    for r in rows:
+        r["cost"] = r["seconds"] * r["variance_per_spp"]
+    for r in rows:
+        r["speed_up"] = rows[0]["seconds"] / r["seconds"]
+        r["speed_up_equal_noise"] = rows[0]["cost"] / r["cost"]
+        print(f"[speed] shadow_rr {r['shadow_rr']}: {r['seconds']:.2f} s ({SPEED_SIZE[0]} x {SPEED_SIZE[1]} x "
+              f"{SPEED_SPP} spp), mean {r['mean']:.5f}, x{r['speed_up']:.2f} faster, x{r['speed_up_equal_noise']:.2f} "
+              "at equal noise", flush=True)
+    return rows
+
+
+def measure_explicit(config, root, quick, tmp) -> list:
+    from pipeline.stages.render import exposure_of, flip_and_psnr
+
     explicit = []
     for px in ((4,) if quick else PLY_PX):
         row = {"ply_px": px}
@@ -293,15 +354,20 @@ def measure(config, root, quick, tmp) -> dict:
         ref = 0.5 * (pair["explicit"][0] + pair["explicit"][1])
         test = 0.5 * (pair["bundle"][0] + pair["bundle"][1])
         exposure = exposure_of(ref)
-        # FLIP over the yarn's pixels only (the black sky would dilute it), at the reference's exposure
-        Y = (ref + test).sum(-1)
-        mask = Y > 1e-3 * Y.max()
+        # FLIP over the cloth's pixels only (the sky would dilute it), at the reference's exposure
+        mask = cloth_pixels(ref, test, _child_sky(config, root, px, tmp))
         row["flip_image"], row["psnr"], _ = flip_and_psnr(ref, test, exposure)
         row["flip"] = masked_flip(ref, test, exposure, mask)
         # each side's own noise in FLIP: the means of its two halves against each other (each
         # half has twice the variance of the whole: an upper bound on the whole's noise)
         row["flip_explicit_noise"] = masked_flip(*pair["explicit"], exposure, mask)
         row["flip_bundle_noise"] = masked_flip(*pair["bundle"], exposure, mask)
+        # FLIP with half the samples on both sides (the halves crossed, averaged) against all
+        # of them: extrapolated to noise-free images if FLIP^2 falls as 1/spp, as a squared
+        # error does (an estimate: FLIP is not a squared error; both figures are kept)
+        halves = np.mean([masked_flip(e, b, exposure, mask) for e in pair["explicit"] for b in pair["bundle"]])
+        row["flip_half_samples"] = float(halves)
+        row["flip_extrapolated"] = float(np.sqrt(max(0.0, 2 * row["flip"] ** 2 - halves ** 2)))
         row["yarn_pixels"] = int(mask.sum())
         row["mean_ratio"] = row["bundle"]["mean"] / row["explicit"]["mean"]
         # time to equal noise: variance per sample x seconds per sample (variance falls as 1/spp)
@@ -312,13 +378,34 @@ def measure(config, root, quick, tmp) -> dict:
         row["geometry_ratio"] = row["explicit"]["control_points"] / row["bundle"]["control_points"]
         explicit.append(row)
         np.save(Path(tmp) / f"pair_{px}.npy", np.stack([ref, test]))
-        print(f"[explicit] {px} px: FLIP {row['flip']:.3f} (noise: explicit halves {row['flip_explicit_noise']:.3f}, "
+        print(f"[explicit] {px} px: FLIP {row['flip']:.3f}, half the samples {row['flip_half_samples']:.3f}, "
+              f"extrapolated {row['flip_extrapolated']:.3f} (noise: explicit halves {row['flip_explicit_noise']:.3f}, "
               f"bundle halves {row['flip_bundle_noise']:.3f}), mean x{row['mean_ratio']:.3f}, equal-noise time "
               f"x{row['time_ratio_equal_noise']:.1f}, memory x{row['memory_ratio']:.1f}, geometry "
               f"x{row['geometry_ratio']:.0f}", flush=True)
+    return explicit
+
+
+def _child_sky(config, root, px, tmp) -> np.ndarray:
+    """The sky alone from the patch's camera at ``px``."""
+    _child("explicit", config, root, "sky", px, 4, 2, tmp)
+    sky = np.load(Path(tmp) / f"sky_{px}.npz")
+    return 0.5 * (sky["a"] + sky["b"])
+
+
+def cloth_pixels(ref, test, sky) -> np.ndarray:
+    """Pixels where either image differs from the sky alone (the cloth, its shadows)."""
+    d = np.abs(ref - sky).sum(-1) + np.abs(test - sky).sum(-1)
+    return d > 1e-3 * (ref + test).sum(-1).max()
+
+
+def measure_memory(config, root, quick, tmp) -> dict:
     memory = _child("memory", config, root, tmp)
     print(f"[memory] {memory}", flush=True)
-    return {"config": str(config), "scale": scale, "explicit": explicit, "memory": memory}
+    return memory
+
+
+PARTS = {"scale": measure_scale, "speed": measure_speed, "explicit": measure_explicit, "memory": measure_memory}
 
 
 def plot(result, tmp, path_scale, path_explicit):
@@ -327,9 +414,13 @@ def plot(result, tmp, path_scale, path_explicit):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pipeline.stages.render import exposure_of, to_srgb
+    if result.get("scale"):
+        plot_scale(plt, result["scale"], path_scale)
+    if [r for r in result.get("explicit", []) if "failed" not in r]:
+        plot_explicit(plt, result["explicit"], tmp, path_explicit)
 
-    s = result["scale"]
+
+def plot_scale(plt, s, path_scale):
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     n = [r["curves"] for r in s]
     ax[0].plot(n, [r["build_s"] for r in s], "o-", label="plies built")
@@ -343,16 +434,25 @@ def plot(result, tmp, path_scale, path_explicit):
     fig.savefig(path_scale, dpi=110)
     plt.close(fig)
 
-    e = [r for r in result["explicit"] if "failed" not in r]
+
+
+def plot_explicit(plt, explicit, tmp, path_explicit):
+    from pipeline.stages.render import exposure_of, to_srgb
+
+    e = [r for r in explicit if "failed" not in r]
     fig, ax = plt.subplots(1, 1 + min(2, len(e)), figsize=(4 + 4 * min(2, len(e)), 3.8))
     ax = np.atleast_1d(ax)
     ax[0].plot([r["ply_px"] for r in e], [r["flip"] for r in e], "o-", label="bundle vs explicit fibers")
+    ax[0].plot([r["ply_px"] for r in e], [r["flip_extrapolated"] for r in e], "o:", color="C0", alpha=0.6,
+               label="bundle vs explicit, extrapolated to no noise")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_explicit_noise"] for r in e], "x--",
                label="explicit: half vs half (its noise)")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_bundle_noise"] for r in e], "+:",
                label="bundle: half vs half (its noise)")
     ax[0].axhline(0.1, color="grey", lw=0.8)
-    ax[0].set(xscale="log", xlabel="ply width (pixels)", ylabel="mean FLIP")
+    ax[0].set(xscale="log", xlabel="ply width (pixels)", ylabel="mean FLIP over the cloth's pixels")
+    ax[0].set_xticks([r["ply_px"] for r in e], [str(r["ply_px"]) for r in e])
+    ax[0].minorticks_off()
     ax[0].legend(fontsize=8)
     for a, r in zip(ax[1:], [e[len(e) // 2], e[-1]][: len(ax) - 1]):
         ref, test = np.load(Path(tmp) / f"pair_{r['ply_px']}.npy")
@@ -370,22 +470,29 @@ def main(argv=None) -> int:
     parser.add_argument("config", nargs="?", default="configs/glove.yaml")
     parser.add_argument("--artifacts", default="artifacts")
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--parts", nargs="+", choices=list(PARTS), default=list(PARTS),
+                        help="what to measure (default: all); the others keep their figures in docs/cloth.json")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         kind, *rest = json.loads(args.child)
-        print(json.dumps({"scale": child_scale, "explicit": child_explicit, "memory": child_memory}[kind](*rest)))
+        children = {"scale": child_scale, "explicit": child_explicit, "memory": child_memory, "speed": child_speed}
+        print(json.dumps(children[kind](*rest)))
         return 0
     import tempfile
 
     from models.io import write_text
 
+    out = DOCS / "cloth.json"
+    result = json.loads(out.read_text()) if out.exists() else {}
+    result["config"] = str(args.config)
     with tempfile.TemporaryDirectory() as tmp:
-        result = measure(args.config, args.artifacts, args.quick, tmp)
+        fresh = {part: PARTS[part](args.config, args.artifacts, args.quick, tmp) for part in args.parts}
         (DOCS / "images").mkdir(parents=True, exist_ok=True)
-        plot(result, tmp, DOCS / "images" / "cloth_scale.png", DOCS / "images" / "cloth_explicit.png")
-    write_text(DOCS / "cloth.json", json.dumps(result, indent=1))
-    print(f"wrote {DOCS / 'cloth.json'}")
+        plot(fresh, tmp, DOCS / "images" / "cloth_scale.png", DOCS / "images" / "cloth_explicit.png")
+    result.update(fresh)
+    write_text(out, json.dumps(result, indent=1))
+    print(f"wrote {out}")
     return 0
 
 
