@@ -16,6 +16,8 @@ step's time goes (points and features, forward, backward, optimizer) for each si
 Prints one table, writes ``docs/train_schedules.json`` and ``docs/images/train_schedules.png``
 (held-out L1 against seconds, one panel per size; the report shows them). ``--sizes`` limits
 the sizes; ``--quick`` trains 1/10 of each schedule's epochs (a smoke run, not a measurement).
+``--calibration 4 3`` instead compares the energy calibration at 4 x 4 and 3 x 3 points per
+bin from one phase-1 state per size (seconds, held-out L1, worst albedo error at fresh points).
 """
 
 from __future__ import annotations
@@ -109,6 +111,57 @@ def profile_steps(cfg, problem, name, hidden, steps=30) -> dict:
             "epoch": sum(T.values()) * steps_per_epoch}
 
 
+def compare_calibration(cfg, problem, sizes, strata) -> dict:
+    """Phase 1 once per size, then the calibration from that same state at each k x k points
+    per bin: its seconds, the held-out L1 and the worst albedo error, the latter at 6 x 6
+    fresh points per bin (not the calibration's own)."""
+    import time
+
+    import torch
+
+    from models.neural import make_torch_model
+    from pipeline.stages import train as T
+
+    c = cfg.train
+    rows = {}
+    for name in sizes:
+        spec = dataclasses.replace(problem.base, hidden=list(c.models[name]))
+        torch.manual_seed(c.seed)
+        model, p = make_torch_model(spec), T.BinFit(spec, problem)
+        T.fit_bins(model, p, c, name)
+        state = copy.deepcopy(model.state_dict())
+        rows[name] = {}
+        for k in strata:
+            model.load_state_dict(state)
+            T.CALIBRATION_STRATA, kept = k, T.CALIBRATION_STRATA
+            t0 = time.perf_counter()
+            T.calibrate(model, p, c, name)
+            seconds = time.perf_counter() - t0
+            T.CALIBRATION_STRATA = kept
+            r = {"seconds": seconds, "relative_l1": T.held_out_metrics(spec, model, problem.data,
+                                                                       problem.val_idx)["relative_l1"],
+                 "worst_albedo_error": _worst_albedo(p, model)}
+            rows[name][k] = r
+            print(f"{name:8s} calibration at {k} x {k} points: {seconds:5.1f} s, held-out L1 {r['relative_l1']:.2%}, "
+                  f"worst albedo error {r['worst_albedo_error']:.2%}", flush=True)
+    return rows
+
+
+def _worst_albedo(p, model, k: int = 6) -> float:
+    """Worst relative albedo error over (incident direction, wavelength), at k x k fresh points."""
+    import torch
+
+    data = p.data
+    albedo = torch.from_numpy(data.albedo.astype(np.float32))
+    seen = albedo > 0
+    omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
+    pts = p.stratified(len(data.x), k, torch.Generator().manual_seed(12345))
+    with torch.no_grad():
+        S = p.bin_means(p.every, model(p.encode(p.every, pts)))[1]
+    q = torch.zeros_like(albedo).index_add(0, torch.from_numpy(data.group), S * omega)[seen]
+    return float((q / albedo[seen] - 1).abs().max())
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", default="configs/default.yaml")
@@ -116,6 +169,8 @@ def main(argv=None):
     parser.add_argument("--sizes", nargs="*", help="model names of train.models (default: all)")
     parser.add_argument("--quick", action="store_true", help="a tenth of the epochs: a smoke run")
     parser.add_argument("--out", type=Path, default=DOCS, help="folder for train_schedules.json and images/")
+    parser.add_argument("--calibration", type=int, nargs="+", metavar="K",
+                        help="instead: the calibration at K x K points per bin, side by side from one phase 1")
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
 
@@ -132,6 +187,8 @@ def main(argv=None):
     problem = prepare(cfg, table, table_path)
     new = {k: getattr(cfg.train, k) for k in OLD}
     sizes = args.sizes or list(cfg.train.models)
+    if args.calibration:
+        return compare_calibration(cfg, problem, sizes, args.calibration)
     profile = {}
     print(f"where a step's time goes (ms; batch {cfg.train.batch_size}, {cfg.train.bin_strata}^2 points per bin):")
     for name in sizes:

@@ -357,6 +357,9 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
     return history, best
 
 
+CALIBRATION_STRATA = 4  # k x k points per bin in the calibration (pipeline/bench/train.py --calibration)
+
+
 def calibrate(model, p: BinFit, c, name) -> dict:
     """Phase 2: energy calibration of the output layer.
 
@@ -397,7 +400,7 @@ def calibrate(model, p: BinFit, c, name) -> dict:
         with torch.no_grad():
             return float((model_albedo(p.bin_means(p.every, last(hidden))[1]) / albedo[seen] - 1).abs().max())
 
-    pts = p.stratified(len(data.x), 4, torch.Generator().manual_seed(c.seed + 2))
+    pts = p.stratified(len(data.x), CALIBRATION_STRATA, torch.Generator().manual_seed(c.seed + 2))
     with torch.no_grad():
         hidden = model[:-1](p.encode(p.every, pts))
     last = model[-1]
