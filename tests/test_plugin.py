@@ -141,8 +141,6 @@ def test_sampling_passes_mitsuba_chi2(mi_plug, tables, trained, which, backend, 
 
 
 def test_passthrough_is_a_null_lobe_with_the_baked_probability(mi_plug, tables):
-    import drjit as dr
-
     mi = mi_plug
     bsdf = mi.load_dict({"type": "fiber_bundle", "table": str(tables["circle"])})
     n = 200_000
@@ -188,8 +186,6 @@ def test_eval_is_the_table_lookup_in_the_bundle_frame(mi_plug, tables, which):
     cos(theta_wo) / cos(theta_si.wi)`` (DESIGN's far-field closure); importance mode (a
     light tracer): ``si.wi`` is the light side and ``eval = S(si.wi -> wo)``.
     """
-    import drjit as dr
-
     from mitsuba_ext.frame import spectral_weights
 
     mi = mi_plug
