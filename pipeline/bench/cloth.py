@@ -154,8 +154,9 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     base = peak_mb()
     out = Path(out)
     c, yarn, g, bbox, view = patch_scene(cfg, ply_px, out)
-    fly_info, fly_shape = flyaways(cfg.model_copy(update={"cloth": c}), out, g, yarn, root)
-    shapes = {"flyaways": fly_shape} if fly_shape and which != "sky" else {}
+    fly_info, fly_shape = ({}, None) if which == "sky" else flyaways(cfg.model_copy(update={"cloth": c}), out, g,
+                                                                     yarn, root)
+    shapes = {"flyaways": fly_shape} if fly_shape else {}
     geometry_points = 0
     # the curves' ends at the patch's cut tapered over a short tip: Mitsuba 3.9's
     # bsplinecurve crashes now and then on rays that hit a blunt open end (its PR #1928)
@@ -225,7 +226,7 @@ def child_speed(config, root, shadow_rr, geometry, out):
     scene["integrator"]["shadow_rr"] = shadow_rr
     (a, b), seconds = _render(mi, scene)
     return {"shadow_rr": shadow_rr, "seconds": seconds, "mean": float((a + b).mean() / 2),
-            "variance_per_spp": SPEED_SPP * float(np.mean((a - b) ** 2)) / 2}
+            "variance_per_spp": variance_per_spp(a, b, SPEED_SPP)}
 
 
 def child_memory(config, root, out):
@@ -274,9 +275,10 @@ def _child(kind, *args):
 
 
 # -- the parent: the measurements, the figures --------------------------------------------
-def noise(images) -> float:
-    a, b = images
-    return float(np.mean((a - b) ** 2) / 2)
+def variance_per_spp(a, b, spp: int) -> float:
+    """Monte Carlo variance of one sample per pixel, from two independent images ``a``, ``b``
+    of ``spp`` samples each (their difference has twice the variance of each)."""
+    return spp * float(np.mean((a - b) ** 2)) / 2
 
 
 def masked_flip(reference, test, exposure, mask) -> float:
@@ -312,12 +314,11 @@ def measure_speed(config, root, quick, tmp) -> list:
     from pipeline.stages.cloth import build, flyaways, yarn_spec
 
     cfg = load_config(config)
-    _, g = build(cfg, Path(tmp))
+    info, g = build(cfg, Path(tmp))
     _, fly = flyaways(cfg, Path(tmp), g, yarn_spec(cfg.cloth), root)
     geometry = Path(tmp) / "geometry.json"
     geometry.write_text(json.dumps({"plies": str(Path(tmp) / "plies.txt"), "radius": g.radius, "flyaways": fly,
-                                    "bbox": [np.concatenate(g.curves).min(0).tolist(),
-                                             np.concatenate(g.curves).max(0).tolist()]}))
+                                    "bbox": info["bbox_mm"]}))
     rows = [_child("speed", config, root, rr, str(geometry), tmp) for rr in ((0.0, 0.1) if quick else SHADOW_RR)]
     for r in rows:
         r["cost"] = r["seconds"] * r["variance_per_spp"]
@@ -342,7 +343,7 @@ def measure_explicit(config, root, quick, tmp) -> list:
                 m = _child("explicit", config, root, which, px, spp // 4 if quick else spp, seeds, tmp)
                 data = np.load(Path(tmp) / f"{which}_{px}.npz")
                 pair[which] = (data["a"], data["b"])
-                row[which] = {**m, "variance_per_spp": m["spp"] * float(np.mean((data["a"] - data["b"]) ** 2)) / 4,
+                row[which] = {**m, "variance_per_spp": variance_per_spp(data["a"], data["b"], m["spp"] // 2),
                               "mean": float(np.mean(data["a"] + data["b"]) / 2)}
                 print(f"[explicit] {px} px {which}: {row[which]}", flush=True)
         except RuntimeError as e:
@@ -437,7 +438,6 @@ def plot_scale(plt, s, path_scale):
     fig.tight_layout()
     fig.savefig(path_scale, dpi=110)
     plt.close(fig)
-
 
 
 def plot_explicit(plt, explicit, tmp, path_explicit):

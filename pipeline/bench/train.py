@@ -133,33 +133,19 @@ def compare_calibration(cfg, problem, sizes, strata) -> dict:
         rows[name] = {}
         for k in strata:
             model.load_state_dict(state)
-            T.CALIBRATION_STRATA, kept = k, T.CALIBRATION_STRATA
             t0 = time.perf_counter()
-            T.calibrate(model, p, c, name)
+            T.calibrate(model, p, c, name, strata=k)
             seconds = time.perf_counter() - t0
-            T.CALIBRATION_STRATA = kept
+            fresh = p.stratified(len(p.every), 6, torch.Generator().manual_seed(12345))  # not the calibration's
+            with torch.no_grad():
+                S = p.bin_means(p.every, model(p.encode(p.every, fresh)))[1]
             r = {"seconds": seconds, "relative_l1": T.held_out_metrics(spec, model, problem.data,
                                                                        problem.val_idx)["relative_l1"],
-                 "worst_albedo_error": _worst_albedo(p, model)}
+                 "worst_albedo_error": p.worst_albedo_error(S)}
             rows[name][k] = r
             print(f"{name:8s} calibration at {k} x {k} points: {seconds:5.1f} s, held-out L1 {r['relative_l1']:.2%}, "
                   f"worst albedo error {r['worst_albedo_error']:.2%}", flush=True)
     return rows
-
-
-def _worst_albedo(p, model, k: int = 6) -> float:
-    """Worst relative albedo error over (incident direction, wavelength), at k x k fresh points."""
-    import torch
-
-    data = p.data
-    albedo = torch.from_numpy(data.albedo.astype(np.float32))
-    seen = albedo > 0
-    omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
-    pts = p.stratified(len(data.x), k, torch.Generator().manual_seed(12345))
-    with torch.no_grad():
-        S = p.bin_means(p.every, model(p.encode(p.every, pts)))[1]
-    q = torch.zeros_like(albedo).index_add(0, torch.from_numpy(data.group), S * omega)[seen]
-    return float((q / albedo[seen] - 1).abs().max())
 
 
 def main(argv=None):

@@ -248,6 +248,13 @@ class BinFit:
         self.cell = torch.from_numpy(data.cell.astype(np.float32))
         self.tr, self.va = torch.from_numpy(problem.train_idx), torch.from_numpy(problem.val_idx)
         self.every = torch.arange(len(data.x))
+        # the table's albedo per (incident direction, wavelength) row; a row that scatters
+        # nothing has no relative error
+        albedo = torch.from_numpy(data.albedo.astype(np.float32))
+        self.seen = albedo > 0
+        self.albedo = albedo[self.seen]
+        self.omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
+        self.group = torch.from_numpy(data.group)
 
     @staticmethod
     def stratified(n, k, generator):
@@ -278,6 +285,17 @@ class BinFit:
         e = torch.expm1(y)  # < 0 exactly where the output is negative, so relu(e) is the clamped expm1
         S_leaky, S = s0 * e.mean(1), s0 * torch.relu(e).mean(1)
         return torch.log1p(torch.clamp(S_leaky / s0, min=-0.5)), S
+
+    def model_albedo(self, S):
+        """The model's albedo per scattering row (those of :attr:`albedo`) from its bin
+        values ``S`` at every bin: the sum of ``S d omega`` over each row's outgoing bins."""
+        import torch
+
+        return torch.zeros(self.seen.shape, dtype=S.dtype).index_add(0, self.group, S * self.omega)[self.seen]
+
+    def worst_albedo_error(self, S) -> float:
+        """The largest relative albedo error over the scattering rows."""
+        return float((self.model_albedo(S) / self.albedo - 1).abs().max())
 
     def loss(self, b, y):
         """Weighted log-space MSE: the weights carry the table's own noise."""
@@ -360,12 +378,12 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
 CALIBRATION_STRATA = 4  # k x k points per bin in the calibration (pipeline/bench/train.py --calibration)
 
 
-def calibrate(model, p: BinFit, c, name) -> dict:
+def calibrate(model, p: BinFit, c, name, strata: int = CALIBRATION_STRATA) -> dict:
     """Phase 2: energy calibration of the output layer.
 
     Log-space errors alone bias the albedo (the small model: 2-4.6% in its worst row,
     grazing incidence). With the hidden layers frozen, the output layer is refitted by
-    L-BFGS on the whole table at 4 x 4 stratified points per bin (drawn once; the
+    L-BFGS on the whole table at ``strata`` x ``strata`` stratified points per bin (drawn once; the
     features are computed once, so each iteration is one small matrix product): the fit
     term keeps the shape, the energy term pulls every row's albedo, the sum of S d omega
     over all its outgoing bins, onto the table's. The rows include the held-out bins:
@@ -378,29 +396,21 @@ def calibrate(model, p: BinFit, c, name) -> dict:
     import torch
     from tqdm import tqdm
 
-    data = p.data
-    albedo = torch.from_numpy(data.albedo.astype(np.float32))
-    seen = albedo > 0  # a row that scatters nothing has no relative error
-    if not bool(seen.any()):
+    if not len(p.albedo):  # no row scatters
         return {}
-    omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
-    group = torch.from_numpy(data.group)
-
-    def model_albedo(S):
-        return torch.zeros_like(albedo).index_add(0, group, S * omega)[seen]
 
     def energy_loss(S):
         """Mean squared symmetric relative difference 2 (p - a) / (p + a) of the model's
         albedo p per (incident direction, wavelength) against the table's a: ~ the
         relative error when small, bounded by 2 when far off (a 1e5:1 table)."""
-        q = model_albedo(S)
-        return ((2 * (q - albedo[seen]) / (q + albedo[seen])) ** 2).mean()
+        q = p.model_albedo(S)
+        return ((2 * (q - p.albedo) / (q + p.albedo)) ** 2).mean()
 
     def worst_albedo_error():
         with torch.no_grad():
-            return float((model_albedo(p.bin_means(p.every, last(hidden))[1]) / albedo[seen] - 1).abs().max())
+            return p.worst_albedo_error(p.bin_means(p.every, last(hidden))[1])
 
-    pts = p.stratified(len(data.x), CALIBRATION_STRATA, torch.Generator().manual_seed(c.seed + 2))
+    pts = p.stratified(len(p.data.x), strata, torch.Generator().manual_seed(c.seed + 2))
     with torch.no_grad():
         hidden = model[:-1](p.encode(p.every, pts))
     last = model[-1]
