@@ -430,6 +430,14 @@ class FiberRayBSDF(CurveBSDF):
     side, times ``cos(theta_light) / cos(theta_camera)`` in radiance mode), so that
     averaged over the fiber's width it is exactly ``fiber_table``'s.
 
+    ``sample`` draws the path by its attenuation at the wavelengths the render carries
+    (as pbrt-v4's hair BSDF does; not the table's spectral mean, which for a dyed fiber
+    weighs the long red paths up at every bounce), then the light side's longitude, then
+    the azimuth about the lobe of *that* longitude's Bravais index (the one ``eval``
+    reads). The model is not reciprocal: seen along grazing directions its radiance-mode
+    albedo exceeds one, so a path that runs along the fibers of a ply gains weight; its
+    variance is the model's, not the sampler's.
+
     .. list-table::
        :header-rows: 1
 
@@ -499,6 +507,14 @@ class FiberRayBSDF(CurveBSDF):
         f, _ = self.lobes.eval_spectrum(theta_si, h, p, theta_wo, dphi)
         return f
 
+    def _choice(self, si, theta_i, h):
+        """The paths' probabilities at ``si``'s ray: their attenuations at the wavelengths
+        this render carries (the variant's spectrum, as :meth:`_spectrum` maps the table's),
+        not the table's spectral mean (see ``LobeSampler.lobe_probabilities``)."""
+        A = self.lobes.attenuations(self.lobes.cos_in(theta_i), h)
+        P, _ = self.lobes.lobe_probabilities(A, lambda a: dr.sum(self._spectrum(a, si)))
+        return P
+
     def eval(self, ctx, si, wo, active=True):
         _, theta_i, theta_o, dphi, (h, _, _), inside = self._local(si, si.to_world(wo))
         total = [dr.zeros(mi.Float, dr.width(h)) for _ in range(self.lobes.L)]
@@ -510,15 +526,19 @@ class FiberRayBSDF(CurveBSDF):
     def pdf(self, ctx, si, wo, active=True):
         _, theta_i, theta_o, dphi, (h, _, _), inside = self._local(si, si.to_world(wo))
         pdf = dr.zeros(mi.Float, dr.width(h))
+        P = self._choice(si, theta_i, h)
+        light_out = ctx.mode == mi.TransportMode.Radiance  # wo is the light's side
         for p in self._components(ctx):
-            pdf += self.lobes.pdf(theta_i, h, dr.zeros(mi.UInt32, dr.width(h)) + p, theta_o, dphi)
+            pdf += self.lobes.pdf(theta_i, h, dr.zeros(mi.UInt32, dr.width(h)) + p, theta_o, dphi, P, light_out)
         return dr.select(active & ~inside, pdf / dr.maximum(dr.cos(theta_o), 1e-6), 0.0)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
         frame, phi_i, theta_i, inside = self._setup(si)
         h, _, _ = self._offset(si, frame)
         u0, u1 = split_uniform(sample1)
-        p, theta_o, dphi, pdf = self.lobes.sample(theta_i, h, [u0, u1, sample2.x, sample2.y])
+        p, theta_o, dphi, pdf = self.lobes.sample(theta_i, h, [u0, u1, sample2.x, sample2.y],
+                                                  self._choice(si, theta_i, h),
+                                                  light_out=ctx.mode == mi.TransportMode.Radiance)
         wo_world = direction(phi_i + dphi, theta_o, frame)
         f = self._path_value(ctx, h, p, theta_i, theta_o, dphi)
         pdf = pdf / dr.maximum(dr.cos(theta_o), 1e-6)

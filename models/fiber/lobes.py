@@ -195,15 +195,36 @@ class LobeSampler:
     def _longitudinal(self, p, theta_in, theta_out):
         return self._pick([m(theta_in, theta_out, xp=self.dr) for m in self.M], p)
 
-    def lobe_probabilities(self, A):
-        """``P(p)``: each path's share of the spectrally averaged attenuation."""
+    def lobe_probabilities(self, A, weigh=None):
+        """``P(p)``: each path's share of the attenuation, averaged over the spectrum, or
+        weighed by ``weigh`` (a function from ``A[p]``, a list over the table's wavelengths,
+        to a non-negative float per lane: the wavelengths a renderer carries).
+
+        The weight of a sampled path at wavelength ``l`` is ``A[p][l] / P(p)``: with ``P``
+        from wavelengths the path does not carry (a dyed fiber's absorbed blue, for a
+        renderer at 650 nm), it exceeds 1 at every long path's vertex, and the product over
+        a path's dozens of bounces in a ply is a firefly."""
+        dr = self.dr
         mean = [sum(a[1:], a[0]) * (1 / self.L) for a in A]
         total = sum(mean[1:], mean[0])
-        return [m / self.dr.maximum(total, 1e-30) for m in mean], total
+        P = [m / dr.maximum(total, 1e-30) for m in mean]
+        if weigh is None:
+            return P, total
+        mine = [weigh(a) for a in A]
+        own = sum(mine[1:], mine[0])
+        # lanes whose own wavelengths see no light on any path keep the spectral mean
+        return [dr.select(own > 0, m / dr.maximum(own, 1e-30), q) for m, q in zip(mine, P)], total
 
     # -- the event --------------------------------------------------------------
-    def sample(self, theta_in, h, u):
-        """One event at offset ``h`` for light of longitude ``theta_in``; ``u`` four uniforms.
+    def sample(self, theta_in, h, u, P=None, light_out=False):
+        """One event at offset ``h`` for light of longitude ``theta_in``; ``u`` four uniforms;
+        ``P`` the paths' probabilities (default: :meth:`lobe_probabilities` of the spectral mean).
+
+        The longitude is sampled first; the azimuthal lobe is centred with the Bravais
+        index of the light's longitude: ``theta_in`` (the baker, tracing light), or the
+        sampled ``theta_out`` if ``light_out`` (a camera path, which samples the light's
+        side). Centred at the other side's index, a broad longitudinal lobe's sample falls
+        in the far tail of the azimuthal lobe it is weighed with (a weight of hundreds).
 
         Returns ``(p, theta_out, dphi, pdf)`` (``p`` a UInt32, ``pdf`` of the middle
         wavelength over (lobe, theta_out, dphi), with the cosine of ``theta_out``).
@@ -211,26 +232,29 @@ class LobeSampler:
         dr = self.dr
         UInt = dr.uint32_array_t(self.Float)
         cos_in = self.cos_in(theta_in)
-        P, _ = self.lobe_probabilities(self.attenuations(cos_in, h))
+        if P is None:
+            P, _ = self.lobe_probabilities(self.attenuations(cos_in, h))
         p = dr.zeros(UInt, dr.width(h)) + self.p_max
         cdf = dr.zeros(self.Float, dr.width(h))
         for q in range(self.p_max):  # the first lobe whose running sum passes u[0]
             cdf = cdf + P[q]
             p = dr.select((p == self.p_max) & (u[0] < cdf), q, p)
         theta_out = self._pick([m.sample(theta_in, u[1], u[2], xp=dr) for m in self.M], p)
-        gamma_i, gamma_t = gammas(h, bravais(self.eta[self.ref], cos_in, dr), dr)
+        cos_light = self.cos_in(theta_out) if light_out else cos_in
+        gamma_i, gamma_t = gammas(h, bravais(self.eta[self.ref], cos_light, dr), dr)
         dphi = dr.select(p == self.p_max, TWO_PI * u[3] - np.pi,
                          wrap(Phi(self.Float(p), gamma_i, gamma_t) + sample_logistic(u[3], self.s, dr), dr))
-        return p, theta_out, dphi, self.pdf(theta_in, h, p, theta_out, dphi, P)
+        return p, theta_out, dphi, self.pdf(theta_in, h, p, theta_out, dphi, P, light_out)
 
-    def pdf(self, theta_in, h, p, theta_out, dphi, P=None):
+    def pdf(self, theta_in, h, p, theta_out, dphi, P=None, light_out=False):
         """Density of :meth:`sample` at ``(p, theta_out, dphi)`` (cosine of theta_out included)."""
         dr = self.dr
         cos_in = self.cos_in(theta_in)
         if P is None:
             P, _ = self.lobe_probabilities(self.attenuations(cos_in, h))
+        cos_light = self.cos_in(theta_out) if light_out else cos_in
         return (self._pick(P, p) * self._longitudinal(p, theta_in, theta_out) * dr.cos(theta_out)
-                * self._azimuthal(p, h, cos_in, dphi, self.ref))
+                * self._azimuthal(p, h, cos_light, dphi, self.ref))
 
     def eval_spectrum(self, theta_in, h, p, theta_out, dphi):
         """``f_p = M_p A_p N_p`` of path ``p`` at every wavelength (no cosine), and the kept

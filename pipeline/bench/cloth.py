@@ -370,7 +370,11 @@ def measure_explicit(config, root, quick, tmp) -> list:
         row["flip_half_samples"] = float(halves)
         row["flip_extrapolated"] = float(np.sqrt(max(0.0, 2 * row["flip"] ** 2 - halves ** 2)))
         row["yarn_pixels"] = int(mask.sum())
-        row["mean_ratio"] = row["bundle"]["mean"] / row["explicit"]["mean"]
+        # mean radiance over the cloth's pixels (the sky's pixels, equal in both, would dilute
+        # it), and per channel: multiply scattered light in the dyed yarn is red
+        row["mean_ratio"] = float(test[mask].mean() / ref[mask].mean())
+        row["mean_ratio_rgb"] = (test[mask].mean(0) / ref[mask].mean(0)).tolist()
+        row["mean_ratio_image"] = row["bundle"]["mean"] / row["explicit"]["mean"]
         # time to equal noise: variance per sample x seconds per sample (variance falls as 1/spp)
         cost = {w: row[w]["variance_per_spp"] * row[w]["seconds_per_spp"] for w in ("bundle", "explicit")}
         row["time_ratio_equal_noise"] = cost["explicit"] / cost["bundle"]
@@ -381,7 +385,8 @@ def measure_explicit(config, root, quick, tmp) -> list:
         np.save(Path(tmp) / f"pair_{px}.npy", np.stack([ref, test]))
         print(f"[explicit] {px} px: FLIP {row['flip']:.3f}, half the samples {row['flip_half_samples']:.3f}, "
               f"extrapolated {row['flip_extrapolated']:.3f} (noise: explicit halves {row['flip_explicit_noise']:.3f}, "
-              f"bundle halves {row['flip_bundle_noise']:.3f}), mean x{row['mean_ratio']:.3f}, equal-noise time "
+              f"bundle halves {row['flip_bundle_noise']:.3f}), mean x{row['mean_ratio']:.3f} (RGB "
+              f"{np.round(row['mean_ratio_rgb'], 3).tolist()}), equal-noise time "
               f"x{row['time_ratio_equal_noise']:.1f}, memory x{row['memory_ratio']:.1f}, geometry "
               f"x{row['geometry_ratio']:.0f}", flush=True)
     return explicit
