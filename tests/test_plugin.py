@@ -322,6 +322,44 @@ def test_shadow_roulette_is_unbiased_through_many_bundles(mi_plug, tables):
     assert abs(T.mean() - P[0] ** K) < 4 * se, (T.mean(), P[0] ** K, se)
 
 
+def test_light_leaving_one_bundle_inside_another_meets_it(mi_plug, tables, tmp_path):
+    """Interpenetrating plies (yarns in a knitted model overlap): a ray that starts inside a
+    curve never hits it, so without ``bundle_path``'s ``overlaps`` a bundle is transparent
+    to all light that leaves its neighbour inside it. Two overlapping curves A, B (centres
+    0.34 apart, radius 0.2): a shadow ray across A whose far side lies inside B carries
+    ``P_A P_B`` (each bundle met once, as if apart); one that starts inside B (where light
+    leaving A would start it), ``P_B``.
+    ``P`` of one crossing is measured alone (the same angles: the bundles are parallel)."""
+    import drjit as dr
+
+    mi = mi_plug
+    bundle = {"type": "fiber_bundle", "table": str(tables["circle"]), "up": [0, 0, 1]}
+    shapes = {f"c{k}": {"type": "bsplinecurve", "bsdf": bundle,
+                        "filename": curve_file(tmp_path / f"c{k}.txt", [[x, y, 0, 0.2] for y in np.linspace(-2, 2, 6)])}
+              for k, x in enumerate((-0.17, 0.17))}
+
+    def transmittance(shape_names, origin, d, overlaps):
+        scene = mi.load_dict({"type": "scene", **{k: shapes[k] for k in shape_names}})
+        integrator = mi.load_dict({"type": "bundle_path", "shadow_rr": 0.0, "overlaps": overlaps})
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(0, 1)
+        ray = mi.Ray3f(mi.Point3f(*origin), mi.Vector3f(*d))
+        ray.maxt = 100.0
+        # as the integrator sends a shadow ray from where light leaves a bundle of radius 0.2
+        ray = integrator._backed(scene, ray, mi.Float(0.2), mi.Bool(True))
+        return float(dr.ravel(integrator._transmittance(scene, sampler, ray, mi.Bool(True)))[0])
+
+    P = transmittance(["c0"], [-1.0, 0.1, 0.0], [1, 0, 0], True)       # A alone, across its axis
+    assert 0.05 < P < 0.95, P
+    assert transmittance(["c1"], [-1.0, 0.1, 0.0], [1, 0, 0], True) == pytest.approx(P, rel=1e-4)
+    both = ["c0", "c1"]
+    assert transmittance(both, [-1.0, 0.1, 0.0], [1, 0, 0], True) == pytest.approx(P * P, rel=1e-3)
+    assert transmittance(both, [0.25, 0.1, 0.0], [1, 0, 0], True) == pytest.approx(P, rel=1e-3)  # from inside B
+    # without the rule: B unseen in both
+    assert transmittance(both, [-1.0, 0.1, 0.0], [1, 0, 0], False) == pytest.approx(P, rel=1e-3)
+    assert transmittance(both, [0.25, 0.1, 0.0], [1, 0, 0], False) == pytest.approx(1.0)
+
+
 @pytest.fixture
 def variant_guard(mi_plug):
     """Tests that switch variants put the session's variant (and plugins) back."""

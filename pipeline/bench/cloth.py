@@ -17,11 +17,15 @@ Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``exp
               memory, at camera distances where a ply spans 1 .. 8 pixels.
 ``memory``    the whole model, counted: its plies' control points with the table (or
               the MLP) against every fiber of every ply as a curve.
+``overlap``   two straight plies touching and interpenetrating, explicit fibers against
+              bundles, with ``bundle_path``'s ``overlaps`` off and on (far-field
+              intensity, three views): where the bundle BSDF errs where yarns overlap.
 
 Writes ``docs/cloth.json`` and ``docs/images/cloth_scale.png``, ``cloth_explicit.png``::
 
     .venv/bin/python -m pipeline.bench.cloth [CONFIG]            # configs/glove.yaml
     .venv/bin/python -m pipeline.bench.cloth --quick             # fewer sizes and distances
+    .venv/bin/python -m pipeline.bench.cloth --parts explicit --ply-px 4   # one part, one distance
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ import numpy as np
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 PLY_PX = (1, 2, 4, 8)   # the camera distances: a ply's width in pixels
+PLY_PX_CHOSEN = None    # --ply-px: some of them
+OVERLAPS = True         # the explicit part's bundle_path overlaps (both sides; see child_overlap)
 BUNDLE_SPP = (32, 8)        # (spp, seeds) of the bundle render ...
 EXPLICIT_SPP = (32, 32)     # ... and of the explicit reference: its noise measured
 
@@ -182,7 +188,9 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
             shapes[f"fibers_{k}"] = {"type": "bsplinecurve", "filename": str(out / f"patch_fibers_{k}.txt"),
                                      "bsdf": {**fiber, "radius": float(r)}}
         geometry_points = sum(len(cv) + 6 for cv in curves)  # with the tips
-    scene = mi.load_dict(scenes.cloth_scene(mi, c, shapes, bbox, spp, view=view))
+    scene = scenes.cloth_scene(mi, c, shapes, bbox, spp, view=view)
+    scene["integrator"]["overlaps"] = OVERLAPS  # both sides alike (the patch's yarns interpenetrate)
+    scene = mi.load_dict(scene)
     loaded = peak_mb()
 
     # -- the renders: the first (its kernel compiled) apart, the rest timed together
@@ -207,13 +215,15 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
 
 
 SPEED_SIZE, SPEED_SPP = (320, 240), 8
-SHADOW_RR = (0.0, 0.1, 0.3)   # bundle_path's shadow_rr compared (0: every crossing traced)
+# bundle_path's (shadow_rr, overlaps) compared: shadow_rr 0 traces every crossing; overlaps
+# False lets light that leaves a ply inside another cross it unseen
+SPEED_CASES = ((0.0, True), (0.1, True), (0.3, True), (0.1, False))
 
 
-def child_speed(config, root, shadow_rr, geometry, out):
+def child_speed(config, root, shadow_rr, geometry, out, overlaps=True):
     """The whole model (plies and flyaways, ``geometry``: the files the parent built) at
-    ``SPEED_SIZE`` x ``SPEED_SPP`` with the integrator's ``shadow_rr``: seconds per render
-    (compiled), the mean and the variance per sample (from two seeds)."""
+    ``SPEED_SIZE`` x ``SPEED_SPP`` with the integrator's ``shadow_rr`` and ``overlaps``:
+    seconds per render (compiled), the mean and the variance per sample (from two seeds)."""
     from pipeline import scenes
 
     mi, cfg, props = _setup(config, root)
@@ -223,10 +233,73 @@ def child_speed(config, root, shadow_rr, geometry, out):
         shapes["flyaways"] = g["flyaways"]
     c = cfg.cloth.model_copy(update={"width": SPEED_SIZE[0], "height": SPEED_SIZE[1]})
     scene = scenes.cloth_scene(mi, c, shapes, g["bbox"], SPEED_SPP)
-    scene["integrator"]["shadow_rr"] = shadow_rr
+    scene["integrator"].update(shadow_rr=shadow_rr, overlaps=overlaps)
     (a, b), seconds = _render(mi, scene)
-    return {"shadow_rr": shadow_rr, "seconds": seconds, "mean": float((a + b).mean() / 2),
+    return {"shadow_rr": shadow_rr, "overlaps": overlaps, "seconds": seconds, "mean": float((a + b).mean() / 2),
             "variance_per_spp": variance_per_spp(a, b, SPEED_SPP)}
+
+
+OVERLAP_SPACING = (2.0, 1.7, 1.4)   # centre distances of two plies, in ply radii (2: touching)
+OVERLAP_VIEWS = (((0, 30), (180, -30)), ((90, 20), (90, -20)), ((45, 10), (200, -25)))  # (phi, theta) in, out, deg
+
+
+def child_overlap(config, root, spacing, lam_nm, spp, turns, overlaps):
+    """Two straight parallel plies ``spacing`` ply radii apart, in the closure scene (a sun,
+    an orthographic camera, far-field intensity per unit length), explicit against bundle:
+    every fiber a helix with ``fiber_ray`` (``turns`` turns of both arrangements) against
+    two ``bsplinecurve`` plies with the twisted table, at ``lam_nm``, for each of
+    ``OVERLAP_VIEWS``, with ``bundle_path``'s ``overlaps`` as given. Where the plies
+    interpenetrate (spacing < 2), light that leaves one ply inside the other meets fibers of
+    the other in the explicit scene, and, unless ``overlaps``, nothing in the bundle scene
+    (a curve reports no hit from inside)."""
+    import tempfile
+
+    import mitsuba as mi
+
+    import mitsuba_ext
+    from pipeline import closure
+    from pipeline.artifacts import fiber_table_path
+    from pipeline.build import build_ply
+    from pipeline.config import load_config
+
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    cfg = load_config(config)
+    ply = build_ply(cfg)
+    fiber = closure.explicit_fiber(fiber_table_path(cfg, root), "lobe", lam_nm)
+    unit = 1e-3
+    R = ply.bundle.bounding_radius * unit
+    hs, xs = 4.0 * R, (-0.5 * spacing * R, 0.5 * spacing * R)
+    T = mi.ScalarTransform4f()
+    table = str(Path(root) / cfg.name / "bake" / "bundle_table.npz")
+    bundle = {"type": "fiber_bundle", "table": table, "wavelength": lam_nm, "up": closure.UP}
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        helices = Path(tmp) / "helices.txt"
+        closure.write_curves(closure.helix_control_points(ply, 40 * hs, unit), helices)
+        for k, x in enumerate(xs):
+            closure.write_curves([np.array([[x, y, 0.0, R] for y in np.linspace(-40 * hs, 40 * hs, 9)])],
+                                 Path(tmp) / f"axis_{k}.txt")
+        for (pi_, ti), (po, to) in OVERLAP_VIEWS:
+            w_i, w_o = closure.direction(*np.radians([pi_, ti])), closure.direction(*np.radians([po, to]))
+            explicit = []
+            for t in range(turns):
+                shapes = {}
+                for k, x in enumerate(xs):  # the two plies' arrangements turned apart
+                    s = closure.explicit_twisted_shapes(helices, fiber, 2 * np.pi * t / turns + 1.3 * k)["ply"]
+                    shapes[f"ply_{k}"] = {**s, "to_world": T.translate([x, 0.0, 0.0]) @ s["to_world"]}
+                sc = closure.scene(mi, shapes, w_i, w_o, hs, resolution=64, spp=spp, seed=t)
+                sc["integrator"]["overlaps"] = overlaps
+                explicit.append(closure.rendered_intensity(mi, sc, w_o, hs))
+            shapes = {f"ply_{k}": {"type": "bsplinecurve", "filename": str(Path(tmp) / f"axis_{k}.txt"),
+                                   "bsdf": bundle} for k in range(2)}
+            sc = closure.scene(mi, shapes, w_i, w_o, hs, resolution=64, spp=4 * spp)
+            sc["integrator"]["overlaps"] = overlaps
+            b = closure.rendered_intensity(mi, sc, w_o, hs)
+            e = float(np.mean(explicit))
+            rows.append({"view": [[pi_, ti], [po, to]], "explicit": e, "bundle": b, "ratio": b / e,
+                         "ratio_se": float(np.std(explicit) / np.sqrt(turns)) / e})
+    return {"spacing": spacing, "lam_nm": lam_nm, "overlaps": overlaps, "views": rows}
 
 
 def child_memory(config, root, out):
@@ -308,8 +381,9 @@ def measure_scale(config, root, quick, tmp) -> list:
 
 
 def measure_speed(config, root, quick, tmp) -> list:
-    """The whole model's render with and without the shadow rays' Russian roulette, side by
-    side (each in its own process): seconds, and the time to equal noise."""
+    """The whole model's render with and without the shadow rays' Russian roulette and the
+    overlapping plies' entry, side by side (each in its own process): seconds, and the time
+    to equal noise."""
     from pipeline.config import load_config
     from pipeline.stages.cloth import build, flyaways, yarn_spec
 
@@ -319,13 +393,14 @@ def measure_speed(config, root, quick, tmp) -> list:
     geometry = Path(tmp) / "geometry.json"
     geometry.write_text(json.dumps({"plies": str(Path(tmp) / "plies.txt"), "radius": g.radius, "flyaways": fly,
                                     "bbox": info["bbox_mm"]}))
-    rows = [_child("speed", config, root, rr, str(geometry), tmp) for rr in ((0.0, 0.1) if quick else SHADOW_RR)]
+    rows = [_child("speed", config, root, rr, str(geometry), tmp, ovl) for rr, ovl in (SPEED_CASES[:2] if quick
+                                                                                         else SPEED_CASES)]
     for r in rows:
         r["cost"] = r["seconds"] * r["variance_per_spp"]
     for r in rows:
         r["speed_up"] = rows[0]["seconds"] / r["seconds"]
         r["speed_up_equal_noise"] = rows[0]["cost"] / r["cost"]
-        print(f"[speed] shadow_rr {r['shadow_rr']}: {r['seconds']:.2f} s ({SPEED_SIZE[0]} x {SPEED_SIZE[1]} x "
+        print(f"[speed] shadow_rr {r['shadow_rr']}, overlaps {r['overlaps']}: {r['seconds']:.2f} s ({SPEED_SIZE[0]} x {SPEED_SIZE[1]} x "
               f"{SPEED_SPP} spp), mean {r['mean']:.5f}, x{r['speed_up']:.2f} faster, x{r['speed_up_equal_noise']:.2f} "
               "at equal noise", flush=True)
     return rows
@@ -335,7 +410,7 @@ def measure_explicit(config, root, quick, tmp) -> list:
     from pipeline.stages.render import exposure_of, flip_and_psnr
 
     explicit = []
-    for px in ((4,) if quick else PLY_PX):
+    for px in ((4,) if quick else PLY_PX_CHOSEN or PLY_PX):
         row = {"ply_px": px}
         pair = {}
         try:
@@ -409,13 +484,27 @@ def cloth_pixels(ref, test, sky) -> np.ndarray:
     return (sky.sum(-1) < dark) & (Y > dark)
 
 
+def measure_overlap(config, root, quick, tmp) -> list:
+    """Two straight plies touching and interpenetrating, explicit fibers against bundles
+    (:func:`child_overlap`): where the bundle BSDF errs on cloth whose yarns overlap."""
+    rows = []
+    for overlaps in (False, True):
+        for spacing in (OVERLAP_SPACING[::2] if quick else OVERLAP_SPACING):
+            r = _child("overlap", config, root, spacing, 650.0, 8 if quick else 16, 4 if quick else 8, overlaps)
+            rows.append(r)
+            print(f"[overlap] overlaps {overlaps}, centres {spacing} ply radii apart: bundle / explicit per view "
+                  + "  ".join(f"{v['ratio']:.3f} +- {v['ratio_se']:.3f}" for v in r["views"]), flush=True)
+    return rows
+
+
 def measure_memory(config, root, quick, tmp) -> dict:
     memory = _child("memory", config, root, tmp)
     print(f"[memory] {memory}", flush=True)
     return memory
 
 
-PARTS = {"scale": measure_scale, "speed": measure_speed, "explicit": measure_explicit, "memory": measure_memory}
+PARTS = {"scale": measure_scale, "speed": measure_speed, "explicit": measure_explicit, "memory": measure_memory,
+         "overlap": measure_overlap}
 
 
 def plot(result, tmp, path_scale, path_explicit):
@@ -481,11 +570,16 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--parts", nargs="+", choices=list(PARTS), default=list(PARTS),
                         help="what to measure (default: all); the others keep their figures in docs/cloth.json")
+    parser.add_argument("--ply-px", type=int, nargs="+", default=None,
+                        help=f"the explicit part's camera distances, a ply's width in pixels (default {PLY_PX})")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    global PLY_PX_CHOSEN
+    PLY_PX_CHOSEN = tuple(args.ply_px) if args.ply_px else None
     if args.child:
         kind, *rest = json.loads(args.child)
-        children = {"scale": child_scale, "explicit": child_explicit, "memory": child_memory, "speed": child_speed}
+        children = {"scale": child_scale, "explicit": child_explicit, "memory": child_memory, "speed": child_speed,
+                    "overlap": child_overlap}
         print(json.dumps(children[kind](*rest)))
         return 0
     import tempfile
