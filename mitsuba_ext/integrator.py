@@ -254,10 +254,11 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             nxt.maxt = ray.maxt - si.t
             # from outside: continue beyond the bundle's far wall
             front = active & (mi.Frame3f.cos_theta(si.wi) > 0)
-            p_far, radial, ok = far_side(si, self._radius(scene, si, bsdf, front), ray.d)
+            r = self._radius(scene, si, bsdf, front)
+            p_far, radial, ok = far_side(si, r, ray.d)
             crossed = offset_ray(p_far, radial, ray.d, si.wavelengths, ray.maxt - si.t - dr.norm(p_far - si.p))
             # its far side may lie inside an overlapping bundle: that one is crossed too
-            crossed = self._backed(scene, crossed, self._radius(scene, si, bsdf, front), front & ok)
+            crossed = self._backed(scene, crossed, r, front & ok)
             nxt = dr.select(front & ok, crossed, nxt)
             ray = dr.select(active, nxt, ray)
         return T
@@ -344,7 +345,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
                 p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world, lobed)
                 next_ray = dr.select(single, offset_ray(p_path, n_path, wo_world, si.wavelengths), next_ray)
             # leaving (or crossing) a bundle inside another one: into that one
-            next_ray = self._backed(scene, next_ray, radius, active_next & bundle & (radius > 0))
+            next_ray = self._backed(scene, next_ray, radius, active_next & bundle)
             ray = dr.select(active_next, next_ray, ray)
 
             throughput = dr.select(active_next, throughput * bsdf_weight, throughput)

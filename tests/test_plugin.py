@@ -737,8 +737,9 @@ def cylinder_hits(mi, bsdf: dict, theta_deg: float, n: int, seed: int):
     t = np.radians(theta_deg)
     d = np.array([0.0, np.sin(t), -np.cos(t)])
     o = np.stack([rng.uniform(-0.999, 0.999, n), np.zeros(n), np.zeros(n)], 1) - 10 * d[None]
-    scene = mi.load_dict({"type": "scene", "c": {"type": "cylinder", "p0": [0, -40, 0], "p1": [0, 40, 0],
-                                                 "radius": 1.0, "bsdf": bsdf}})
+    from pipeline import closure
+
+    scene = mi.load_dict({"type": "scene", "c": closure.cylinder(1.0, bsdf, half_length=40.0)})
     ray = mi.Ray3f(mi.Point3f(*o.T.astype(np.float32)), mi.Vector3f(*np.tile(d, (n, 1)).T.astype(np.float32)))
     si = scene.ray_intersect(ray)
     assert np.all(np.array(si.is_valid()))

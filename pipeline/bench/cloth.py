@@ -31,6 +31,7 @@ Writes ``docs/cloth.json`` and ``docs/images/cloth_scale.png``, ``cloth_explicit
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import resource
 import subprocess
@@ -42,7 +43,6 @@ import numpy as np
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 PLY_PX = (1, 2, 4, 8)   # the camera distances: a ply's width in pixels
-PLY_PX_CHOSEN = None    # --ply-px: some of them
 OVERLAPS = True         # the explicit part's bundle_path overlaps (both sides; see child_overlap)
 BUNDLE_SPP = (32, 8)        # (spp, seeds) of the bundle render ...
 EXPLICIT_SPP = (32, 32)     # ... and of the explicit reference: its noise measured
@@ -261,6 +261,7 @@ def child_overlap(config, root, spacing, lam_nm, spp, turns, overlaps):
     from pipeline.artifacts import fiber_table_path
     from pipeline.build import build_ply
     from pipeline.config import load_config
+    from pipeline.stages.render import backend_props
 
     mi.set_variant("llvm_ad_mono")
     mitsuba_ext.register()
@@ -271,8 +272,7 @@ def child_overlap(config, root, spacing, lam_nm, spp, turns, overlaps):
     R = ply.bundle.bounding_radius * unit
     hs, xs = 4.0 * R, (-0.5 * spacing * R, 0.5 * spacing * R)
     T = mi.ScalarTransform4f()
-    table = str(Path(root) / cfg.name / "bake" / "bundle_table.npz")
-    bundle = {"type": "fiber_bundle", "table": table, "wavelength": lam_nm, "up": closure.UP}
+    bundle = {**backend_props(cfg, root, "table"), "wavelength": lam_nm, "up": closure.UP}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         helices = Path(tmp) / "helices.txt"
@@ -406,11 +406,11 @@ def measure_speed(config, root, quick, tmp) -> list:
     return rows
 
 
-def measure_explicit(config, root, quick, tmp) -> list:
+def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
     from pipeline.stages.render import exposure_of, flip_and_psnr
 
     explicit = []
-    for px in ((4,) if quick else PLY_PX_CHOSEN or PLY_PX):
+    for px in ((4,) if quick else ply_px or PLY_PX):
         row = {"ply_px": px}
         pair = {}
         try:
@@ -574,8 +574,6 @@ def main(argv=None) -> int:
                         help=f"the explicit part's camera distances, a ply's width in pixels (default {PLY_PX})")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    global PLY_PX_CHOSEN
-    PLY_PX_CHOSEN = tuple(args.ply_px) if args.ply_px else None
     if args.child:
         kind, *rest = json.loads(args.child)
         children = {"scale": child_scale, "explicit": child_explicit, "memory": child_memory, "speed": child_speed,
@@ -590,7 +588,8 @@ def main(argv=None) -> int:
     result = json.loads(out.read_text()) if out.exists() else {}
     result["config"] = str(args.config)
     with tempfile.TemporaryDirectory() as tmp:
-        fresh = {part: PARTS[part](args.config, args.artifacts, args.quick, tmp) for part in args.parts}
+        parts = {**PARTS, "explicit": functools.partial(measure_explicit, ply_px=args.ply_px)}
+        fresh = {part: parts[part](args.config, args.artifacts, args.quick, tmp) for part in args.parts}
         (DOCS / "images").mkdir(parents=True, exist_ok=True)
         plot(fresh, tmp, DOCS / "images" / "cloth_scale.png", DOCS / "images" / "cloth_explicit.png")
     result.update(fresh)
