@@ -49,6 +49,9 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
          - Description
        * - max_depth
          - Longest path (bounces; passthrough events excluded). Default -1: no limit.
+           A bundle hit is one bounce for a whole ply; explicit fibers count one per
+           fiber, and light in a dyed ply meets dozens: compare explicit fibers at 64 or
+           more (16 lost 11% of a red yarn's red, docs/BENCHMARKS.md "Cloth").
        * - rr_depth
          - Depth at which Russian roulette starts (default 5).
        * - displaced_exit
@@ -307,14 +310,19 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(active_em), False, active_em)
             active_em &= ds.pdf != 0.0
+            # h-resolved fibers trace their own shadow ray, from the chosen path's exit
+            lobed = mi.Bool(False)
+            if dr.hint((self._paths > 0) & self.displace, mode="scalar"):
+                lobed = active_em & bsdf.has_attribute("paths", active_em) & (radius > 0)
+            shadowed = active_em & ~lobed
             shadow = si.spawn_ray_to(ds.p)
             if dr.hint(self.displace, mode="scalar"):
                 p_exit, radial = displaced_exit(si, radius, h, ds.d)
                 dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
                 d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
                 moved = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
-                shadow = dr.select(bundle & (radius > 0), self._backed(scene, moved, radius, bundle & active_em), shadow)
-            T = self._transmittance(scene, sampler, shadow, active_em)
+                shadow = dr.select(bundle & (radius > 0), self._backed(scene, moved, radius, bundle & shadowed), shadow)
+            T = self._transmittance(scene, sampler, shadow, shadowed)
             wo = si.to_local(ds.d)
 
             # ------------- BSDF evaluation and sampling -------------
@@ -324,7 +332,6 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
             nee = bsdf_val * T * mis_em
             if dr.hint((self._paths > 0) & self.displace, mode="scalar"):  # h-resolved fibers in the scene
-                lobed = active_em & bsdf.has_attribute("paths", active_em) & (radius > 0)
                 nee = dr.select(lobed, self._emitter_paths(scene, sampler, si, bsdf, ds, radius, h, lobed), nee)
             result = dr.select(active_em, dr.fma(throughput, nee * em_weight, result), result)
 

@@ -44,6 +44,11 @@ import numpy as np
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 PLY_PX = (1, 2, 4, 8)   # the camera distances: a ply's width in pixels
 OVERLAPS = True         # the explicit part's bundle_path overlaps (both sides; see child_overlap)
+# the explicit part's max_depth, both sides. Every fiber hit of the explicit reference is a
+# bounce, and light in the dyed yarn (albedo 0.99 in the red) meets dozens of fibers: at the
+# cloth config's 16 the reference lost 11% of its red (docs/BENCHMARKS.md, "Cloth"). Russian
+# roulette ends the paths long before this limit (64 and 256 render the same image).
+EXPLICIT_DEPTH = 256
 BUNDLE_SPP = (32, 8)        # (spp, seeds) of the bundle render ...
 EXPLICIT_SPP = (32, 32)     # ... and of the explicit reference: its noise measured
 
@@ -189,7 +194,8 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
                                      "bsdf": {**fiber, "radius": float(r)}}
         geometry_points = sum(len(cv) + 6 for cv in curves)  # with the tips
     scene = scenes.cloth_scene(mi, c, shapes, bbox, spp, view=view)
-    scene["integrator"]["overlaps"] = OVERLAPS  # both sides alike (the patch's yarns interpenetrate)
+    scene["integrator"].update(overlaps=OVERLAPS,  # both sides alike (the patch's yarns interpenetrate)
+                               max_depth=EXPLICIT_DEPTH)
     scene = mi.load_dict(scene)
     loaded = peak_mb()
 
