@@ -348,8 +348,9 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
                 moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
                 next_ray = dr.select(bundle & ~passed & (radius > 0), moved, next_ray)
             if dr.hint((self._paths > 0) & self.displace, mode="scalar"):
-                lobed = bundle & ~passed & (radius > 0) & bsdf.has_attribute("paths", bundle)
-                p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world, lobed)
+                lobed_next = bundle & ~passed & (radius > 0) & bsdf.has_attribute("paths", bundle)
+                p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world,
+                                                            lobed_next)
                 next_ray = dr.select(single, offset_ray(p_path, n_path, wo_world, si.wavelengths), next_ray)
             # leaving (or crossing) a bundle inside another one: into that one
             next_ray = self._backed(scene, next_ray, radius, active_next & bundle)
