@@ -124,7 +124,7 @@ class _NeuralBackend:
 
 
 class MLPBackend(_NeuralBackend):
-    """The MLP as Dr.Jit arithmetic with literal weights, fused into the render kernel."""
+    """The MLP as Dr.Jit arithmetic (:class:`mitsuba_ext.neural.DrJitMLP`), fused into the render kernel."""
 
     name = "mlp"
 

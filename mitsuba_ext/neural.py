@@ -98,18 +98,50 @@ def _default_float():
     return drjit.llvm.Float
 
 
+# Networks with more weights than this are evaluated with cooperative vectors outside
+# symbolic loops and calls on the LLVM backend, where that is faster to compile and to run
+# (docs/BENCHMARKS.md, "The Dr.Jit MLP: literal weights or cooperative vectors").
+LITERAL_WEIGHTS_MAX = 16384
+
+
 class DrJitMLP:
-    """The MLP as Dr.Jit arithmetic with its weights as literals, fused into the caller's kernel.
+    """The MLP as Dr.Jit arithmetic, fused into the caller's kernel.
 
     Any Dr.Jit float type works (the inputs' type is used): LLVM or CUDA, scalar or AD.
-    Literal weights rather than ``drjit.nn`` cooperative vectors: they ran faster inside a
-    symbolic loop on the LLVM backend (``python -m pipeline.bench.neural`` times the backends).
+    Two formulations of the same arithmetic, which agree with PyTorch to float32 rounding:
+
+    * ``literal``: every weight a Python float, so a literal in the traced kernel. The
+      fastest inside a symbolic loop or call (a render: several times faster than
+      cooperative vectors there), but LLVM's compile time grows faster than the network:
+      a [128, 128, 128] network takes most of a minute to compile, [64, 64, 64] seconds.
+    * ``cooperative``: the layers as ``drjit.nn`` matrix-vector products on packed
+      weights (LLVM backend only; literal elsewhere). Compiles in about a second at any
+      size; in a plain kernel (a batch of queries) the large network also runs faster.
+
+    ``form="auto"`` (the default) is ``cooperative`` for a network of more than
+    :data:`LITERAL_WEIGHTS_MAX` weights evaluated outside a symbolic scope on the LLVM
+    backend, ``literal`` otherwise: renders always trace literal weights.
     """
 
-    def __init__(self, path):
+    FORMS = ("auto", "literal", "cooperative")
+
+    def __init__(self, path, form: str = "auto"):
+        if form not in self.FORMS:
+            raise ValueError(f"form={form!r}: choose one of {', '.join(self.FORMS)}")
         self.spec, self.layers = load_weights(path)
+        self.form = form
         # Python floats become literals in the traced kernel
         self._layers = [(W.astype(float).tolist(), b.astype(float).tolist()) for W, b in self.layers]
+        self._packed = {}  # tensor type -> the packed matrix and bias views of every layer
+
+    def cooperative(self, Float) -> bool:
+        """Whether inputs of type ``Float`` are evaluated with cooperative vectors here
+        (the answer of ``auto`` depends on whether a symbolic loop or call is being traced)."""
+        if self.form == "literal" or dr.backend_v(Float) != dr.JitBackend.LLVM:
+            return False
+        if self.form == "cooperative":
+            return True
+        return not dr.flag(dr.JitFlag.SymbolicScope) and sum(W.size for W, _ in self.layers) > LITERAL_WEIGHTS_MAX
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         """``S`` at every table wavelength (radians in; never negative).
@@ -125,7 +157,13 @@ class DrJitMLP:
             shape = np.broadcast_shapes(*(np.shape(a) for a in args))
             flat = [to_drjit(Float, np.broadcast_to(np.asarray(a, np.float32), shape)) for a in args]
             return np.stack([np.asarray(s) for s in self.eval(*flat)], -1).reshape(shape + (-1,))
+        Float = type(next(a for a in args if dr.is_array_v(a)))
         x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o)
+        y = self._matvec(Float, x) if self.cooperative(Float) else self._literal(x)
+        s0, y_max = self.spec.s0, self.spec.y_max
+        return [s0 * stable_expm1(dr, dr.clip(v, 0.0, y_max)) for v in y]
+
+    def _literal(self, x):
         for k, (W, b) in enumerate(self._layers):
             last = k == len(self._layers) - 1
             out = []
@@ -135,8 +173,21 @@ class DrJitMLP:
                     acc = dr.fma(xi, w, acc)
                 out.append(acc if last else dr.maximum(acc, 0.0))
             x = out
-        s0, y_max = self.spec.s0, self.spec.y_max
-        return [s0 * stable_expm1(dr, dr.clip(y, 0.0, y_max)) for y in x]
+        return x
+
+    def _matvec(self, Float, x):
+        import drjit.nn as nn
+
+        Tensor = dr.tensor_t(Float)
+        if Tensor not in self._packed:
+            self._packed[Tensor] = nn.pack(*(Tensor(np.ascontiguousarray(a)) for layer in self.layers for a in layer))
+        views = self._packed[Tensor]
+        v = nn.CoopVec(*(x_k + dr.zeros(Float, 1) for x_k in x))  # a feature may be a Python float
+        for k in range(len(self.layers)):
+            v = nn.matvec(views[2 * k], v, views[2 * k + 1])
+            if k < len(self.layers) - 1:
+                v = dr.maximum(v, 0.0)
+        return list(v)
 
     @property
     def nbytes(self) -> int:

@@ -13,9 +13,11 @@ trained model (PyTorch, onnxruntime, Dr.Jit), on the same queries:
 * cost: nanoseconds per query at a batch of 1M random directions (all wavelengths per
   query), best of 3, and bytes of storage.
 
-Its own time is mostly the compilation of the Dr.Jit kernels when the kernel cache is cold
-(the largest MLP's literal-weight kernel above all; docs/BENCHMARKS.md): every numpy input
-goes through :func:`models.jit.to_drjit`, so that each kernel compiles once.
+Its own time is mostly the compilation of the Dr.Jit kernels when the kernel cache is cold:
+every numpy input goes through :func:`models.jit.to_drjit`, so that each kernel compiles
+once, and a large MLP is evaluated here with cooperative vectors (``DrJitMLP``'s ``auto``
+form outside a render), which compile in a second where its literal weights took a minute
+(docs/BENCHMARKS.md, "The Dr.Jit MLP: literal weights or cooperative vectors").
 
 Prints a table, writes ``error_vs_time.png`` (marker area ~ bytes) and
 ``error_vs_time.json`` under ``artifacts/<name>/export/``. The export stage runs it on

@@ -41,8 +41,10 @@ def query_set(n=50_000, seed=1):
     return np.concatenate([A, edges]).astype(np.float32)
 
 
+@pytest.mark.parametrize("form", ["literal", "cooperative"])
 @pytest.mark.parametrize("name", ["tiny", "wide"])
-def test_backends_agree_with_pytorch(trained, mi_llvm, name):
+def test_backends_agree_with_pytorch(trained, mi_llvm, name, form):
+    """onnxruntime and both Dr.Jit formulations (literal weights, cooperative vectors)."""
     import drjit as dr
 
     from mitsuba_ext.neural import DrJitMLP, OnnxMLP
@@ -52,7 +54,8 @@ def test_backends_agree_with_pytorch(trained, mi_llvm, name):
     A = query_set()
     ref = torch_eval(A)
     onnx_out = OnnxMLP(tmp / "n" / "export" / name / "model.onnx").eval(*A.T).astype(np.float64)
-    mlp = DrJitMLP(tmp / "n" / "export" / name / "weights.npz")
+    mlp = DrJitMLP(tmp / "n" / "export" / name / "weights.npz", form=form)
+    assert mlp.cooperative(mi_llvm.Float) == (form == "cooperative")
     out = mlp.eval(*(mi_llvm.Float(a) for a in A.T))
     dr.eval(out)
     drjit_out = np.stack([o.numpy() for o in out], -1).astype(np.float64)
