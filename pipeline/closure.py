@@ -122,10 +122,10 @@ def _sun(mi, w_i):
     return mi.traverse(emitter)["to_world"]
 
 
-def render_image(mi, scene) -> np.ndarray:
+def render_image(mi, scene, seed: int = 0) -> np.ndarray:
     """The rendered image of a scene dict or a loaded scene, one channel (a NaN or Inf is an
     error, not a pixel)."""
-    img = np.asarray(mi.render(mi.load_dict(scene) if isinstance(scene, dict) else scene), np.float64)
+    img = np.asarray(mi.render(mi.load_dict(scene) if isinstance(scene, dict) else scene, seed=seed), np.float64)
     img = img[..., 0] if img.ndim == 3 else img
     if not np.all(np.isfinite(img)):
         raise FloatingPointError("closure render holds NaN or Inf")
@@ -164,6 +164,30 @@ def explicit_shapes(bundle, fiber_bsdf: dict, turn: float, half_length: float, u
         xr, zr = c * x - s * z, s * x + c * z  # turned by +turn in phi = atan2(z, x)
         shapes[f"fiber_{k:05d}"] = cylinder(r * unit, fiber_bsdf, (xr * unit, zr * unit), half_length)
     return shapes
+
+
+class TurnedCylinders:
+    """The explicit cylinders of a loaded scene, turned about the ply's ``axis`` between views.
+
+    Loading a scene per view made Dr.Jit compile a kernel variant for many of them (its
+    calls are specialized on the shapes' and BSDFs' registry ids and on values they share);
+    one scene whose cylinders move (``mi.traverse``) renders every view with one kernel.
+    ``turn(t)`` places the arrangement as a fresh scene turned by ``t`` radians in
+    ``phi = atan2`` of the bundle frame would (Mitsuba's rotation turns the other way).
+    """
+
+    def __init__(self, mi, scene, axis):
+        self.mi, self.axis = mi, [float(a) for a in axis]
+        self.params = mi.traverse(scene)
+        self.base = {key: mi.Transform4f(self.params[key]) for key in self.params.keys()
+                     if key.startswith("fiber_") and key.endswith(".to_world")}
+
+    def turn(self, turn: float) -> None:
+        mi = self.mi
+        R = mi.Transform4f(mi.ScalarTransform4f().rotate(self.axis, -float(np.rad2deg(turn))))
+        for key, M in self.base.items():
+            self.params[key] = R @ M
+        self.params.update()
 
 
 def helix_control_points(ply, half_length: float, unit: float = 1e-3, per_turn: int = 64) -> list:
@@ -278,18 +302,23 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
         if twisted:  # long enough for every shift: the view stays 40 hs from either end
             reach = max(shift for _, shift in placements)
             write_curves(helix_control_points(bundle, half_length + reach, unit), curve_file)
+        loaded = cylinders = None
         for k, (turn, shift) in enumerate(placements):
-            shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, turn, shift) if twisted
-                      else explicit_shapes(bundle, fiber_bsdf, turn, half_length, unit))
             w_i0, views0 = requests[0]
-            loaded = mi.load_dict(scene(mi, shapes, w_i0, views0[k], hs, resolution=resolution, spp=spp, seed=k))
+            if twisted or loaded is None:  # parallel fibers: one scene, turned (TurnedCylinders)
+                shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, turn, shift) if twisted
+                          else explicit_shapes(bundle, fiber_bsdf, 0.0, half_length, unit))
+                loaded = mi.load_dict(scene(mi, shapes, w_i0, views0[k], hs, resolution=resolution, spp=spp))
+                cylinders = None if twisted else TurnedCylinders(mi, loaded, [0.0, 1.0, 0.0])
+            if cylinders is not None:
+                cylinders.turn(turn)
             params = mi.traverse(loaded)
             for r, (_, views) in enumerate(requests):
-                if r:
+                if r or cylinders is not None:
                     params["sensor.to_world"] = _camera(mi, views[k], hs)[2]
                     params["sun.to_world"] = suns[r]
                     params.update()
-                values[r, k] = intensity(render_image(mi, loaded), views[k], hs)
+                values[r, k] = intensity(render_image(mi, loaded, seed=k), views[k], hs)
     return [(float(v.mean()), float(abs(v[0::2].mean() - v[1::2].mean()) / 2)) for v in values]
 
 

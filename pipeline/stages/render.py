@@ -78,9 +78,11 @@ def backend_props(cfg, out_root, backend: str) -> dict:
 
 
 # -- rendering ---------------------------------------------------------------------
-def render_timed(mi, scene_dict: dict, backend: str = "table", warm: bool = True) -> tuple[np.ndarray, float, float]:
-    """``(image, seconds, first_seconds)``: the second of two renders is timed (warm kernels);
-    ``warm=False``: one render, timed with its compilation (large images)."""
+def render_timed(mi, scene_dict, backend: str = "table", warm: bool = True,
+                 seed: int = 0) -> tuple[np.ndarray, float, float]:
+    """``(image, seconds, first_seconds)`` of a scene dict or a loaded scene: the second of
+    two renders (seeds ``seed`` and ``seed + 1``) is timed (warm kernels); ``warm=False``:
+    one render, timed with its compilation if its kernel is new."""
     import drjit as dr
 
     evaluated = backend == "onnx"  # onnxruntime needs Dr.Jit's evaluated mode
@@ -89,15 +91,15 @@ def render_timed(mi, scene_dict: dict, backend: str = "table", warm: bool = True
         dr.set_flag(dr.JitFlag.SymbolicLoops, False)
         dr.set_flag(dr.JitFlag.SymbolicCalls, False)
     try:
-        scene = mi.load_dict(scene_dict)
+        scene = mi.load_dict(scene_dict) if isinstance(scene_dict, dict) else scene_dict
         t0 = time.perf_counter()
-        img = mi.render(scene)
+        img = mi.render(scene, seed=seed)
         dr.eval(img)
         dr.sync_thread()
         first = seconds = time.perf_counter() - t0
         if warm:
             t0 = time.perf_counter()
-            img = mi.render(scene, seed=1)
+            img = mi.render(scene, seed=seed + 1)
             dr.eval(img)
             dr.sync_thread()
             seconds = time.perf_counter() - t0
@@ -374,12 +376,20 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     turns = 16
     per_turn = max(1, r.explicit_spp // turns)
     placements = closure.view_placements(ply_model, turns, scenes.UM, bundle.is_circle)
-    imgs, t_explicit = [], 0.0
+    imgs, t_explicit, cylinders = [], 0.0, None
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
         for k, (turn, shift) in enumerate(tqdm(placements, desc="explicit fibers", unit="view")):
-            scene = scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn, k, turn=turn, shift=shift,
-                                          plugin=fiber_bsdf["type"], curve_file=Path(tmp) / "helices.txt")
-            img, seconds, _ = render_timed(mi, scene)
+            if twisted:  # the helices written and loaded per view
+                scene = scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn, turn=turn, shift=shift,
+                                              plugin=fiber_bsdf["type"], curve_file=Path(tmp) / "helices.txt")
+            else:  # parallel fibers: one scene, its cylinders turned, one kernel for every view
+                if cylinders is None:
+                    scene = mi.load_dict(scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn,
+                                                               plugin=fiber_bsdf["type"]))
+                    cylinders = closure.TurnedCylinders(mi, scene, [1.0, 0.0, 0.0])
+                cylinders.turn(turn)
+            # each view once at its own seeds; the first also compiles the kernel, untimed
+            img, seconds, _ = render_timed(mi, scene, warm=twisted or k == 0, seed=2 * k)
             imgs.append(img)
             t_explicit += seconds
     explicit_img = np.mean(imgs, 0)
