@@ -166,27 +166,40 @@ def explicit_shapes(bundle, fiber_bsdf: dict, turn: float, half_length: float, u
     return shapes
 
 
-class TurnedCylinders:
-    """The explicit cylinders of a loaded scene, turned about the ply's ``axis`` between views.
+class TurnedFibers:
+    """The explicit fibers of a loaded scene, turned about the ply's ``axis`` and moved
+    along it between views: its cylinders named ``fiber_*`` and its curves (a twisted
+    ply's ``bsplinecurve``), through ``mi.traverse``.
 
     Loading a scene per view made Dr.Jit compile a kernel variant for many of them (its
     calls are specialized on the shapes' and BSDFs' registry ids and on values they share);
-    one scene whose cylinders move (``mi.traverse``) renders every view with one kernel.
-    ``turn(t)`` places the arrangement as a fresh scene turned by ``t`` radians in
-    ``phi = atan2`` of the bundle frame would (Mitsuba's rotation turns the other way).
+    one scene whose fibers move renders every view with one kernel. ``place(turn, shift)``
+    puts the fibers where a fresh scene turned by ``turn`` radians in ``phi = atan2`` of
+    the bundle frame and moved by ``shift`` scene units along the axis would (Mitsuba's
+    rotation turns the other way): load the scene unturned, with its curves long enough
+    for every shift.
     """
 
     def __init__(self, mi, scene, axis):
-        self.mi, self.axis = mi, [float(a) for a in axis]
+        self.mi, self.axis = mi, np.asarray(axis, float)
         self.params = mi.traverse(scene)
-        self.base = {key: mi.Transform4f(self.params[key]) for key in self.params.keys()
-                     if key.startswith("fiber_") and key.endswith(".to_world")}
+        keys = list(self.params.keys())
+        self.cylinders = {k: mi.Transform4f(self.params[k]) for k in keys
+                          if k.startswith("fiber_") and k.endswith(".to_world")}
+        self.curves = {k: np.array(self.params[k], np.float64).reshape(-1, 4) for k in keys
+                       if k.endswith(".control_points")}
 
-    def turn(self, turn: float) -> None:
+    def place(self, turn: float, shift: float = 0.0) -> None:
         mi = self.mi
-        R = mi.Transform4f(mi.ScalarTransform4f().rotate(self.axis, -float(np.rad2deg(turn))))
-        for key, M in self.base.items():
-            self.params[key] = R @ M
+        T = mi.ScalarTransform4f()
+        M = T.translate((shift * self.axis).tolist()) @ T.rotate(self.axis.tolist(), -float(np.rad2deg(turn)))
+        for key, base in self.cylinders.items():
+            self.params[key] = mi.Transform4f(M) @ base
+        A = np.array(M.matrix, np.float64)
+        for key, base in self.curves.items():
+            points = base.copy()
+            points[:, :3] = base[:, :3] @ A[:3, :3].T + A[:3, 3]
+            self.params[key] = mi.Float(points.ravel().astype(np.float32))
         self.params.update()
 
 
@@ -302,22 +315,19 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
         if twisted:  # long enough for every shift: the view stays 40 hs from either end
             reach = max(shift for _, shift in placements)
             write_curves(helix_control_points(bundle, half_length + reach, unit), curve_file)
-        loaded = cylinders = None
+        # one scene for every view, its fibers moved (TurnedFibers), the sun and camera too
+        shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, 0.0) if twisted
+                  else explicit_shapes(bundle, fiber_bsdf, 0.0, half_length, unit))
+        loaded = mi.load_dict(scene(mi, shapes, requests[0][0], requests[0][1][0], hs, resolution=resolution,
+                                    spp=spp))
+        fibers = TurnedFibers(mi, loaded, AXIS)
+        params = fibers.params
         for k, (turn, shift) in enumerate(placements):
-            w_i0, views0 = requests[0]
-            if twisted or loaded is None:  # parallel fibers: one scene, turned (TurnedCylinders)
-                shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, turn, shift) if twisted
-                          else explicit_shapes(bundle, fiber_bsdf, 0.0, half_length, unit))
-                loaded = mi.load_dict(scene(mi, shapes, w_i0, views0[k], hs, resolution=resolution, spp=spp))
-                cylinders = None if twisted else TurnedCylinders(mi, loaded, [0.0, 1.0, 0.0])
-            if cylinders is not None:
-                cylinders.turn(turn)
-            params = mi.traverse(loaded)
+            fibers.place(turn, shift)
             for r, (_, views) in enumerate(requests):
-                if r or cylinders is not None:
-                    params["sensor.to_world"] = _camera(mi, views[k], hs)[2]
-                    params["sun.to_world"] = suns[r]
-                    params.update()
+                params["sensor.to_world"] = _camera(mi, views[k], hs)[2]
+                params["sun.to_world"] = suns[r]
+                params.update()
                 values[r, k] = intensity(render_image(mi, loaded, seed=k), views[k], hs)
     return [(float(v.mean()), float(abs(v[0::2].mean() - v[1::2].mean()) / 2)) for v in values]
 

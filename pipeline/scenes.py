@@ -99,7 +99,7 @@ def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) ->
 
 
 def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, turn: float = 0.0,
-                   plugin: str = "fiber_table", curve_file=None, shift: float = 0.0) -> dict:
+                   plugin: str = "fiber_table", curve_file=None, shift: float = 0.0, reach: float = 0.0) -> dict:
     """The same ply, every fiber its own shape with the fiber model (``plugin``:
     ``fiber_table``, or ``fiber_ray`` for a bake with the h-resolved exit), the
     arrangement turned by ``turn`` (radians) about the ply's axis and, a twisted one,
@@ -111,7 +111,9 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, t
     debug mode), and cylinders need no curve end caps. A twisted ply's fibers
     (a :class:`~models.bundle.TwistedBundle`, spaced so that they never touch) are one
     ``bsplinecurve`` along their helices (``pipeline.closure.helix_control_points``),
-    written to ``curve_file``; for them a turn is a shift along the axis.
+    written to ``curve_file``, long enough to be moved by up to ``reach`` scene units
+    along the axis (``pipeline.closure.TurnedFibers``) as well as by ``shift``; for them a
+    turn is a shift along the axis.
     """
     from models.bundle import TwistedBundle
 
@@ -125,7 +127,7 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, t
     if isinstance(bundle, TwistedBundle):
         if curve_file is None:
             raise ValueError("explicit_scene: a twisted ply's helices need a curve_file to be written to")
-        write_curves(helix_control_points(bundle, 0.6 * L + abs(shift), UM), curve_file)
+        write_curves(helix_control_points(bundle, 0.6 * L + max(abs(shift), reach), UM), curve_file)
         T = mi.ScalarTransform4f
         to_scene = T([[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]])  # (x, y, z) -> (y, x, -z): a rotation
         # turned by +turn in phi = atan2(z, x) of the bundle frame: -turn about the scene's x

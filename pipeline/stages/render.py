@@ -376,20 +376,17 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     turns = 16
     per_turn = max(1, r.explicit_spp // turns)
     placements = closure.view_placements(ply_model, turns, scenes.UM, bundle.is_circle)
-    imgs, t_explicit, cylinders = [], 0.0, None
+    imgs, t_explicit = [], 0.0
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
+        # one scene, its fibers moved between views: one kernel for every view
+        scene = mi.load_dict(scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn, plugin=fiber_bsdf["type"],
+                                                   curve_file=Path(tmp) / "helices.txt",
+                                                   reach=max(abs(shift) for _, shift in placements)))
+        fibers = closure.TurnedFibers(mi, scene, [1.0, 0.0, 0.0])
         for k, (turn, shift) in enumerate(tqdm(placements, desc="explicit fibers", unit="view")):
-            if twisted:  # the helices written and loaded per view
-                scene = scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn, turn=turn, shift=shift,
-                                              plugin=fiber_bsdf["type"], curve_file=Path(tmp) / "helices.txt")
-            else:  # parallel fibers: one scene, its cylinders turned, one kernel for every view
-                if cylinders is None:
-                    scene = mi.load_dict(scenes.explicit_scene(mi, cfg, ply_model, fiber_table, per_turn,
-                                                               plugin=fiber_bsdf["type"]))
-                    cylinders = closure.TurnedCylinders(mi, scene, [1.0, 0.0, 0.0])
-                cylinders.turn(turn)
+            fibers.place(turn, shift)
             # each view once at its own seeds; the first also compiles the kernel, untimed
-            img, seconds, _ = render_timed(mi, scene, warm=twisted or k == 0, seed=2 * k)
+            img, seconds, _ = render_timed(mi, scene, warm=k == 0, seed=2 * k)
             imgs.append(img)
             t_explicit += seconds
     explicit_img = np.mean(imgs, 0)
