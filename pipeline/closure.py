@@ -140,9 +140,10 @@ def intensity(img: np.ndarray, w_o, half_size) -> float:
     return float(img.sum() * pixel_area / visible_length(half_size, theta_o))
 
 
-def rendered_intensity(mi, scene_dict: dict, w_o, half_size) -> float:
-    """Render ``scene_dict`` and measure ``sum(pixels) pixel_area / visible_length``."""
-    return intensity(render_image(mi, scene_dict), w_o, half_size)
+def rendered_intensity(mi, scene, w_o, half_size) -> float:
+    """Render ``scene`` (a dict or a loaded scene) and measure ``sum(pixels) pixel_area /
+    visible_length``."""
+    return intensity(render_image(mi, scene), w_o, half_size)
 
 
 def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float) -> dict:
@@ -423,14 +424,20 @@ def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, sp
     try:
         for f in flags:
             dr.set_flag(f, dr.flag(f) and not evaluated)
+        hs, loaded = 1.5 * R, None
+        make = shape or (lambda R_, b, half_length: cylinder(R_, b, half_length=half_length))
         for pi_, ti, po, to in np.asarray(pairs)[continuous(S_of, pairs)]:
             predicted = predicted_intensity(1.0, R, ti, S_of(pi_, ti, po, to))
             w_i, w_o = direction(pi_, ti), direction(po, to)
-            hs = 1.5 * R
-            make = shape or (lambda R_, b, half_length: cylinder(R_, b, half_length=half_length))
-            sc = scene(mi, {"f": make(R, bsdf, 40 * hs)}, w_i, w_o, hs, spp=spp)
+            if loaded is None:
+                loaded = mi.load_dict(scene(mi, {"f": make(R, bsdf, 40 * hs)}, w_i, w_o, hs, spp=spp))
+                params = mi.traverse(loaded)
+            else:  # one scene for every pair, its sun and camera moved: loading a BSDF cost more than a render
+                params["sensor.to_world"] = _camera(mi, w_o, hs)[2]
+                params["sun.to_world"] = _sun(mi, w_i)
+                params.update()
             rows.append([float(np.rad2deg(ti)), float(np.rad2deg(to + ti)), float(np.rad2deg(po - pi_)),
-                         rendered_intensity(mi, sc, w_o, hs) / float(predicted)])
+                         rendered_intensity(mi, loaded, w_o, hs) / float(predicted)])
     finally:
         for f, v in zip(flags, saved):
             dr.set_flag(f, v)
