@@ -379,9 +379,12 @@ def render_section(cfg, root: Path, out: Path) -> str:
                  "arrangement (a circle's turns; a twisted ply's heights along its period where a turn is no shift) "
                  f"({p_['explicit']['spp']} samples in all, {p_['explicit']['seconds']:.1f} s; top), "
                  "against the bundle BSDF: "
-                 + "; ".join(f"{k}: mean radiance x{v['mean_vs_explicit']:.3f}, FLIP {v['flip_vs_explicit']:.3f}, "
-                             f"{v['seconds']:.2f} s" for k, v in p_.items() if k != "explicit")
-                 + " (the explicit fibers are resolved, the bundle is its far field).</p>")
+                 + "; ".join(f"{k}: mean radiance x{v['mean_vs_explicit']:.3f}"
+                             + (f" &plusmn; {v['mean_vs_explicit_stderr']:.3f}" if "mean_vs_explicit_stderr" in v else "")
+                             + f", FLIP {v['flip_vs_explicit']:.3f}, {v['seconds']:.2f} s"
+                             for k, v in p_.items() if k != "explicit")
+                 + " (&plusmn; one standard error of the explicit mean, from its views' spread; the explicit "
+                   "fibers are resolved, the bundle is its far field).</p>")
         body += img_tag(out, root / "render" / "explicit_vs_bundle.png",
                      "explicit fibers (16 views) against the bundle with the table and the MLP")
         if twisted:
