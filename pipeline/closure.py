@@ -155,16 +155,12 @@ def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float) -> dict:
     return {"type": plugin, "filename": str(fiber_table), "wavelength": float(wavelength_nm), "up": UP}
 
 
-def explicit_shapes(bundle, fiber_bsdf: dict, turn: float, half_length: float, unit: float = 1e-3) -> dict:
+def explicit_shapes(bundle, fiber_bsdf: dict, half_length: float, unit: float = 1e-3) -> dict:
     """Every fiber of ``bundle`` (micrometres, centres in the bundle frame's x-z plane)
-    as its own cylinder along ``+y``, the arrangement turned by ``turn`` (radians) about
-    the axis; ``unit`` converts micrometres into scene units."""
-    c, s = np.cos(turn), np.sin(turn)
-    shapes = {}
-    for k, ((x, z), r) in enumerate(zip(np.asarray(bundle.centers, float), np.asarray(bundle.radii, float))):
-        xr, zr = c * x - s * z, s * x + c * z  # turned by +turn in phi = atan2(z, x)
-        shapes[f"fiber_{k:05d}"] = cylinder(r * unit, fiber_bsdf, (xr * unit, zr * unit), half_length)
-    return shapes
+    as its own cylinder along ``+y``, unturned (:class:`TurnedFibers` turns them); ``unit``
+    converts micrometres into scene units."""
+    return {f"fiber_{k:05d}": cylinder(r * unit, fiber_bsdf, (x * unit, z * unit), half_length)
+            for k, ((x, z), r) in enumerate(zip(np.asarray(bundle.centers, float), np.asarray(bundle.radii, float)))}
 
 
 class TurnedFibers:
@@ -318,7 +314,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
             write_curves(helix_control_points(bundle, half_length + reach, unit), curve_file)
         # one scene for every view, its fibers moved (TurnedFibers), the sun and camera too
         shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, 0.0) if twisted
-                  else explicit_shapes(bundle, fiber_bsdf, 0.0, half_length, unit))
+                  else explicit_shapes(bundle, fiber_bsdf, half_length, unit))
         loaded = mi.load_dict(scene(mi, shapes, requests[0][0], requests[0][1][0], hs, resolution=resolution,
                                     spp=spp))
         fibers = TurnedFibers(mi, loaded, AXIS)

@@ -98,12 +98,13 @@ def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) ->
     return scene
 
 
-def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, turn: float = 0.0,
-                   plugin: str = "fiber_table", curve_file=None, shift: float = 0.0, reach: float = 0.0) -> dict:
+def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, plugin: str = "fiber_table",
+                   curve_file=None, reach: float = 0.0) -> dict:
     """The same ply, every fiber its own shape with the fiber model (``plugin``:
-    ``fiber_table``, or ``fiber_ray`` for a bake with the h-resolved exit), the
-    arrangement turned by ``turn`` (radians) about the ply's axis and, a twisted one,
-    moved by ``shift`` (scene units) along it (``closure.view_placements``).
+    ``fiber_table``, or ``fiber_ray`` for a bake with the h-resolved exit), unturned: views
+    of other turns of the arrangement, and of other heights of a twisted one, move its
+    fibers in the loaded scene (``pipeline.closure.TurnedFibers``, at
+    ``closure.view_placements``).
 
     Parallel fibers (a :class:`~models.bundle.Bundle`) are cylinders, not one
     ``bsplinecurve`` of all fibers: rays that leave a fiber next to a touching neighbour
@@ -112,8 +113,7 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, t
     (a :class:`~models.bundle.TwistedBundle`, spaced so that they never touch) are one
     ``bsplinecurve`` along their helices (``pipeline.closure.helix_control_points``),
     written to ``curve_file``, long enough to be moved by up to ``reach`` scene units
-    along the axis (``pipeline.closure.TurnedFibers``) as well as by ``shift``; for them a
-    turn is a shift along the axis.
+    along the axis.
     """
     from models.bundle import TwistedBundle
 
@@ -127,17 +127,12 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, t
     if isinstance(bundle, TwistedBundle):
         if curve_file is None:
             raise ValueError("explicit_scene: a twisted ply's helices need a curve_file to be written to")
-        write_curves(helix_control_points(bundle, 0.6 * L + max(abs(shift), reach), UM), curve_file)
+        write_curves(helix_control_points(bundle, 0.6 * L + reach, UM), curve_file)
         T = mi.ScalarTransform4f
         to_scene = T([[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]])  # (x, y, z) -> (y, x, -z): a rotation
-        # turned by +turn in phi = atan2(z, x) of the bundle frame: -turn about the scene's x
-        scene["fibers"] = {"type": "bsplinecurve", "filename": str(curve_file), "bsdf": fiber,
-                           "to_world": T().translate([float(shift), 0.0, 0.0])
-                           @ T().rotate([1.0, 0.0, 0.0], -float(np.rad2deg(turn))) @ to_scene}
+        scene["fibers"] = {"type": "bsplinecurve", "filename": str(curve_file), "bsdf": fiber, "to_world": to_scene}
         return scene
-    c, s = np.cos(turn), np.sin(turn)
-    centers = np.asarray(bundle.centers, float) @ np.array([[c, s], [-s, c]])  # (x, z) turned by +turn
-    for k, ((cx, cz), r) in enumerate(zip(centers * UM, bundle.radii * UM)):
+    for k, ((cx, cz), r) in enumerate(zip(np.asarray(bundle.centers, float) * UM, bundle.radii * UM)):
         scene[f"fiber_{k:05d}"] = {"type": "cylinder", "p0": [-0.6 * L, cx, -cz], "p1": [0.6 * L, cx, -cz],
                                    "radius": float(r), "bsdf": {**fiber, "radius": float(r)}}
     return scene

@@ -139,7 +139,7 @@ def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
 
     from ..stages import render
 
-    from .. import scenes
+    from .. import closure, scenes
     from ..build import build_bundle
 
     r = cfg.render
@@ -151,10 +151,16 @@ def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
     mean = lambda sc: float(np.asarray(mi.render(mi.load_dict(sc)))[rows].mean())  # noqa: E731
     bundle_means = {b: mean(scenes.ply_scene(mi, cfg, render.backend_props(cfg, out_root, b), 256, 5,
                                              twist_turns=0.0)) for b in ("table", "mlp")}
+    # one explicit scene, its fibers turned between views (closure.TurnedFibers: one kernel)
+    scene = mi.load_dict(scenes.explicit_scene(mi, cfg, bundle, fiber, spp_per_turn))
+    fibers = closure.TurnedFibers(mi, scene, [1.0, 0.0, 0.0])
     explicit = []
     for s in range(seeds):
-        explicit.append(np.mean([mean(scenes.explicit_scene(mi, cfg, bundle, fiber, spp_per_turn, 1000 * (s + 1) + k,
-                                                            turn=2 * np.pi * k / 16)) for k in range(16)]))
+        views = []
+        for k in range(16):
+            fibers.place(2 * np.pi * k / 16)
+            views.append(float(np.asarray(mi.render(scene, seed=1000 * (s + 1) + k))[rows].mean()))
+        explicit.append(np.mean(views))
     explicit = np.array(explicit)
     out = {"explicit_means": explicit.tolist(), **{f"{b}_mean": v for b, v in bundle_means.items()}}
     for b, v in bundle_means.items():

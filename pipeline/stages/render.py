@@ -78,7 +78,7 @@ def backend_props(cfg, out_root, backend: str) -> dict:
 
 
 # -- rendering ---------------------------------------------------------------------
-def render_timed(mi, scene_dict, backend: str = "table", warm: bool = True,
+def render_timed(mi, scene, backend: str = "table", warm: bool = True,
                  seed: int = 0) -> tuple[np.ndarray, float, float]:
     """``(image, seconds, first_seconds)`` of a scene dict or a loaded scene: the second of
     two renders (seeds ``seed`` and ``seed + 1``) is timed (warm kernels); ``warm=False``:
@@ -91,7 +91,7 @@ def render_timed(mi, scene_dict, backend: str = "table", warm: bool = True,
         dr.set_flag(dr.JitFlag.SymbolicLoops, False)
         dr.set_flag(dr.JitFlag.SymbolicCalls, False)
     try:
-        scene = mi.load_dict(scene_dict) if isinstance(scene_dict, dict) else scene_dict
+        scene = mi.load_dict(scene) if isinstance(scene, dict) else scene
         t0 = time.perf_counter()
         img = mi.render(scene, seed=seed)
         dr.eval(img)
