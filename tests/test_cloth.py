@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from models.cloth.bcc import BCCError, Curve, CurveCollection, read_bcc, write_bcc
-from models.cloth.curves import evaluate, to_bspline
+from models.cloth.curves import bspline_samples, evaluate, interpolate_bspline, to_bspline
 from models.cloth.knit import stockinette
 from models.cloth.plies import nearest_other, transport_frames, wind_plies
 from models.cloth.yarn import YarnSpec, build_plies, write_curves
@@ -185,8 +185,8 @@ def test_plies_of_a_straight_yarn_are_helices_of_the_pitch():
     assert np.allclose(np.sort(np.mod(np.diff(a0), 2 * np.pi)), 2 * np.pi / 3)
     # opposite signs of the pitch turn opposite ways
     other, _ = wind_plies(transport_frames(line, closed=False), K=3, R=0.6, pitch=5.0)
-    s1 = np.polyfit(z, np.unwrap(np.arctan2(plies[0][:, 1], plies[0][:, 0])), 1)[0]
-    s2 = np.polyfit(z, np.unwrap(np.arctan2(other[0][:, 1], other[0][:, 0])), 1)[0]
+    s1 = np.polyfit(plies[0][:, 2], np.unwrap(np.arctan2(plies[0][:, 1], plies[0][:, 0])), 1)[0]
+    s2 = np.polyfit(other[0][:, 2], np.unwrap(np.arctan2(other[0][:, 1], other[0][:, 0])), 1)[0]
     assert s1 * s2 < 0
 
 
@@ -199,6 +199,20 @@ def test_plies_of_a_loop_close_on_themselves():
     for p in plies:
         step = np.linalg.norm(np.diff(np.concatenate([p, p[:1]]), axis=0), axis=1)
         assert step.max() < 1.5 * np.median(step)      # no jump where the loop closes
+
+
+def test_ply_curves_of_a_loop_stay_on_their_torus():
+    """The plies' B-splines (16 samples a turn of their helix, however finely the centre line
+    is sampled) stay within 2e-4 of the winding radius of the torus they wind on (exact for
+    a circular yarn); at 8 samples a turn they would stray 1.2e-3."""
+    f = transport_frames(circle(20000), closed=True)
+    plies, pitch = wind_plies(f, K=3, R=0.6, pitch=3.0)
+    turns = 2 * np.pi * 10 / abs(pitch)
+    for p in plies:
+        assert len(p) == round(16 * turns)          # the helix sets the samples, not the centre line's 20,000
+        q = bspline_samples(interpolate_bspline(p, closed=True), 16)
+        off_axis = np.hypot(np.hypot(q[:, 0], q[:, 1]) - 10.0, q[:, 2])
+        assert np.max(np.abs(off_axis - 0.6)) < 2e-4 * 0.6
 
 
 def test_zhao_yarn_scaled_to_its_radius_and_plies_do_not_overlap():
@@ -283,7 +297,6 @@ def test_hair_flyaways_round_a_closed_loop_stay_about_it_and_pierce_no_other_ply
     hair point lies between the ply's surface and the longest hair (torus coordinates), and
     hairs cross the loop's seam; beside a second loop 1.2 radii away, no hair comes within a
     ply radius (and the margin) of the other's centre line."""
-    from models.cloth.curves import bspline_samples, interpolate_bspline
     from models.cloth.flyaways import HairSpec, hair_flyaways
 
     loop = interpolate_bspline(circle(400), closed=True)
@@ -353,7 +366,6 @@ def test_cloth_ply_curve_renders_the_far_field_of_its_table(mono, tmp_path):
 
 # -- explicit fibers, patches, and what is refused before building ------------------------
 def test_explicit_fibers_of_a_straight_ply_keep_the_arrangement_scaled():
-    from models.cloth.curves import bspline_samples, interpolate_bspline
     from models.cloth.fibers import explicit_fibers
 
     z = np.linspace(0, 10, 41)
@@ -373,7 +385,6 @@ def test_explicit_fibers_of_a_twisted_ply_are_helices_of_its_handedness_and_lean
     has the pitch's sign (> 0 right-handed, as the bake's: ``models.bundle.TwistedBundle``),
     at a constant distance from the axis, leaning ``atan(2 pi rho / |pitch|)`` as in the
     bake (lengths scale with the ply, angles do not)."""
-    from models.cloth.curves import bspline_samples, interpolate_bspline
     from models.cloth.fibers import explicit_fibers
 
     z = np.linspace(0, 10, 21)

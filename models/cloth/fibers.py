@@ -51,22 +51,24 @@ def _turn_rate(pitch_um, scale):
     return None if pitch_um is None else -2 * np.pi / (float(pitch_um) * scale)
 
 
-def _samples_per_segment(C, omega, per_segment: int) -> int:
-    """Samples per ply segment: enough for every turn of the helices."""
+def _samples_per_segment(C, omega, per_segment: int, samples_per_turn: int = SAMPLES_PER_TURN) -> int:
+    """Samples per ply segment: ``samples_per_turn`` for every turn of the helices."""
     if omega is None:
         return per_segment
     step = np.linalg.norm(np.diff(bspline_samples(C, 1), axis=0), axis=1).max()
-    return max(per_segment, int(np.ceil(step * abs(omega) * SAMPLES_PER_TURN / (2 * np.pi))))
+    return max(per_segment, int(np.ceil(step * abs(omega) * samples_per_turn / (2 * np.pi))))
 
 
 def explicit_point_count(plies: list[np.ndarray], r_ply: float, n_fibers: int, R_b: float,
-                         per_segment: int = 2, pitch_um: float | None = None) -> int:
+                         per_segment: int = 2, pitch_um: float | None = None,
+                         samples_per_turn: int = SAMPLES_PER_TURN) -> int:
     """Control points :func:`explicit_fibers` would make for ``n_fibers`` fibers in every
-    ply, without making them (a whole garment's fibers do not fit in memory)."""
+    ply, without making them (a whole garment's fibers do not fit in memory);
+    ``samples_per_turn`` of the helices (:data:`SAMPLES_PER_TURN`: what it makes)."""
     omega = _turn_rate(pitch_um, r_ply / R_b)
     # interpolate_bspline of the samples (the end included) adds the two natural ends; a
     # closed loop's fibers, closed, would hold as many (its three repeated points)
-    per_fiber = sum((len(C) - 3) * _samples_per_segment(C, omega, per_segment) + 3 for C in plies)
+    per_fiber = sum((len(C) - 3) * _samples_per_segment(C, omega, per_segment, samples_per_turn) + 3 for C in plies)
     return int(n_fibers * per_fiber)
 
 

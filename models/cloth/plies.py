@@ -117,12 +117,17 @@ def transport_frames(p: np.ndarray, closed: bool, stride: int = 1) -> Frames:
     return Frames(p, t, n, np.cross(t, n), s, length, closed)
 
 
-def wind_plies(frames: Frames, K: int, R: float, pitch: float,
-               samples_per_turn: int = 16) -> tuple[list[np.ndarray], float]:
+def wind_plies(frames: Frames, K: int, R: float, pitch: float, samples_per_turn: int = 16,
+               min_samples: int = 0) -> tuple[list[np.ndarray], float]:
     """Centre lines of ``K`` plies about ``frames``'s curve: ``([K][m, 3], pitch used)``.
 
-    ``pitch`` is signed (the twist direction). The plies are resampled at ``samples_per_turn``
-    points per turn of the helix, or at the centre line's own spacing where that is finer.
+    ``pitch`` is signed (the twist direction). The plies are sampled ``samples_per_turn``
+    times per turn of their helix (an interpolating B-spline through 16 samples a turn
+    strays about 1e-4 of ``R`` from a helix: ``tests/test_cloth.py``), and at least
+    ``min_samples`` times along the curve (the caller's measure of the centre line's own
+    detail: :func:`~models.cloth.yarn.build_plies` asks for two per segment of the file's
+    curve). Sampling the plies as densely as the centre line's samples instead held 29% more
+    control points for the same curves on the glove (docs/BENCHMARKS.md, "Cloth").
     """
     if K < 1:
         raise ValueError(f"a yarn needs at least one ply (got K = {K})")
@@ -133,10 +138,9 @@ def wind_plies(frames: Frames, K: int, R: float, pitch: float,
     if frames.closed:
         turns = max(1, round(turns))   # a whole number of turns: every ply closes on itself
         pitch = np.sign(pitch) * L / turns
-    spacing = np.median(np.diff(frames.s)) if len(frames.s) > 1 else L
-    m = int(max(np.ceil(turns * samples_per_turn), np.ceil(L / spacing)))
+    m = int(max(np.ceil(turns * samples_per_turn), min_samples, 3))
     s = np.arange(m) * (L / m) if frames.closed else np.linspace(0, L, m + 1)
-    # the frame between samples, linearly (the samples are dense next to the ply's turns)
+    # the frame between the centre line's samples, linearly (they are denser than the ply's)
     c, t, n, _ = frames.at(s)
     n = _unit(n - np.sum(n * t, -1, keepdims=True) * t)
     b = np.cross(_unit(t), n)

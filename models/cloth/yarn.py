@@ -99,12 +99,14 @@ def centre_lines(collection: CurveCollection, scale: float, tol: float):
 
 
 def build_plies(collection: CurveCollection, scale: float, yarn: YarnSpec, tol_fraction: float = 0.01,
-                samples_per_turn: int = 16, progress=None) -> PlyGeometry:
+                samples_per_turn: int = 16, samples_per_segment: int = 2, progress=None) -> PlyGeometry:
     """The plies of every yarn of ``collection`` (model units times ``scale`` = scene units).
 
     ``tol_fraction``: how far (in yarn radii) a centre line's B-spline may leave the file's
     curve. The plies are wound about the file's own curve (evaluated exactly, 8 samples per
-    segment), so the B-spline conversion's deviation does not add up along them.
+    segment), so the B-spline conversion's deviation does not add up along them, and
+    sampled ``samples_per_turn`` times a turn of their winding, at least
+    ``samples_per_segment`` times a segment of the file's curve (:func:`~models.cloth.plies.wind_plies`).
     """
     if not scale > 0:
         raise ValueError(f"the model's scale must be positive (got {scale})")
@@ -121,7 +123,8 @@ def build_plies(collection: CurveCollection, scale: float, yarn: YarnSpec, tol_f
             plies.append(centres[k][0])
         else:
             frames = transport_frames(samples, c.closed, stride=4)
-            wound, pitch = wind_plies(frames, yarn.K, yarn.R, yarn.pitch, samples_per_turn)
+            wound, pitch = wind_plies(frames, yarn.K, yarn.R, yarn.pitch, samples_per_turn,
+                                      min_samples=samples_per_segment * n)
             pitches.append(pitch)
             plies += [interpolate_bspline(q, c.closed) for q in wound]
         if progress is not None:

@@ -111,8 +111,10 @@ def ply_table(cfg, yarn) -> str:
     return f"twisted ply (fiber pitch {pitch:+.0f} um at a {cfg.bundle.bounding_radius_um():.0f} um ply)"
 
 
-def build(cfg, out: Path) -> tuple[dict, object]:
-    """Phases 1 and 2: write ``plies.txt``; return the geometry's summary and the plies."""
+def build(cfg, out: Path, samples_per_segment: int = 2) -> tuple[dict, object]:
+    """Phases 1 and 2: write ``plies.txt``; return the geometry's summary and the plies.
+    ``samples_per_segment``: the plies' fewest samples per segment of the model's curves
+    (:func:`~models.cloth.yarn.build_plies`; the speed bench compares 8)."""
     from models.cloth.yarn import build_plies, write_curves
 
     c = cfg.cloth
@@ -121,7 +123,8 @@ def build(cfg, out: Path) -> tuple[dict, object]:
     yarn = yarn_spec(c)
     check_fits(collection, c, yarn)
     with tqdm(total=len(collection.curves), desc="plies", unit="yarn") as bar:
-        geometry = build_plies(collection, c.units_mm, yarn, c.tolerance, progress=lambda k: bar.update(1))
+        geometry = build_plies(collection, c.units_mm, yarn, c.tolerance, samples_per_segment=samples_per_segment,
+                               progress=lambda k: bar.update(1))
     write_curves(out / "plies.txt", geometry)
     warning = geometry.overlap_warning(yarn)
     if warning:
