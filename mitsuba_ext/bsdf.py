@@ -338,7 +338,9 @@ class FiberTableBSDF(CurveBSDF):
        * - wavelength
          - Mono variants: the wavelength (nm) to render; default CIE luminance.
 
-    Defined on ``cylinder`` and ``bsplinecurve`` shapes, like ``fiber_bundle``.
+    Defined on ``cylinder`` and ``bsplinecurve`` shapes, like ``fiber_bundle``, and under
+    ``bundle_path`` on ``linearcurve`` (cheaper to intersect: the cloth's flyaways), whose
+    hits it gives their tangent frame (``mitsuba_ext.frame.LinearCurves``).
     ``mi.traverse`` exposes ``twist``, ``twist_rate``, ``up`` and ``radius``.
 
     .. code-block:: python
@@ -414,7 +416,8 @@ class FiberRayBSDF(CurveBSDF):
     -----------------------------------------------------------------
 
     One smooth-walled ray-optics fiber (d'Eon / Chiang, ``fiber.model: ray``) on a
-    ``cylinder`` or ``bsplinecurve`` of the fiber's radius, evaluated at the hit's own
+    ``cylinder`` or ``bsplinecurve`` of the fiber's radius (or, under ``bundle_path``, a
+    ``linearcurve``, as ``fiber_table``), evaluated at the hit's own
     offset ``h`` across the fiber instead of averaged over it (``fiber_table``). Each
     path ``p`` (R, TT, TRT, ..., the residual) is a BSDF component: ``bundle_path``
     starts the light of path ``p`` from where that path leaves the fiber (the

@@ -12,6 +12,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mitsuba_ext.frame import LinearCurves
+
 
 
 # -- small pure functions ----------------------------------------------------------
@@ -90,7 +92,7 @@ def offset_ray(p, n, d, wavelengths, maxt=None):
 
 
 def shape_radius(shape):
-    """The bundle radius a ``cylinder`` or ``bsplinecurve`` holds, else ``None``.
+    """The bundle radius a ``cylinder``, ``bsplinecurve`` or ``linearcurve`` holds, else ``None``.
 
     A cylinder's ``to_world`` scales its unit cylinder by the radius across the axis;
     a curve's control points carry it as their fourth coordinate (a range if it varies).
@@ -101,7 +103,7 @@ def shape_radius(shape):
         m = np.asarray(params["to_world"].matrix).reshape(4, 4)
         r = float(np.linalg.norm(m[:3, 0]))
         return r, r
-    if kind == int(mi.ShapeType.BSplineCurve):
+    if kind in (int(mi.ShapeType.BSplineCurve), int(mi.ShapeType.LinearCurve)):
         radii = np.asarray(params["control_points"]).reshape(-1, 4)[:, 3]
         return float(radii.min()), float(radii.max())
     return None
@@ -111,20 +113,25 @@ def check_bundles(scene) -> list[str]:
     """What is wrong with the bundles of a scene, in words (one line per shape).
 
     ``fiber_bundle``, ``fiber_table`` and ``fiber_ray`` are defined on cylinders and B-spline curves
-    (the frame follows their tangent, the radius comes from their parametrization); a
-    BSDF ``radius`` that disagrees with the shape's is named (the shape's is used).
+    (the frame follows their tangent, the radius comes from their parametrization), the two
+    single-fiber ones also on ``linearcurve`` (``bundle_path`` gives its hits their tangent
+    frame: :class:`~mitsuba_ext.frame.LinearCurves`); a BSDF ``radius`` that disagrees with the
+    shape's is named (the shape's is used).
     """
     problems = []
+    curves = (int(mi.ShapeType.Cylinder), int(mi.ShapeType.BSplineCurve))
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         plugin = getattr(bsdf, "plugin", None)
         if plugin not in ("fiber_bundle", "fiber_table", "fiber_ray"):
             continue
         kind = shape.shape_type()
-        if kind not in (int(mi.ShapeType.Cylinder), int(mi.ShapeType.BSplineCurve)):
+        single = plugin != "fiber_bundle"
+        if kind not in curves + ((int(mi.ShapeType.LinearCurve),) if single else ()):
             problems.append(f"shape '{shape.id()}' ({mi.ShapeType(kind).name}) has a {plugin} BSDF, which is "
-                            "defined on 'cylinder' and 'bsplinecurve' shapes only: its frame and radius are "
-                            "meaningless on this shape")
+                            "defined on 'cylinder' and 'bsplinecurve' shapes only"
+                            + (" (and 'linearcurve')" if single else "")
+                            + ": its frame and radius are meaningless on this shape")
             continue
         lo, hi = shape_radius(shape)
         r = float(getattr(bsdf, "radius", 0.0))
@@ -143,10 +150,15 @@ def check_integrator(scene) -> str | None:
     renders without an error but wrong. A Python BSDF cannot see its integrator, so the
     entry points (``bcsdf render-scene``) ask here after loading.
     """
-    uses = any(getattr(shape.bsdf(), "plugin", None) == "fiber_bundle" for shape in scene.shapes())
-    integrator = scene.integrator()
-    if uses and type(integrator).__name__ != "BundlePathIntegrator":
-        return (f"the scene's fiber_bundle BSDFs need the bundle_path integrator (passthrough, displaced exits), "
-                f"but its integrator is {type(integrator).__name__}: "
+    integrator = type(scene.integrator()).__name__
+    if integrator == "BundlePathIntegrator":
+        return None
+    why = []
+    if any(getattr(shape.bsdf(), "plugin", None) == "fiber_bundle" for shape in scene.shapes()):
+        why.append("fiber_bundle BSDFs need the bundle_path integrator (passthrough, displaced exits)")
+    if LinearCurves(scene.shapes()):
+        why.append("fiber BSDFs on 'linearcurve' need the bundle_path integrator (their tangent frame)")
+    if why:
+        return (f"the scene's {' and its '.join(why)}, but its integrator is {integrator}: "
                 "use <integrator type=\"bundle_path\"> (it takes path's max_depth and rr_depth)")
     return None

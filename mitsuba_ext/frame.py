@@ -55,6 +55,55 @@ def bundle_frame(si, up, twist, twist_rate):
     return x, t, z
 
 
+class LinearCurves:
+    """The ``linearcurve`` shapes of a scene that carry a fiber BSDF, with what their hits
+    lack: Mitsuba 3.9's ``linearcurve`` sets no derivative round the curve (``dp_du = 0``),
+    so its shading frame is built from the normal alone and its ``t`` is not the tangent
+    (a straight curve along ``y`` gave ``t = -y`` for some hits). :meth:`fix` rebuilds the
+    frame of a hit from its segment's two control points (``t`` from the first to the second,
+    so one fiber's frame keeps its sense along it), and ``dp_du = 2 pi r s``, round the
+    curve as on ``bsplinecurve``, so that the radius is read as there.
+
+    Built once per scene (``bundle_path`` does, before tracing); :meth:`fix` is traced into
+    the kernel. An empty list fixes nothing and costs nothing.
+    """
+
+    def __init__(self, shapes):
+        self.curves = []
+        for shape in shapes:
+            if shape.shape_type() != int(mi.ShapeType.LinearCurve):
+                continue
+            if getattr(shape.bsdf(), "plugin", None) not in ("fiber_table", "fiber_ray"):
+                continue
+            params = mi.traverse(shape)
+            segments, points = mi.UInt32(params["segment_indices"]), mi.Float(params["control_points"])
+            dr.make_opaque(segments, points)  # evaluated once: the kernel reads them, the same each render
+            self.curves.append((mi.ShapePtr(shape), segments, points))
+
+    def __bool__(self):
+        return bool(self.curves)
+
+    def fix(self, si, d):
+        """``si`` (a hit of a ray along ``d``) with the tangent frame on these curves."""
+        for shape, segments, points in self.curves:
+            mine = si.is_valid() & (si.shape == shape)
+            k = dr.gather(mi.UInt32, segments, si.prim_index, mine)
+            p0, p1 = (dr.gather(mi.Vector4f, points, k + j, mine) for j in (0, 1))
+            axis = mi.Vector3f(p1.x - p0.x, p1.y - p0.y, p1.z - p0.z)
+            length2 = dr.squared_norm(axis)
+            u = dr.clip(dr.dot(si.p - mi.Point3f(p0.x, p0.y, p0.z), axis) / dr.maximum(length2, 1e-30), 0.0, 1.0)
+            r = dr.lerp(p0.w, p1.w, u)
+            n = si.sh_frame.n
+            s = dr.cross(axis, n)
+            ok = mine & (length2 > 0) & (dr.squared_norm(s) > 1e-12 * length2)
+            s = dr.normalize(s)
+            frame = mi.Frame3f(s, dr.cross(n, s), n)
+            si.sh_frame = dr.select(ok, frame, si.sh_frame)
+            si.wi = dr.select(ok, frame.to_local(-d), si.wi)
+            si.dp_du = dr.select(ok, (2 * dr.pi) * r * s, si.dp_du)
+        return si
+
+
 def angles(w, frame):
     """``(phi, theta)`` of a world direction in the bundle frame (docs/DESIGN.md conventions).
 

@@ -12,6 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_ext.crossing import bundle_axis, check_bundles, displaced_exit, far_side, mis_weight, offset_ray
+from mitsuba_ext.frame import LinearCurves
 from mitsuba_ext.params import boolean, integer, number
 
 if mi.variant() is None:
@@ -101,8 +102,9 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         if id(scene) not in self._checked:
             for line in check_bundles(scene):
                 mi.Log(mi.LogLevel.Warn, "bundle_path: " + line)
-            self._checked[id(scene)] = max([int(getattr(s.bsdf(), "n_paths", 0)) for s in scene.shapes()] + [0])
-        self._paths = self._checked[id(scene)]
+            self._checked[id(scene)] = (max([int(getattr(s.bsdf(), "n_paths", 0)) for s in scene.shapes()] + [0]),
+                                        LinearCurves(scene.shapes()))
+        self._paths, self._linear = self._checked[id(scene)]
 
     # -- h-resolved fibers: each path leaves from its own exit point --------------
     def _path_exit(self, si, bsdf, radius, p, w, active):
@@ -180,7 +182,8 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         wall again, which is why it is the last resort).
         """
         shape_type = si.shape.shape_type()
-        curve = (shape_type == int(mi.ShapeType.Cylinder)) | (shape_type == int(mi.ShapeType.BSplineCurve))
+        curve = ((shape_type == int(mi.ShapeType.Cylinder)) | (shape_type == int(mi.ShapeType.BSplineCurve))
+                 | (shape_type == int(mi.ShapeType.LinearCurve)))  # its dp_du set by LinearCurves.fix
         r_shape = dr.norm(si.dp_du) * (0.5 / dr.pi)
         r = dr.select(curve & dr.isfinite(r_shape), r_shape, bsdf.eval_attribute_1("radius", si, active))
         need = active & (r <= 0)
@@ -287,6 +290,8 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
 
         while dr.hint(active, label="bundle_path"):
             si = scene.ray_intersect(ray, ray_flags=self.RAY_FLAGS, coherent=(depth == 0), active=active)
+            if dr.hint(bool(self._linear), mode="scalar"):  # fibers on linearcurve: their tangent frame
+                si = self._linear.fix(si, ray.d)
 
             # ------------------ direct emission ------------------
             ds = mi.DirectionSample3f(scene, si, prev_si)

@@ -436,6 +436,9 @@ class Flyaways(Strict):
     yarn: Optional[str] = Field(None, description="row of zhao2016_table2.csv (default: cloth.yarn)")
     density_scale: float = Field(1.0, ge=0.0, le=100.0, description="times the yarn's hairs per length")
     seed: int = Field(0, ge=0)
+    curve: Literal["linearcurve", "bsplinecurve"] = Field(
+        "linearcurve", description="a hair as a polyline through its samples (a third cheaper to render) or "
+                                   "the B-spline through them (models/cloth/flyaways.py)")
     share_check_scale: float = Field(0.25, gt=0.0, le=1.0,
                                      description="image scale of the renders that measure the flyaways' "
                                                  "share of the radiance (with, without, floor only)")

@@ -94,18 +94,27 @@ def test_one_explicit_fiber_renders_its_model(mono, tmp_path, model):
     assert np.allclose(r, 1.0, atol=0.01), r
 
 
-def test_one_explicit_h_resolved_fiber_renders_its_model(mono, tmp_path):
+@pytest.mark.parametrize("shape", ["cylinder", "linearcurve"])
+def test_one_explicit_h_resolved_fiber_renders_its_model(mono, tmp_path, shape):
     """``fiber_ray`` on a cylinder: each pixel evaluates the paths at its own offset h, and
     the far field over the fiber's width is the offset-averaged ray model (within 1%; the
     pixels across the fiber, 64 samples each, are the quadrature over h). Tilted and
     absorbing, at grazing light too: the light side's longitude sets Bravais' index and the
-    attenuation, as in the table, or the far field is 0.44 .. 1.26 of it off the cone."""
+    attenuation, as in the table, or the far field is 0.44 .. 1.26 of it off the cone.
+    The same on a ``linearcurve`` (the flyaways' shape), whose hits ``bundle_path`` gives
+    their tangent frame (with Mitsuba's own frame there, which is not the tangent's: 0.78 .. 1.08)."""
     mi = mono
     table = fiber_models()["ray"]()
     table.save(tmp_path / "fiber.npz")
     bsdf = {"type": "fiber_ray", "filename": str(tmp_path / "fiber.npz"), "wavelength": LAM, "up": closure.UP}
     S = closure.evaluator(mi, "fiber", tmp_path / "fiber.npz", LAM)
-    rows = closure.far_field_ratios(mi, bsdf, 0.02, S, pairs_deg(), spp=64)
+
+    def polyline(R, b, half_length):  # a straight fiber along +y in 8 segments, the cylinder's axis
+        points = tmp_path / "fiber.txt"
+        points.write_text("".join(f"0 {y:.6f} 0 {R}\n" for y in np.linspace(-half_length, half_length, 9)))
+        return {"type": "linearcurve", "filename": str(points), "bsdf": b}
+    rows = closure.far_field_ratios(mi, bsdf, 0.02, S, pairs_deg(), spp=64,
+                                    shape=polyline if shape == "linearcurve" else None)
     r = np.array([row[3] for row in rows])
     print("fiber_ray", np.round(r, 4))
     assert len(r) >= 20 and np.allclose(r, 1.0, atol=0.01), r

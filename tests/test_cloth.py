@@ -292,27 +292,37 @@ def test_hairs_about_a_straight_ply_start_where_they_leave_it():
     assert np.allclose(turn, [0.5, 0.2] * (1 - u_in))
 
 
-def test_hair_flyaways_round_a_closed_loop_stay_about_it_and_pierce_no_other_ply():
+@pytest.mark.parametrize("curve", ["linearcurve", "bsplinecurve"])
+def test_hair_flyaways_round_a_closed_loop_stay_about_it_and_pierce_no_other_ply(curve):
     """About a circular ply loop (radius 10, its B-spline closed as build_plies writes it), every
     hair point lies between the ply's surface and the longest hair (torus coordinates), and
     hairs cross the loop's seam; beside a second loop 1.2 radii away, no hair comes within a
-    ply radius (and the margin) of the other's centre line."""
-    from models.cloth.flyaways import HairSpec, hair_flyaways
+    ply radius (and the margin) of the other's centre line. Hairs as polylines with a pointed
+    tip at each end, or as B-splines with tapered tips."""
+    from models.cloth.flyaways import HAIR_SAMPLES, HairSpec, hair_flyaways
+
+    def bodies(hairs):  # points along each hair's body (its tips left out)
+        if curve == "bsplinecurve":
+            return np.concatenate([bspline_samples(h[3:-3, :3], 4) for h in hairs])
+        u = np.linspace(0, 1, 5)[:, None, None]
+        return np.concatenate([((1 - u) * h[1:-2, :3] + u * h[2:-1, :3]).reshape(-1, 3) for h in hairs])
 
     loop = interpolate_bspline(circle(400), closed=True)
     spec = HairSpec(density=5.0, r0=(0.4, 0.05), r_span=(0.3, 0.05), s_span=(1.5, 0.5), phi_span=(0.0, 0.5))
-    hairs = hair_flyaways([loop], 0.5, spec, seed=0, hair_radius=0.02)
+    hairs = hair_flyaways([loop], 0.5, spec, seed=0, hair_radius=0.02, curve=curve)
     assert 0.5 * 5.0 * 2 * np.pi * 10 < len(hairs) <= 5.0 * 2 * np.pi * 10 + 1   # some end inside the ply
-    assert all(h.shape[1] == 4 and np.all(h[[0, 1, 2, -3, -2, -1], 3] == 0) and np.all(h[3:-3, 3] == 0.02)
-               for h in hairs)                                  # radius 0.02, tapered tips
-    pts = np.concatenate([bspline_samples(h[3:-3, :3], 4) for h in hairs])
+    tip = 3 if curve == "bsplinecurve" else 1
+    assert all(h.shape == ((HAIR_SAMPLES + 2 if curve == "bsplinecurve" else HAIR_SAMPLES) + 2 * tip, 4)
+               and np.all(h[:tip, 3] == 0) and np.all(h[-tip:, 3] == 0) and np.all(h[tip:-tip, 3] == 0.02)
+               for h in hairs)                                  # radius 0.02, tips of radius 0
+    pts = bodies(hairs)
     rho = np.hypot(np.hypot(pts[:, 0], pts[:, 1]) - 10.0, pts[:, 2])   # distance from the centre circle
     assert rho.min() > 0.5 + 0.03 - 0.005 and rho.max() < 0.4 + 0.3 + 4 * 0.05 + 0.01
     assert np.any(np.abs(np.arctan2(pts[:, 1], pts[:, 0])) < 0.05)   # across the seam at angle 0
     other = interpolate_bspline(circle(400) + [0.0, 0.0, 1.2], closed=True)
-    both = hair_flyaways([loop, other], 0.5, spec, seed=0, hair_radius=0.02)
+    both = hair_flyaways([loop, other], 0.5, spec, seed=0, hair_radius=0.02, curve=curve)
     assert 0 < len(both) < 2 * len(hairs)
-    P = np.concatenate([bspline_samples(h[3:-3, :3], 4) for h in both])     # the hairs' bodies
+    P = bodies(both)
     d0 = np.hypot(np.hypot(P[:, 0], P[:, 1]) - 10.0, P[:, 2])
     d1 = np.hypot(np.hypot(P[:, 0], P[:, 1]) - 10.0, P[:, 2] - 1.2)
     assert np.all(np.minimum(d0, d1) > 0.5 + 0.03 - 0.005)   # every hair clear of both plies

@@ -561,6 +561,28 @@ def test_bundles_on_other_shapes_and_disagreeing_radii_are_named(mi_plug, tables
     assert "'ply'" in problems[1] and "0.2 disagrees" in problems[1] and "(0.3)" in problems[1]
 
 
+def test_single_fibers_may_be_linear_curves_under_bundle_path_only(mi_plug, tables, tmp_path):
+    """``fiber_table`` and ``fiber_ray`` take a ``linearcurve`` (bundle_path gives its hits the
+    tangent frame), ``fiber_bundle`` does not (its twist runs along the curve's ``v``); under
+    another integrator a fiber on a ``linearcurve`` is refused at the entry points."""
+    from mitsuba_ext.crossing import check_bundles, check_integrator
+    from models.fiber.ray import RayFiber
+
+    RayFiber(np.array([450.0, 650.0]), [1.55, 1.54], [0.0, 0.0], 0.25, 0.4, 2.0, n_h=16).tabulate(
+        np.deg2rad(np.arange(0, 91, 15.0))).save(tmp_path / "f.npz")
+    line = curve_file(tmp_path / "l.txt", [[0, y, 0, 0.3] for y in np.linspace(-1, 1, 5)])
+
+    def scene(integrator, **shapes):
+        return mi_plug.load_dict({"type": "scene", "integrator": {"type": integrator},
+                                  **{k: {"type": "linearcurve", "filename": line, "bsdf": b} for k, b in shapes.items()}})
+    hair = {"type": "fiber_ray", "filename": str(tmp_path / "f.npz")}
+    flat = {"type": "fiber_bundle", "table": str(tables["circle"])}
+    problems = check_bundles(scene("bundle_path", hair=hair, flat=flat))
+    assert len(problems) == 1 and "'flat'" in problems[0] and "(and 'linearcurve')" not in problems[0]
+    assert check_integrator(scene("bundle_path", hair=hair)) is None
+    assert "'linearcurve' need the bundle_path integrator" in check_integrator(scene("path", hair=hair))
+
+
 def curve_file(path, points):
     path.write_text("\n".join(" ".join(f"{v:.6f}" for v in p) for p in points) + "\n")
     return str(path)

@@ -150,12 +150,29 @@ def tapered(C: np.ndarray, radius: float) -> np.ndarray:
     return np.concatenate([points, r], axis=-1)
 
 
+def pointed(P: np.ndarray, radius: float) -> np.ndarray:
+    """Polylines through ``P [m, ..., 3]`` (many at once) with a radius column, ``[m + 2, ..., 4]``:
+    one more point beyond each end, a third of the end's spacing out, of radius 0 (a
+    pointed tip, as :func:`tapered` gives a B-spline)."""
+    points = np.concatenate([P[:1] - (P[1] - P[0])[None] / 3, P, P[-1:] + (P[-1] - P[-2])[None] / 3])
+    r = np.full(points.shape[:-1] + (1,), float(radius))
+    r[0] = r[-1] = 0.0
+    return np.concatenate([points, r], axis=-1)
+
+
+CURVES = ("linearcurve", "bsplinecurve")   # what a hair is drawn as (Mitsuba's shape type)
+
+
 def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: int = 0,
-                  hair_radius: float = 0.0) -> list[np.ndarray]:
+                  hair_radius: float = 0.0, curve: str = "linearcurve") -> list[np.ndarray]:
     """Hair flyaways about every ply (``plies``: B-spline control points ``[n, 3]`` of the
     ply centre lines in Mitsuba's layout, as :func:`~models.cloth.yarn.build_plies` returns
-    them; a closed loop's ends repeat its first three points), each hair a B-spline's control
-    points with their radius, ``[m, 4]`` (an open curve, :func:`tapered` at both tips).
+    them; a closed loop's ends repeat its first three points), each hair its control points
+    with their radius, ``[m, 4]``: for ``curve = "linearcurve"`` the polyline of its
+    ``HAIR_SAMPLES`` points, :func:`pointed` (6 points); for ``"bsplinecurve"`` the B-spline
+    through them, :func:`tapered` at both tips (12 points). The polyline is a third cheaper to
+    render (docs/BENCHMARKS.md, "Cloth"); its kinks, a few degrees on hairs a tenth of a
+    pixel wide, do not show.
 
     Per ply, :func:`draw_hairs`, in the ply's rotation-minimizing frame (continuous round a
     closed loop, so a hair may cross its seam); each hair from where it leaves the ply
@@ -163,6 +180,8 @@ def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: i
     another ply are left out (:func:`piercing`): touching curves are also what Mitsuba 3.9's
     curve intersection cannot take (it crashed a glove render).
     """
+    if curve not in CURVES:
+        raise ValueError(f"flyaways: curve {curve!r}: use one of {', '.join(CURVES)}")
     rng = np.random.default_rng(seed)
     placed, owner, samples = [], [], []
     for k, C in enumerate(plies):
@@ -180,4 +199,6 @@ def hair_flyaways(plies: list[np.ndarray], r_ply: float, spec: HairSpec, seed: i
         points = points[:, ~piercing(points, owner, samples, r_ply + 1.5 * hair_radius)]
     if not points.shape[1]:
         return []
+    if curve == "linearcurve":
+        return list(pointed(points, hair_radius).transpose(1, 0, 2))
     return list(tapered(interpolate_bspline(points, closed=False), hair_radius).transpose(1, 0, 2))

@@ -227,8 +227,10 @@ SPEED_SIZE, SPEED_SPP = (320, 240), 8
 # bundle_path's (shadow_rr, overlaps) compared: shadow_rr 0 traces every crossing; overlaps
 # False lets light that leaves a ply inside another cross it unseen. The third: the plies'
 # fewest samples per segment of the model's curves (2, the stage's; 8, as densely as the
-# centre line is sampled: the same curves in 29% more control points on the glove)
-SPEED_CASES = ((0.0, True, 2), (0.1, True, 2), (0.3, True, 2), (0.1, False, 2), (0.1, False, 8))
+# centre line is sampled: the same curves in 29% more control points on the glove). The
+# fourth: the hairs' curve (cloth.flyaways.curve; the same hairs either way)
+SPEED_CASES = ((0.0, True, 2, "linearcurve"), (0.1, True, 2, "linearcurve"), (0.3, True, 2, "linearcurve"),
+               (0.1, False, 2, "linearcurve"), (0.1, False, 8, "linearcurve"), (0.1, False, 2, "bsplinecurve"))
 
 
 def child_speed(config, root, shadow_rr, geometry, out, overlaps=True):
@@ -399,35 +401,42 @@ def measure_scale(config, root, quick, tmp) -> list:
 
 def measure_speed(config, root, quick, tmp) -> list:
     """The whole model's render with and without the shadow rays' Russian roulette and the
-    overlapping plies' entry, and with plies sampled more densely (the same hairs), side by
-    side (each in its own process): seconds, and the time to equal noise."""
+    overlapping plies' entry, with plies sampled more densely (the same hairs) and with the
+    hairs as B-splines (the same plies), side by side (each in its own process): seconds, and
+    the time to equal noise."""
     from pipeline.config import load_config
     from pipeline.stages.cloth import build, flyaways, yarn_spec
 
     cfg = load_config(config)
     cases = SPEED_CASES[:2] if quick else SPEED_CASES
-    geometry, fly = {}, None
-    for per_segment in sorted({c[2] for c in cases}):
+    plies, hairs, geometry = {}, {}, {}
+    for per_segment in sorted({c[2] for c in cases}):  # 2 first: the hairs are drawn about the stage's plies
         d = Path(tmp) / f"plies_{per_segment}"
         d.mkdir(parents=True, exist_ok=True)
-        info, g = build(cfg, d, samples_per_segment=per_segment)
-        if fly is None:  # the hairs of the first (the stage's) plies, in every case
-            _, fly = flyaways(cfg, d, g, yarn_spec(cfg.cloth), root)
-        geometry[per_segment] = d / "geometry.json"
-        geometry[per_segment].write_text(json.dumps({"plies": str(d / "plies.txt"), "radius": g.radius,
-                                                     "flyaways": fly, "bbox": info["bbox_mm"],
-                                                     "control_points": g.control_points}))
+        plies[per_segment] = d, *build(cfg, d, samples_per_segment=per_segment)
+    for curve in sorted({c[3] for c in cases}):
+        d, _, g = plies[2]
+        f = cfg.cloth.flyaways and cfg.cloth.flyaways.model_copy(update={"curve": curve})
+        c = cfg.model_copy(update={"cloth": cfg.cloth.model_copy(update={"flyaways": f})})
+        (d / curve).mkdir(exist_ok=True)
+        hairs[curve] = flyaways(c, d / curve, g, yarn_spec(cfg.cloth), root)[1]
+    for _, _, per_segment, curve in cases:
+        d, info, g = plies[per_segment]
+        geometry[per_segment, curve] = d / f"geometry_{curve}.json"
+        geometry[per_segment, curve].write_text(json.dumps({"plies": str(d / "plies.txt"), "radius": g.radius,
+                                                            "flyaways": hairs[curve], "bbox": info["bbox_mm"]}))
     rows = []
-    for rr, ovl, per_segment in cases:
-        rows.append(_child("speed", config, root, rr, str(geometry[per_segment]), tmp, ovl))
-        rows[-1].update(ply_samples_per_segment=per_segment,
-                        ply_points=json.loads(geometry[per_segment].read_text())["control_points"])
+    for rr, ovl, per_segment, curve in cases:
+        rows.append(_child("speed", config, root, rr, str(geometry[per_segment, curve]), tmp, ovl))
+        rows[-1].update(ply_samples_per_segment=per_segment, ply_points=plies[per_segment][2].control_points,
+                        hairs=curve)
     for r in rows:
         r["cost"] = r["seconds"] * r["variance_per_spp"]
     for r in rows:
         r["speed_up"] = rows[0]["seconds"] / r["seconds"]
         r["speed_up_equal_noise"] = rows[0]["cost"] / r["cost"]
-        print(f"[speed] shadow_rr {r['shadow_rr']}, overlaps {r['overlaps']}, plies {r['ply_points']:,} control points: "
+        print(f"[speed] shadow_rr {r['shadow_rr']}, overlaps {r['overlaps']}, plies {r['ply_points']:,} control points, "
+              f"hairs {r['hairs']}: "
               f"{r['seconds']:.2f} s ({SPEED_SIZE[0]} x {SPEED_SIZE[1]} x "
               f"{SPEED_SPP} spp), mean {r['mean']:.5f}, x{r['speed_up']:.2f} faster, x{r['speed_up_equal_noise']:.2f} "
               "at equal noise", flush=True)

@@ -163,7 +163,7 @@ def flyaways(cfg, out: Path, geometry, yarn, out_root) -> tuple[dict, dict | Non
     spec = HairSpec.from_zhao(zhao2016_row(f.yarn or cfg.cloth.yarn), yarn.r_ply, f.density_scale)
     # the fibers' radius scaled with the ply, as the plies' own fibers (models.cloth.fibers)
     radius = cfg.fiber.radius_um * yarn.r_ply / cfg.bundle.bounding_radius_um()
-    hairs = hair_flyaways(geometry.curves, yarn.r_ply, spec, seed=f.seed, hair_radius=radius)
+    hairs = hair_flyaways(geometry.curves, yarn.r_ply, spec, seed=f.seed, hair_radius=radius, curve=f.curve)
     with atomic_path(out / "flyaways.txt") as tmp, open(tmp, "w") as fh:
         write_mitsuba_curves(fh, hairs)
     # the hairs leave their fibers as the bake's fibers do (closure.explicit_fiber)
@@ -171,7 +171,7 @@ def flyaways(cfg, out: Path, geometry, yarn, out_root) -> tuple[dict, dict | Non
     fiber = closure.explicit_fiber(fiber_table_path(cfg, out_root), exit_model, 550.0)
     for key in ("wavelength", "up"):  # spectral renders use every wavelength; curves have their own frame
         fiber.pop(key)
-    shape = {"type": "bsplinecurve", "filename": str(out / "flyaways.txt"), "bsdf": fiber}
+    shape = {"type": f.curve, "filename": str(out / "flyaways.txt"), "bsdf": fiber}
     info = {"hairs": len(hairs), "control_points": int(sum(len(h) for h in hairs)), "fiber_radius_mm": radius,
             "hairs_per_mm": spec.density, "yarn": f.yarn or cfg.cloth.yarn, "density_scale": f.density_scale,
             "plugin": fiber["type"], "seconds": time.perf_counter() - t0}
