@@ -64,8 +64,9 @@ class LinearCurves:
     so one fiber's frame keeps its sense along it), and ``dp_du = 2 pi r s``, round the
     curve as on ``bsplinecurve``, so that the radius is read as there.
 
-    Built once per scene (``bundle_path`` does, before tracing); :meth:`fix` is traced into
-    the kernel. An empty list fixes nothing and costs nothing.
+    Built once per scene (``bundle_path`` does, at its first render of the scene), so curves
+    moved afterwards through ``mi.traverse`` keep the frames of where they were; :meth:`fix`
+    is traced into the kernel. An empty list fixes nothing and costs nothing.
     """
 
     def __init__(self, shapes):
