@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_ext.frame import LinearCurves
+from mitsuba_ext.frame import SINGLE_FIBERS, fiber_on_linear_curve
 
 
 
@@ -123,10 +123,10 @@ def check_bundles(scene) -> list[str]:
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         plugin = getattr(bsdf, "plugin", None)
-        if plugin not in ("fiber_bundle", "fiber_table", "fiber_ray"):
+        if plugin not in ("fiber_bundle",) + SINGLE_FIBERS:
             continue
         kind = shape.shape_type()
-        single = plugin != "fiber_bundle"
+        single = plugin in SINGLE_FIBERS
         if kind not in curves + ((int(mi.ShapeType.LinearCurve),) if single else ()):
             problems.append(f"shape '{shape.id()}' ({mi.ShapeType(kind).name}) has a {plugin} BSDF, which is "
                             "defined on 'cylinder' and 'bsplinecurve' shapes only"
@@ -156,7 +156,7 @@ def check_integrator(scene) -> str | None:
     why = []
     if any(getattr(shape.bsdf(), "plugin", None) == "fiber_bundle" for shape in scene.shapes()):
         why.append("fiber_bundle BSDFs need the bundle_path integrator (passthrough, displaced exits)")
-    if LinearCurves(scene.shapes()):
+    if any(map(fiber_on_linear_curve, scene.shapes())):
         why.append("fiber BSDFs on 'linearcurve' need the bundle_path integrator (their tangent frame)")
     if why:
         return (f"the scene's {' and its '.join(why)}, but its integrator is {integrator}: "

@@ -55,6 +55,15 @@ def bundle_frame(si, up, twist, twist_rate):
     return x, t, z
 
 
+SINGLE_FIBERS = ("fiber_table", "fiber_ray")   # the plugins of one fiber (not a bundle)
+
+
+def fiber_on_linear_curve(shape) -> bool:
+    """Whether ``shape`` is a ``linearcurve`` carrying a single-fiber BSDF (:class:`LinearCurves`)."""
+    return (shape.shape_type() == int(mi.ShapeType.LinearCurve)
+            and getattr(shape.bsdf(), "plugin", None) in SINGLE_FIBERS)
+
+
 class LinearCurves:
     """The ``linearcurve`` shapes of a scene that carry a fiber BSDF, with what their hits
     lack: Mitsuba 3.9's ``linearcurve`` sets no derivative round the curve (``dp_du = 0``),
@@ -71,11 +80,7 @@ class LinearCurves:
 
     def __init__(self, shapes):
         self.curves = []
-        for shape in shapes:
-            if shape.shape_type() != int(mi.ShapeType.LinearCurve):
-                continue
-            if getattr(shape.bsdf(), "plugin", None) not in ("fiber_table", "fiber_ray"):
-                continue
+        for shape in filter(fiber_on_linear_curve, shapes):
             params = mi.traverse(shape)
             segments, points = mi.UInt32(params["segment_indices"]), mi.Float(params["control_points"])
             dr.make_opaque(segments, points)  # evaluated once: the kernel reads them, the same each render

@@ -420,7 +420,7 @@ def measure_speed(config, root, quick, tmp) -> list:
         c = cfg.model_copy(update={"cloth": cfg.cloth.model_copy(update={"flyaways": f})})
         (d / curve).mkdir(exist_ok=True)
         hairs[curve] = flyaways(c, d / curve, g, yarn_spec(cfg.cloth), root)[1]
-    for _, _, per_segment, curve in cases:
+    for per_segment, curve in {c[2:] for c in cases}:
         d, info, g = plies[per_segment]
         geometry[per_segment, curve] = d / f"geometry_{curve}.json"
         geometry[per_segment, curve].write_text(json.dumps({"plies": str(d / "plies.txt"), "radius": g.radius,
