@@ -30,9 +30,23 @@ if [ ! -x .venv/bin/python ]; then
 fi
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     echo "[setup] installing the project with extras [$extras]"
-    # torch==2.13.0 is a CPU build on this machine's disk; pin it first so that the
-    # range in pyproject resolves to it instead of downloading a CUDA build.
-    if [[ "$extras" == *train* || "$extras" == *test* ]]; then .venv/bin/pip install -q "torch==2.13.0"; fi
-    .venv/bin/pip install -q -e ".[${extras}]"
+    # uv resolves and installs in seconds what pip takes a minute for (docs/BENCHMARKS.md,
+    # "The whole default pipeline"); pip stays the fallback where uv cannot be had.
+    if [ -x .venv/bin/uv ] || .venv/bin/pip install -q uv >/dev/null 2>&1; then
+        install() { .venv/bin/uv pip install -q --python .venv/bin/python "$@"; }
+    else
+        install() { .venv/bin/pip install -q "$@"; }
+    fi
+    # torch==2.13.0 is a CPU build on this machine's disk (pip's find-links, /opt/wheels);
+    # install that file first so that the range in pyproject resolves to it instead of
+    # downloading a CUDA build (uv does not read pip's find-links, so it is given the file).
+    if [[ "$extras" == *train* || "$extras" == *test* ]]; then
+        wheel=""
+        for dir in ${PIP_FIND_LINKS:-} /opt/wheels; do
+            for f in "$dir"/torch-2.13.0+cpu-*.whl; do [ -f "$f" ] && wheel="$f" && break 2; done
+        done
+        if [ -n "$wheel" ]; then install --no-deps "$wheel"; else .venv/bin/pip install -q "torch==2.13.0"; fi
+    fi
+    install -e ".[${extras}]"
     touch "$stamp"
 fi
