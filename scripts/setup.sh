@@ -31,9 +31,12 @@ fi
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     echo "[setup] installing the project with extras [$extras]"
     # uv resolves and installs in seconds what pip takes a minute for (docs/BENCHMARKS.md,
-    # "The whole default pipeline"); pip stays the fallback where uv cannot be had.
+    # "The whole default pipeline"); pip stays the fallback where uv cannot be had. Both
+    # compile the bytecode at install (uv only when asked): with PYTHONDONTWRITEBYTECODE
+    # set, as on some machines, every process would otherwise compile torch's sources
+    # again (~10 s).
     if [ -x .venv/bin/uv ] || .venv/bin/pip install -q uv >/dev/null 2>&1; then
-        install() { .venv/bin/uv pip install -q --python .venv/bin/python "$@"; }
+        install() { .venv/bin/uv pip install -q --compile-bytecode --python .venv/bin/python "$@"; }
     else
         install() { .venv/bin/pip install -q "$@"; }
     fi
