@@ -35,11 +35,14 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     # compile the bytecode at install (uv only when asked): with PYTHONDONTWRITEBYTECODE
     # set, as on some machines, every process would otherwise compile torch's sources
     # again (~10 s).
-    if [ -x .venv/bin/uv ] || .venv/bin/pip install -q uv >/dev/null 2>&1; then
-        install() { .venv/bin/uv pip install -q --compile-bytecode --python .venv/bin/python "$@"; }
-    else
-        install() { .venv/bin/pip install -q "$@"; }
-    fi
+    [ -x .venv/bin/uv ] || .venv/bin/pip install -q uv >/dev/null 2>&1 || echo "[setup] no uv: installing with pip"
+    install() {
+        if [ -x .venv/bin/uv ]; then
+            .venv/bin/uv pip install -q --compile-bytecode --python .venv/bin/python "$@" && return
+            echo "[setup] uv could not install $*; trying pip"
+        fi
+        .venv/bin/pip install -q "$@"
+    }
     # torch==2.13.0 is a CPU build on this machine's disk (pip's find-links, /opt/wheels);
     # install that file first so that the range in pyproject resolves to it instead of
     # downloading a CUDA build (uv does not read pip's find-links, so it is given the file).
