@@ -119,7 +119,7 @@ def check_bundles(scene) -> list[str]:
     shape's is named (the shape's is used).
     """
     problems = []
-    curves = (int(mi.ShapeType.Cylinder), int(mi.ShapeType.BSplineCurve))
+    tangent_shapes = (int(mi.ShapeType.Cylinder), int(mi.ShapeType.BSplineCurve))
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         plugin = getattr(bsdf, "plugin", None)
@@ -127,7 +127,7 @@ def check_bundles(scene) -> list[str]:
             continue
         kind = shape.shape_type()
         single = plugin in SINGLE_FIBERS
-        if kind not in curves + ((int(mi.ShapeType.LinearCurve),) if single else ()):
+        if kind not in tangent_shapes and not fiber_on_linear_curve(shape):
             problems.append(f"shape '{shape.id()}' ({mi.ShapeType(kind).name}) has a {plugin} BSDF, which is "
                             "defined on 'cylinder' and 'bsplinecurve' shapes only"
                             + (" (and 'linearcurve')" if single else "")
