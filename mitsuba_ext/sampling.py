@@ -42,6 +42,10 @@ class DirectionGrid:
         self.uniform = float(uniform)
         self.phi_i = np.asarray(phi_i, float)
         self.theta_i = np.asarray(theta_i, float)
+        if len(self.theta_i) > 1:
+            mid = 0.5 * (self.theta_i[1:] + self.theta_i[:-1])
+            self.theta_i_cells = Cells(np.concatenate([[self.theta_i[0] - 1.0], mid, [self.theta_i[-1] + 1.0]]))
+            self.theta_i_cells.upload(Float)
         self.phi_o_edges = np.asarray(phi_o_edges, float)
         self.theta_o_edges = np.asarray(theta_o_edges, float)
         self.theta_cells = Cells(self.theta_o_edges)
@@ -74,11 +78,8 @@ class DirectionGrid:
             step = 2 * np.pi / n_pi
             t = (phi_i - float(self.phi_i[0])) / step
             a = self.UInt(dr.round(t - dr.floor(t / n_pi) * n_pi)) % n_pi
-        if n_ti == 1:
-            b = self.UInt(0)
-        else:
-            step = float(self.theta_i[1] - self.theta_i[0])
-            b = self.UInt(dr.clip(dr.round((theta_i - float(self.theta_i[0])) / step), 0, n_ti - 1))
+        # theta_i: the cell of theta_i between the midpoints of its (possibly graded) nodes
+        b = self.UInt(0) if n_ti == 1 else self.theta_i_cells.index(theta_i, xp=dr)
         return a * n_ti + b
 
     def _cell_of(self, phi_o, theta_o):

@@ -178,9 +178,10 @@ class BundleTable:
             raise ValueError("theta_o_edges are not symmetric about 0, which the theta_i mirror reduction needs")
 
     def check_lookup(self) -> None:
-        """What the lookups (numpy and Dr.Jit) assume beyond :meth:`validate`: equal steps on
-        every axis but theta_o's bins (the baker itself takes any theta_i nodes)."""
-        for name in ("theta_i", "phi_o_edges") + (("phi_i",) if len(self.phi_i) > 1 else ()):
+        """What the lookups (numpy and Dr.Jit) assume beyond :meth:`validate`: equal steps in
+        phi (``phi_i`` nodes, ``phi_o`` bins); ``theta_i`` nodes may be graded and ``theta_o``
+        bins unequal."""
+        for name in ("phi_o_edges",) + (("phi_i",) if len(self.phi_i) > 1 else ()):
             step = np.diff(np.asarray(getattr(self, name), float))
             if len(step) and np.ptp(step) > 1e-6 * max(1.0, float(np.abs(step).max())):
                 raise ValueError(f"axis {name}: steps {step.min():.6g} .. {step.max():.6g}; the lookup needs equal steps")

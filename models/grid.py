@@ -43,10 +43,10 @@ def linear(grid, x, periodic: bool = False, xp=np):
     ``value = (1 - w) v[i0] + w v[i1]``.
 
     Periodic grids are uniform over ``[grid[0], grid[0] + 2 pi)``; other grids clamp ``x``
-    to their range (a constant extension at the ends). numpy reads any sorted grid (by
-    search, so exactly ``w = 0`` on a node); Dr.Jit needs uniform steps (its arithmetic is
-    the same to float32 rounding), and reads a NaN as ``grid[0]`` (it must not become an
-    index).
+    to their range (a constant extension at the ends) and may be graded (a bake's theta_i
+    nodes, finer near grazing). numpy finds the interval by search (exactly ``w = 0`` on a
+    node); Dr.Jit by arithmetic on uniform steps, else by :class:`Cells` of the nodes (the
+    same to float32 rounding), and reads a NaN as ``grid[0]`` (it must not become an index).
     """
     grid = np.asarray(grid, np.float64)
     n = len(grid)
@@ -78,11 +78,16 @@ def linear(grid, x, periodic: bool = False, xp=np):
         i0 = UInt(dr.clip(i0f, 0, n - 1))
         return i0, dr.select(i0 + 1 >= n, 0, i0 + 1), t - i0f
     steps = np.diff(grid)
-    if not np.allclose(steps, steps[0], rtol=1e-6, atol=0):
-        raise ValueError("Dr.Jit node interpolation needs uniformly spaced nodes")
-    t = dr.clip((x - float(grid[0])) * float(1.0 / steps[0]), 0.0, float(n - 1))
-    i0f = dr.minimum(dr.floor(t), float(n - 2))
-    return UInt(i0f), UInt(i0f) + 1, t - i0f
+    if np.allclose(steps, steps[0], rtol=1e-6, atol=0):
+        t = dr.clip((x - float(grid[0])) * float(1.0 / steps[0]), 0.0, float(n - 1))
+        i0f = dr.minimum(dr.floor(t), float(n - 2))
+        return UInt(i0f), UInt(i0f) + 1, t - i0f
+    # graded nodes: the interval is the cell of x among the nodes, then its own step
+    x = dr.clip(x, float(grid[0]), float(grid[-1]))
+    i0 = Cells(grid).index(x, xp=dr)
+    nodes = Float(grid.astype(np.float32))
+    lo, hi = dr.gather(Float, nodes, i0), dr.gather(Float, nodes, i0 + 1)
+    return i0, i0 + 1, dr.clip((x - lo) / (hi - lo), 0.0, 1.0)
 
 
 def cell(x, lo: float, span: float, n: int, periodic: bool = False, tie: float = 0.0, xp=np):
@@ -113,41 +118,58 @@ def bin_solid_angle(phi_edges, theta_edges) -> np.ndarray:
 # Cells between any sorted edges, and the theta_o axis that follows the specular cone
 # ------------------------------------------------------------------------------
 
-def cone_edges(period: float, cone_bin: float, coarse_per_gap: int = 1) -> np.ndarray:
+def cone_nodes(nodes) -> np.ndarray:
+    """The cones ``theta_o = -theta_i`` of a bake's ``theta_i`` nodes (radians), mirrored and
+    with both poles: sorted, unique. ``nodes``: the nodes, or a step (nodes at its multiples)."""
+    if np.ndim(nodes) == 0:
+        period = float(nodes)
+        P = int(round(np.pi / period))
+        if P < 1 or abs(P * period - np.pi) > 1e-9:
+            raise ValueError(f"a cone layout needs theta_i nodes that divide 180 deg (step {np.rad2deg(period):g} deg)")
+        return -np.pi / 2 + period * np.arange(P + 1)
+    t = np.abs(np.asarray(nodes, np.float64))
+    if np.any(t > np.pi / 2 + 1e-9):
+        raise ValueError("theta_i nodes must lie within +-90 deg")
+    cones = np.concatenate([-t, t, [-np.pi / 2, np.pi / 2]])
+    cones = np.sort(np.clip(cones, -np.pi / 2, np.pi / 2))
+    return cones[np.concatenate([[True], np.diff(cones) > 1e-9])]
+
+
+def cone_edges(nodes, cone_bin: float, coarse_per_gap: int = 1) -> np.ndarray:
     """``theta_o`` edges (radians) that follow the specular cone of parallel fibers.
 
     Light from ``theta_i`` leaves on the cone ``theta_o = -theta_i``, a ridge as wide as the
-    fiber's longitudinal lobe. The bake's ``theta_i`` nodes are multiples of ``period``, so
-    their cones are too: each gets a bin of width ``cone_bin`` centred on it, and each gap
-    between two cones ``coarse_per_gap`` equal bins. At the poles (+-90 deg, the grazing
-    nodes, whose cone has no width) the half cone bin joins its neighbour. The lookup reads
-    every node at the same offset from its own cone (``models.bundle_table.cone_lookup``),
-    so at and between nodes the cone's light sits in the middle of a narrow bin instead of
-    on the edge of two wide ones. ``P (coarse_per_gap + 1) - 1`` bins for ``P = pi /
-    period``; symmetric about 0 (the theta mirror maps bins onto bins).
+    fiber's longitudinal lobe. Every cone of the bake's ``theta_i`` nodes (:func:`cone_nodes`:
+    ``nodes`` are the nodes, or a step for nodes at its multiples) gets a bin of width
+    ``cone_bin`` centred on it, and each gap between two cones ``coarse_per_gap`` equal bins.
+    At the poles (+-90 deg, the grazing nodes, whose cone has no width) the half cone bin
+    joins its neighbour. The lookup reads every node at the same offset from its own cone
+    (``models.bundle_table.cone_lookup``), so at and between nodes the cone's light sits in
+    the middle of a narrow bin instead of on the edge of two wide ones. ``G (coarse_per_gap
+    + 1) - 1`` bins for ``G`` gaps between cones (``pi / step`` for equal steps); symmetric
+    about 0 (the theta mirror maps bins onto bins).
     """
-    P = int(round(np.pi / period))
-    if P < 1 or abs(P * period - np.pi) > 1e-9:
-        raise ValueError(f"a cone layout needs theta_i nodes that divide 180 deg (step {np.rad2deg(period):g} deg)")
-    if not 0.0 < cone_bin < period:
-        raise ValueError(f"the cone bin ({np.rad2deg(cone_bin):g} deg) must be narrower than the theta_i step "
-                         f"({np.rad2deg(period):g} deg)")
+    cones = cone_nodes(nodes)
+    gaps = np.diff(cones)
+    if not 0.0 < cone_bin < gaps.min():
+        raise ValueError(f"the cone bin ({np.rad2deg(cone_bin):g} deg) must be narrower than the narrowest gap "
+                         f"between theta_i nodes ({np.rad2deg(gaps.min()):g} deg)")
     if coarse_per_gap < 1:
         raise ValueError(f"a cone layout needs at least one bin between two cones (got {coarse_per_gap})")
-    cones = -np.pi / 2 + period * np.arange(P + 1)
+    G = len(gaps)
     edges = [-np.pi / 2]
-    for k in range(P):  # the gap between cones k and k + 1, its cone bins' halves cut off
+    for k in range(G):  # the gap between cones k and k + 1, its cone bins' halves cut off
         lo, hi = cones[k] + cone_bin / 2, cones[k + 1] - cone_bin / 2
         inner = list(np.linspace(lo, hi, coarse_per_gap + 1))
-        edges += inner[(0 if k else 1):(len(inner) if k < P - 1 else -1)]
+        edges += inner[(0 if k else 1):(len(inner) if k < G - 1 else -1)]
     edges.append(np.pi / 2)
     return np.array(edges)
 
 
-def cone_bin_counts(period: float, max_count: int = 3600) -> list:
-    """The bin counts a cone layout can have for theta_i nodes ``period`` apart."""
-    P = int(round(np.pi / period))
-    return [P * (m + 1) - 1 for m in range(1, max_count // P + 1) if P * (m + 1) - 1 <= max_count]
+def cone_bin_counts(nodes, max_count: int = 3600) -> list:
+    """The bin counts a cone layout can have for these ``theta_i`` nodes (or this step)."""
+    G = len(cone_nodes(nodes)) - 1
+    return [G * (m + 1) - 1 for m in range(1, max_count // G + 1) if G * (m + 1) - 1 <= max_count]
 
 
 class Cells:

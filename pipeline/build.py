@@ -105,7 +105,7 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     twisted = isinstance(bundle, bundles.TwistedBundle)
     bundle = cross_section(bundle)
     mirror_theta = bool(fiber.meta.get("mirror_symmetric", True)) and not twisted
-    theta_i = theta_nodes(c.theta_i_step_deg, negative=not mirror_theta, poles=not twisted)
+    theta_i = theta_nodes(c.theta_i_nodes_deg(), negative=not mirror_theta, poles=not twisted)
     # an ellipse: its x and z mirrors; twisted, the half turns about y (exact: a shift by half
     # a turn) and about x and z (each a mirror of the cross-section with theta flipped)
     phi_i = c.phi_i(bundle.is_circle)

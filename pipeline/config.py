@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from models.grid import cone_bin_counts, cone_edges
+from models.grid import cone_bin_counts, cone_edges, cone_nodes
 
 
 # Which config sections each stage's artifact depends on (its provenance hash)
@@ -141,12 +141,14 @@ class Fiber(Strict):
         return self
 
 
-def theta_nodes(step_deg: float, negative: bool = False, poles: bool = True) -> np.ndarray:
-    """A bake's incident longitudes (radians) every ``step_deg``: ``0..90`` deg, or
-    ``-90..90`` with ``negative``; ``poles=False`` leaves out +-90 deg (a twisted ply's)."""
-    step = np.deg2rad(step_deg)
-    # clipped: the last node of the arange can exceed pi/2 by a rounding error
-    nodes = np.clip(np.arange(-np.pi / 2 if negative else 0.0, np.pi / 2 + 1e-9, step), -np.pi / 2, np.pi / 2)
+def theta_nodes(nodes_deg, negative: bool = False, poles: bool = True) -> np.ndarray:
+    """A bake's incident longitudes (radians) from its nodes ``0..90`` deg (or a step
+    between them): ``0..90`` deg, or ``-90..90`` with ``negative``; ``poles=False`` leaves
+    out +-90 deg (a twisted ply's)."""
+    if np.ndim(nodes_deg) == 0:  # clipped: the arange's last node can pass 90 by a rounding error
+        nodes_deg = np.clip(np.arange(0.0, 90.0 + 1e-9, float(nodes_deg)), 0.0, 90.0)
+    half = np.deg2rad(np.asarray(nodes_deg, np.float64))
+    nodes = np.concatenate([-half[::-1][half[::-1] > 0], half]) if negative else half
     return nodes if poles else nodes[np.abs(nodes) < np.pi / 2 - 1e-9]
 
 
@@ -285,7 +287,10 @@ class BakeCfg(Strict):
     estimator: Literal["fast", "thesis"] = "fast"
     paths_per_phi_i: int = Field(1_000_000, ge=1, le=10_000_000_000)
     batch_paths: int = Field(65536, ge=64, le=1 << 22)
-    theta_i_step_deg: float = Field(10.0, gt=0.0, le=90.0)
+    theta_i_step_deg: Optional[float] = Field(10.0, gt=0.0, le=90.0)
+    theta_i_deg: Optional[list[float]] = Field(
+        None, description="the incident longitudes 0..90 deg themselves, when not every theta_i_step_deg: "
+                          "graded nodes, e.g. finer near grazing (0 and 90 included, increasing)")
     phi_i_step_deg: float = Field(15.0, gt=0.0, le=90.0, description="ellipse only")
     n_theta_o: int = Field(36, ge=2, le=3600)
     n_phi_o: int = Field(72, ge=4, le=7200)
@@ -305,9 +310,36 @@ class BakeCfg(Strict):
     @field_validator("theta_i_step_deg", "phi_i_step_deg")
     @classmethod
     def _divides_90(cls, v):
-        if abs(90.0 / v - round(90.0 / v)) > 1e-9:
+        if v is not None and abs(90.0 / v - round(90.0 / v)) > 1e-9:
             raise ValueError(f"must divide 90 evenly (got {v})")
         return v
+
+    @field_validator("theta_i_deg")
+    @classmethod
+    def _graded_nodes(cls, v):
+        if v is None:
+            return v
+        t = np.asarray(v, float)
+        if len(t) < 2 or t[0] != 0.0 or t[-1] != 90.0 or np.any(np.diff(t) <= 0):
+            raise ValueError(f"must run from 0 to 90 deg, increasing, with at least two nodes (got {v}), "
+                             "e.g. [0, 15, 30, 45, 60, 70, 75, 80, 85, 90]")
+        return [float(x) for x in t]
+
+    @model_validator(mode="after")
+    def _one_node_rule(self):
+        if self.theta_i_deg is not None and self.theta_i_step_deg is not None \
+                and "theta_i_step_deg" in self.model_fields_set:
+            raise ValueError("theta_i_deg and theta_i_step_deg both set: give the nodes or their step, not both "
+                             "(theta_i_step_deg: null to take the nodes)")
+        if self.theta_i_deg is None and self.theta_i_step_deg is None:
+            raise ValueError("theta_i_step_deg: null needs the nodes themselves in theta_i_deg")
+        return self
+
+    def theta_i_nodes_deg(self) -> np.ndarray:
+        """The incident longitudes ``0..90`` deg: ``theta_i_deg``, else every ``theta_i_step_deg``."""
+        if self.theta_i_deg is not None:
+            return np.asarray(self.theta_i_deg, float)
+        return np.clip(np.arange(0.0, 90.0 + 1e-9, self.theta_i_step_deg), 0.0, 90.0)
 
     @property
     def n_batches(self) -> int:
@@ -335,24 +367,27 @@ class BakeCfg(Strict):
             raise ValueError(f"n_theta_o: must be even so that the symmetry mirrors map bins onto bins (got "
                              f"{self.n_theta_o}), or use theta_o_layout: cone")
         if self.theta_o_layout == "cone":
-            step = np.deg2rad(self.theta_i_step_deg)
-            counts = cone_bin_counts(step)
+            nodes = np.deg2rad(self.theta_i_nodes_deg())
+            counts = cone_bin_counts(nodes)
+            which = (f"every {self.theta_i_step_deg:g} deg" if self.theta_i_deg is None
+                     else f"at {', '.join(f'{t:g}' for t in self.theta_i_deg)} deg")
             if self.n_theta_o not in counts:
-                raise ValueError(f"n_theta_o: {self.n_theta_o} bins cannot follow the cones of theta_i nodes every "
-                                 f"{self.theta_i_step_deg:g} deg; a cone layout has {', '.join(map(str, counts[:4]))}, "
-                                 "... bins (a cone bin per node and equal bins between)")
-            if self.cone_bin_deg >= self.theta_i_step_deg:
-                raise ValueError(f"cone_bin_deg: {self.cone_bin_deg:g} must be narrower than theta_i_step_deg "
-                                 f"({self.theta_i_step_deg:g})")
+                raise ValueError(f"n_theta_o: {self.n_theta_o} bins cannot follow the cones of theta_i nodes {which}; "
+                                 f"a cone layout has {', '.join(map(str, counts[:4]))}, ... bins (a cone bin per "
+                                 "node and equal bins between)")
+            narrowest = float(np.rad2deg(np.diff(cone_nodes(nodes)).min()))
+            if self.cone_bin_deg >= narrowest:
+                raise ValueError(f"cone_bin_deg: {self.cone_bin_deg:g} must be narrower than the narrowest step "
+                                 f"between theta_i nodes ({narrowest:g} deg)")
         return self
 
     def theta_o_edges(self) -> np.ndarray:
         """The bake's theta_o bin edges (radians)."""
         if self.theta_o_layout == "uniform":
             return np.linspace(-np.pi / 2, np.pi / 2, self.n_theta_o + 1)
-        step = np.deg2rad(self.theta_i_step_deg)
-        per_gap = (self.n_theta_o + 1) // int(round(np.pi / step)) - 1
-        return cone_edges(step, np.deg2rad(self.cone_bin_deg), per_gap)
+        nodes = np.deg2rad(self.theta_i_nodes_deg())
+        per_gap = (self.n_theta_o + 1) // (len(cone_nodes(nodes)) - 1) - 1
+        return cone_edges(nodes, np.deg2rad(self.cone_bin_deg), per_gap)
 
 
 class TrainCfg(Strict):
@@ -571,7 +606,7 @@ class Config(Strict):
         circle = self.bundle.shape == "circle" and self.bundle.arrangement != "zhao2016"
         n_phi_i = len(b.phi_i(circle))
         twisted = self.bundle.twist is not None
-        return n_phi_i, len(theta_nodes(b.theta_i_step_deg, negative=expanded or twisted, poles=not twisted))
+        return n_phi_i, len(theta_nodes(b.theta_i_nodes_deg(), negative=expanded or twisted, poles=not twisted))
 
     @model_validator(mode="after")
     def _render_model_is_trained(self):
@@ -610,7 +645,7 @@ class Config(Strict):
             raise ValueError(f"the bake's table needs about {need / 2**30:.1f} GiB ({n_phi_i} x {n_theta_i} x "
                              f"{b.n_phi_o} x {b.n_theta_o} bins x {self.wavelengths.count} wavelengths), more than "
                              f"half of this machine's {have / 2**30:.0f} GiB: use fewer bins (bake.n_theta_o, "
-                             "bake.n_phi_o), a coarser bake.theta_i_step_deg or fewer wavelengths")
+                             "bake.n_phi_o), fewer theta_i nodes (bake.theta_i_step_deg) or fewer wavelengths")
         if self.bundle.arrangement == "poisson":
             # the fibers it would place: the bundle's area over a fiber's, times the packing
             # (a Poisson disk of minimum distance 2 r fills about 0.55); said here, not after

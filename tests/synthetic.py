@@ -15,14 +15,14 @@ from pipeline.config import BAKE_SECTIONS, load_config
 WL = [450.0, 550.0, 650.0]
 
 
-def synthetic_table(cfg, path, relative=True, dynamic_range=1e5, passthrough=0.0, cone=None):
+def synthetic_table(cfg, path, relative=True, dynamic_range=1e5, passthrough=0.0, cone=None, theta_i_deg=None):
     """A bake-like table of a ridge on the cone; ``cone``: theta_o bins of the cone layout
-    with a bin of ``cone`` degrees on every node's cone and one bin between (nodes 15 deg
-    apart), else 18 equal bins."""
-    theta_i = np.deg2rad(np.arange(0, 91, 15.0))
+    with a bin of ``cone`` degrees on every node's cone and one bin between, else 18 equal
+    bins; theta_i nodes 15 deg apart, or ``theta_i_deg`` (0..90, e.g. graded)."""
+    theta_i = np.deg2rad(np.arange(0, 91, 15.0) if theta_i_deg is None else np.asarray(theta_i_deg, float))
     phi_i = np.zeros(1) if relative else np.deg2rad([0.0, 45.0, 90.0])
     pe = np.linspace(-np.pi, np.pi, 37)
-    te = cone_edges(np.deg2rad(15.0), np.deg2rad(cone)) if cone else np.linspace(-np.pi / 2, np.pi / 2, 19)
+    te = cone_edges(theta_i, np.deg2rad(cone)) if cone else np.linspace(-np.pi / 2, np.pi / 2, 19)
     pc, tc = 0.5 * (pe[1:] + pe[:-1]), 0.5 * (te[1:] + te[:-1])
     PI, TI, PO, TO = np.meshgrid(phi_i, theta_i, pc, tc, indexing="ij")
 

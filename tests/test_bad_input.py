@@ -90,6 +90,18 @@ CASES = {
     "cone bin wider than the step": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
         "theta_o_layout": "cone", "n_theta_o": 35, "theta_i_step_deg": 10, "cone_bin_deg": 12}))],
         ["cone_bin_deg", "narrower"]),
+    "graded nodes not from 0 to 90": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
+        "theta_i_deg": [0, 30, 60, 85]}))], ["bake.theta_i_deg", "from 0 to 90"]),
+    "graded nodes and a step": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
+        "theta_i_deg": [0, 45, 80, 90], "theta_i_step_deg": 10}))], ["theta_i_deg and theta_i_step_deg"]),
+    "no theta_i nodes": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={"theta_i_step_deg": None}))],
+                         ["theta_i_step_deg: null", "theta_i_deg"]),
+    "graded nodes, wrong cone bin count": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
+        "theta_o_layout": "cone", "n_theta_o": 36, "theta_i_deg": [0, 45, 80, 90]}))],
+        ["n_theta_o: 36", "at 0, 45, 80, 90 deg", "11, 17"]),
+    "graded nodes closer than the cone bin": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
+        "theta_o_layout": "cone", "n_theta_o": 11, "theta_i_deg": [0, 45, 88, 90], "cone_bin_deg": 2.5}))],
+        ["cone_bin_deg", "narrowest", "2 deg"]),
     "odd uniform bin count": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={"n_theta_o": 35}))],
                               ["n_theta_o", "even", "theta_o_layout: cone"]),
     "a million batches": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={"paths_per_phi_i": 10**9,

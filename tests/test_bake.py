@@ -95,17 +95,19 @@ def test_single_fiber_reproduces_its_model(request, estimator, which):
     assert np.allclose(bal["absorbed"][0], 1 - albedo, atol=1e-6)
 
 
-def test_single_fiber_in_cone_bins_reproduces_its_model(ray_fiber):
+@pytest.mark.parametrize("theta_i", [(0.0, 30.0, 60.0), (0.0, 45.0, 75.0, 90.0)], ids=["step", "graded"])
+def test_single_fiber_in_cone_bins_reproduces_its_model(ray_fiber, theta_i):
     """The cone layout's unequal theta_o bins (a 6 deg bin on each node's cone, two bins
-    between): the bake tallies each escaping direction into its own bin and divides by
-    that bin's solid angle, so one fiber's table is the model averaged over those bins
-    (an independent quadrature of the fiber model), within Monte Carlo error, and the
-    cone's bin holds more than its equal-bin neighbours (a uniform tally would smear it)."""
+    between), for nodes every 30 deg and for graded nodes: the bake tallies each escaping
+    direction into its own bin and divides by that bin's solid angle, so one fiber's table
+    is the model averaged over those bins (an independent quadrature of the fiber model),
+    within Monte Carlo error, and the cone's bin holds more than its equal-bin neighbours
+    (a uniform tally would smear it)."""
     from models.grid import cone_edges
 
     one = Bundle([[0.0, 0.0]], 20.0, (20.0, 20.0), "one fiber")
-    edges = cone_edges(np.deg2rad(30.0), np.deg2rad(6.0), 2)
-    table = bake(one, ray_fiber, "fast", paths=60_000, theta_o_edges=edges)
+    edges = cone_edges(np.deg2rad(theta_i), np.deg2rad(6.0), 2)
+    table = bake(one, ray_fiber, "fast", paths=60_000, theta_i=theta_i, theta_o_edges=edges)
     assert np.array_equal(table.theta_o_edges, edges) and table.values.shape[3] == 17
     for j in range(len(table.theta_i)):
         ref = bin_average(ray_fiber, table, j)

@@ -30,12 +30,17 @@ def _awkward(rng, nodes, n=4000):
                            [nodes[0] - 1.0, nodes[-1] + 1.0]])
 
 
-@pytest.mark.parametrize("periodic", [False, True])
-def test_node_interpolation_agrees(dr_float, periodic):
+GRADED = [0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 75.0, 80.0, 85.0, 90.0]  # theta_i nodes finer near grazing
+
+
+@pytest.mark.parametrize("periodic,graded", [(False, False), (True, False), (False, True)])
+def test_node_interpolation_agrees(dr_float, periodic, graded):
     import drjit as dr
 
     rng = np.random.default_rng(3)
-    nodes = (np.linspace(-np.pi, np.pi, 72, endpoint=False) if periodic else np.deg2rad(np.arange(0, 91, 5.0)))
+    nodes = (np.linspace(-np.pi, np.pi, 72, endpoint=False) if periodic
+             else np.deg2rad(np.concatenate([-np.array(GRADED[:0:-1]), GRADED])) if graded
+             else np.deg2rad(np.arange(0, 91, 5.0)))
     values = rng.uniform(0.5, 2.0, len(nodes))
     x = _awkward(rng, nodes) + (rng.uniform(-10, 10, 1) if periodic else 0)
     i0, i1, w = grid.linear(nodes, x, periodic=periodic)
@@ -43,9 +48,12 @@ def test_node_interpolation_agrees(dr_float, periodic):
     j0, j1, v = grid.linear(nodes, dr_float(x), periodic=periodic, xp=dr)
     got = (1 - v.numpy()) * values[j0.numpy()] + v.numpy() * values[j1.numpy()]
     # float32 input: the value moves by at most the slope times the input's rounding
-    slope = np.max(np.abs(np.diff(values))) / np.min(np.diff(nodes)[:1] if not periodic else [2 * np.pi / 72])
+    slope = np.max(np.abs(np.diff(values))) / (np.min(np.diff(nodes)) if not periodic else 2 * np.pi / 72)
     assert np.allclose(got, want, rtol=0, atol=slope * 1e-5 * (1 + np.abs(x)).max())
     assert np.all((v.numpy() >= 0) & (v.numpy() <= 1))
+    if not periodic:  # interpolating the nodes themselves gives x back, clamped to the ends
+        assert np.allclose((1 - v.numpy()) * nodes[j0.numpy()] + v.numpy() * nodes[j1.numpy()],
+                           np.clip(x, nodes[0], nodes[-1]), rtol=0, atol=1e-5 * (1 + np.abs(x)).max())
 
 
 @pytest.mark.parametrize("periodic", [False, True])
@@ -84,9 +92,31 @@ def test_cone_edges_centre_a_narrow_bin_on_every_cone():
         gaps = np.diff(e)[1:-1]
         assert np.allclose(np.sort(gaps)[-(P - 2) * m:], (step - width) / m)  # the bins between cones
     for bad in [(np.deg2rad(7.0), np.deg2rad(2.0), 1), (np.deg2rad(10.0), np.deg2rad(10.0), 1),
-                (np.deg2rad(10.0), np.deg2rad(2.0), 0)]:
+                (np.deg2rad(10.0), np.deg2rad(2.0), 0), (np.deg2rad(GRADED), np.deg2rad(5.0), 1)]:
         with pytest.raises(ValueError):
             grid.cone_edges(*bad)
+
+
+@pytest.mark.parametrize("m", [1, 2])
+def test_cone_edges_of_graded_nodes(m):
+    """Graded theta_i nodes (finer near grazing): a cone bin centred on the cone of every
+    node and its mirror, ``m`` equal bins in every gap between two cones, however wide; the
+    nodes at a step give the same edges as the step itself."""
+    nodes, width = np.deg2rad(GRADED), np.deg2rad(2.0)
+    e = grid.cone_edges(nodes, width, m)
+    cones = np.deg2rad(sorted({-t for t in GRADED} | set(GRADED)))
+    assert len(e) - 1 == (len(cones) - 1) * (m + 1) - 1 == grid.cone_bin_counts(nodes)[m - 1]
+    assert e[0] == -np.pi / 2 and e[-1] == np.pi / 2 and np.all(np.diff(e) > 0)
+    assert np.allclose(e, -e[::-1], atol=1e-12)
+    cells = grid.Cells(e)
+    for cone in cones[1:-1]:
+        k = int(cells.index(np.array(cone)))
+        assert np.isclose(e[k + 1] - e[k], width) and np.isclose(0.5 * (e[k] + e[k + 1]), cone)
+    for lo, hi in zip(cones[1:-2], cones[2:-1]):  # the gap between two inner cones: m equal bins
+        inside = e[(e > lo + 1e-9) & (e < hi - 1e-9)]
+        assert len(inside) == m + 1 and np.allclose(np.diff(inside), (hi - lo - width) / m)
+    assert np.allclose(grid.cone_edges(np.deg2rad(np.arange(0, 91, 10.0)), width, m),
+                       grid.cone_edges(np.deg2rad(10.0), width, m), atol=1e-12)
 
 
 @pytest.mark.parametrize("edges", ["cone", "random"])
@@ -112,18 +142,21 @@ def test_cells_of_unequal_edges_on_both_backends(dr_float, edges):
     assert np.array_equal(cells.index(dr_float(below), tie=grid.TIE, xp=dr).numpy(), np.arange(1, len(e) - 1))
 
 
-@pytest.mark.parametrize("relative,cone", [(True, False), (False, False), (True, True)])
-def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, relative, cone):
+@pytest.mark.parametrize("relative,cone,graded", [(True, False, False), (False, False, False), (True, True, False),
+                                                  (False, True, True)])
+def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, relative, cone, graded):
     """numpy's ``lookup`` and the plugin's ``DrJitTable`` are one algorithm (``cone_lookup``):
     they agree to float32 rounding on random directions and on every direction where a
     backend's trigonometry decides the bin (the cone at a theta_i node lies on a theta_o
-    edge; dphi = 0 and pi lie on phi_o edges; the poles)."""
+    edge; dphi = 0 and pi lie on phi_o edges; the poles), with theta_i nodes 15 deg apart
+    or graded."""
 
     from mitsuba_ext.table import DrJitTable
     from models.bundle_table import BundleTable
 
     cfg = make_config(tmp_path)
-    synthetic_table(cfg, tmp_path / "t.npz", relative=relative, cone=3.0 if cone else None)
+    synthetic_table(cfg, tmp_path / "t.npz", relative=relative, cone=3.0 if cone else None,
+                    theta_i_deg=GRADED if graded else None)
     table = BundleTable.load(tmp_path / "t.npz", expand=True)
     rng = np.random.default_rng(5)
     n = 3000
@@ -145,3 +178,24 @@ def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, rel
         scale = table.values.max()
         bad = ~np.isclose(got, want, rtol=1e-4, atol=1e-5 * scale)
         assert not bad.any(), (mode, np.argwhere(bad)[:5], got[bad][:5], want[bad][:5])
+
+
+def test_importance_sampler_conditions_on_the_nearest_graded_node(dr_float):
+    """The plugin's sampler draws from the distribution of the ``theta_i`` node nearest the
+    light, graded nodes too: its condition index against a search for the nearest node."""
+    from mitsuba_ext.sampling import DirectionGrid
+
+    nodes = np.deg2rad(np.concatenate([-np.array(GRADED[:0:-1]), GRADED]))
+    phi_i = np.deg2rad([0.0, 90.0, 180.0, 270.0])
+    pe, te = np.linspace(-np.pi, np.pi, 9), np.linspace(-np.pi / 2, np.pi / 2, 5)
+    sampler = DirectionGrid(np.ones((len(phi_i), len(nodes), 8, 4)), phi_i, nodes, pe, te, False, dr_float)
+    rng = np.random.default_rng(4)
+    theta = np.concatenate([rng.uniform(-np.pi / 2, np.pi / 2, 4000), nodes, [-2.0, 2.0]])
+    phi = rng.uniform(-3 * np.pi, 3 * np.pi, len(theta))
+    cond = sampler._condition(dr_float(phi), dr_float(theta)).numpy()
+    b = np.argmin(np.abs(theta[:, None] - nodes[None, :]), 1)
+    a = np.round(np.mod(phi, 2 * np.pi) / (np.pi / 2)).astype(int) % 4
+    near_tie = np.min(np.abs(np.abs(theta[:, None] - nodes) - np.abs(theta[:, None] - nodes[b][:, None])) +
+                      np.where(np.arange(len(nodes)) == b[:, None], 9.0, 0.0), 1) < 1e-5
+    ok = (cond == a * len(nodes) + b) | near_tie
+    assert ok.all(), (theta[~ok][:5], cond[~ok][:5], (a * len(nodes) + b)[~ok][:5])

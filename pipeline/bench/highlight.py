@@ -4,13 +4,16 @@ directions on the specular cone, for theta_o layouts side by side (docs/BENCHMAR
     python -m pipeline.bench.highlight [CONFIG] [--artifacts DIR] [--paths N] [--spp N]
 
 The config's ply (its fiber table from ``bcsdf run`` / ``bcsdf fiber``) is baked once per
-layout with the same paths and seed: ``uniform 36`` (36 equal 5 deg bins, the layout before
-the cone one), ``cone 35`` (a 2 deg bin on every node's cone, one 8 deg bin between: the
-default's) and ``uniform 180`` (1 deg bins, five times the bytes: what finer bins alone
-buy). Every fiber of the ply is then rendered as its own cylinder with ``fiber_table`` (16
-turns of the arrangement) at directions exactly on the cone ``theta_o = -theta_i``:
-``theta_i`` on bake nodes and between them, ``dphi`` at the middle of a phi_o bin and on its
-edge; then again with each turn seen at its own azimuth across a phi_o bin's width (theta_o
+layout (``--layouts``) with the same paths and seed: ``uniform 36`` (36 equal 5 deg bins,
+the layout before the cone one), ``cone 35`` (a 2 deg bin on every node's cone, one bin
+between: theta_i nodes every 10 deg), ``graded cone 35`` (as many theta_i nodes, graded: 15
+deg apart up to 60, 5 deg from 60 to 80; the same bytes: the default's; ``--graded`` takes
+other nodes) and ``uniform 180`` (1 deg
+bins, five times the bytes: what finer bins alone buy). Every fiber of the ply is then
+rendered as its own cylinder with ``fiber_table`` (16 turns of the arrangement) at
+directions exactly on the cone ``theta_o = -theta_i``: ``theta_i`` on bake nodes and
+between them (each table's errors are split by its own nodes), ``dphi`` at the middle of a
+phi_o bin and on its edge; then again with each turn seen at its own azimuth across a phi_o bin's width (theta_o
 still exactly on the cone), against the lookup averaged over the same azimuths: a Mie
 fiber's azimuthal glints are finer than any phi_o bin, and this isolates the theta_o axis.
 ``--models ROOT ...``: the table baked and the models exported under those artifacts roots
@@ -34,16 +37,21 @@ from models.io import write_text
 from ..artifacts import stage_dir
 from ..config import load_config
 
+GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # the default's theta_i nodes: as many as every 10 deg
 LAYOUTS = {"uniform 36": ["bake.theta_o_layout=uniform", "bake.n_theta_o=36"],
            "cone 35": ["bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
+           "graded cone 35": ["bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2",
+                              "bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}"],
            "uniform 180": ["bake.theta_o_layout=uniform", "bake.n_theta_o=180"]}
-THETA_I = (20.0, 30.0, 45.0, 60.0, 75.0)     # deg: nodes of a 10 deg bake, and between them
+# deg: nodes of a 10 deg bake and of the graded one, and between them (65, 72.5, 77.5, 85 near grazing)
+THETA_I = (20.0, 30.0, 45.0, 60.0, 65.0, 72.5, 75.0, 77.5, 85.0)
 DPHI = (32.5, 92.5, 152.5, 30.0, 90.0, 150.0)  # deg: phi_o bin middles, then edges (5 deg bins)
 LAM = 550.0
 
 
-def bake_layouts(config, artifacts, paths: int) -> dict:
-    """``{layout: (table, bake seconds)}``: the config's ply baked once per layout."""
+def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: str = GRADED) -> dict:
+    """``{layout: (table, bake seconds)}``: the config's ply baked once per layout (``graded``:
+    the graded layout's theta_i nodes, a YAML list in degrees)."""
     import mitsuba as mi
 
     from models.fiber.base import FiberTable
@@ -53,8 +61,8 @@ def bake_layouts(config, artifacts, paths: int) -> dict:
 
     mi.set_variant("llvm_ad_rgb")
     tables, warm = {}, False
-    for name, sets in LAYOUTS.items():
-        cfg = load_config(config, sets)
+    for name in layouts:
+        cfg = load_config(config, [s.replace(GRADED, graded) for s in LAYOUTS[name]])
         fiber = FiberTable.load(stage_dir(cfg, "fiber", artifacts) / "fiber_table.npz")
         bundle = build_bundle(cfg)
         spec, _ = make_spec(cfg, bundle, fiber)
@@ -102,13 +110,13 @@ def spread(width_deg: float, n: int = 16) -> np.ndarray:
 
 
 def table_entries(tables: dict) -> dict:
-    """``{layout: (S_of, bytes, bake seconds)}``: each baked table's lookup at 550 nm."""
+    """``{layout: (S_of, bytes, bake seconds, theta_i nodes)}``: each baked table's lookup at 550 nm."""
     from models.bundle_table import lookup
 
     def reader(t):
         lam = int(np.argmin(np.abs(t.wavelength - LAM)))
         return lambda *angles: lookup(t, *angles)[..., lam]
-    return {name: (reader(t), int(t.values.nbytes), seconds) for name, (t, seconds) in tables.items()}
+    return {name: (reader(t), int(t.values.nbytes), seconds, t.theta_i) for name, (t, seconds) in tables.items()}
 
 
 def model_entries(mi, cfg, roots) -> dict:
@@ -118,13 +126,16 @@ def model_entries(mi, cfg, roots) -> dict:
     from .. import closure
     from ..artifacts import bundle_table_path
 
+    from models.bundle_table import BundleTable
+
     entries = {}
     for root in roots:
         table = bundle_table_path(cfg, root)
-        entries[f"table ({root})"] = (closure.evaluator(mi, "table", table, LAM), table.stat().st_size, None)
+        nodes = BundleTable.load(table, expand=True).theta_i
+        entries[f"table ({root})"] = (closure.evaluator(mi, "table", table, LAM), table.stat().st_size, None, nodes)
         for weights in sorted((stage_dir(cfg, "export", root)).glob("*/weights.npz")):
             entries[f"mlp {weights.parent.name} ({root})"] = (closure.evaluator(mi, "mlp", weights, LAM),
-                                                            weights.stat().st_size, None)
+                                                            weights.stat().st_size, None, nodes)
     return entries
 
 
@@ -135,22 +146,27 @@ def compare(entries: dict, explicit: list, spread_deg: float) -> dict:
               "directions": [{"theta_i": ti, "dphi": dp, "explicit": S, "explicit_err": se}
                              for ti, dp, S, se in explicit]}
     for ti, dp, S, se in explicit:
-        line = f"  theta_i {ti:4.0f}  dphi {dp:5.1f}: explicit {S:.3f} +- {se:.3f} /sr:"
-        for name, (S_of, _, _) in entries.items():
+        line = f"  theta_i {ti:5.1f}  dphi {dp:5.1f}: explicit {S:.3f} +- {se:.3f} /sr:"
+        for name, (S_of, *_) in entries.items():
             dphi = np.deg2rad(dp + spread(spread_deg))
             err = float(np.mean(S_of(0.0, np.deg2rad(ti), dphi, -np.deg2rad(ti))) / S - 1)
             result["layouts"].setdefault(name, {"errors": []})["errors"].append(err)
             line += f" {err:+.3f}"
         print(line)
-    node = np.array([ti % 10 == 0 for ti, *_ in explicit])
-    for name, (_, nbytes, seconds) in entries.items():
+    theta_i = np.deg2rad([ti for ti, *_ in explicit])
+    for name, (_, nbytes, seconds, nodes) in entries.items():
+        node = np.min(np.abs(theta_i[:, None] - np.asarray(nodes)[None, :]), 1) < 1e-6  # this table's own nodes
         e = np.abs(result["layouts"][name]["errors"])
         summary = {"bytes": nbytes, "bake_seconds": seconds, "median": float(np.median(e)),
                    "max": float(e.max()), "within_5pct": int(np.sum(e <= 0.05)), "n": len(e),
-                   "median_at_nodes": float(np.median(e[node])), "median_between": float(np.median(e[~node]))}
-        result["layouts"][name].update(summary)
+                   "median_at_nodes": float(np.median(e[node])), "median_between": float(np.median(e[~node])),
+                   "median_grazing": float(np.median(e[theta_i >= np.deg2rad(65.0) - 1e-9])),
+                   "max_grazing": float(e[theta_i >= np.deg2rad(65.0) - 1e-9].max())}
+        result["layouts"][name].update(summary, theta_i_nodes=np.rad2deg(nodes).round(6).tolist(),
+                                       at_node=node.tolist())
         print(f"[highlight] {name:11}: |error| median {summary['median']:.1%} (nodes {summary['median_at_nodes']:.1%}, "
-              f"between {summary['median_between']:.1%}), max {summary['max']:.1%}, within 5% at "
+              f"between {summary['median_between']:.1%}; theta_i >= 65: {summary['median_grazing']:.1%}, largest "
+              f"{summary['max_grazing']:.1%}), max {summary['max']:.1%}, within 5% at "
               f"{summary['within_5pct']} of {summary['n']}; {summary['bytes'] / 2**20:.2f} MiB")
     return result
 
@@ -161,13 +177,17 @@ def main(argv=None) -> int:
     p.add_argument("--artifacts", default="artifacts")
     p.add_argument("--paths", type=int, default=8_000_000, help="paths of each layout's bake")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel of each explicit render")
+    p.add_argument("--layouts", nargs="+", default=list(LAYOUTS), choices=list(LAYOUTS), metavar="LAYOUT",
+                   help="the layouts baked (" + ", ".join(map(repr, LAYOUTS)) + ")")
+    p.add_argument("--graded", default=GRADED, metavar="NODES",
+                   help=f"the graded layout's theta_i nodes in degrees, a YAML list (default {GRADED})")
     p.add_argument("--models", nargs="*", default=[], metavar="ROOT",
                    help="artifacts roots whose exported models of this config are compared too")
     args = p.parse_args(argv)
     cfg = load_config(args.config)
     if cfg.bake.exit not in ("auto", "uniform") or cfg.fiber.model == "ray" or cfg.bundle.twist is not None:
         raise SystemExit("bench.highlight compares a parallel ply with the uniform exit (fiber_table explicit fibers)")
-    entries = table_entries(bake_layouts(args.config, args.artifacts, args.paths))
+    entries = table_entries(bake_layouts(args.config, args.artifacts, args.paths, args.layouts, args.graded))
     result = {"paths": args.paths, "wavelength_nm": LAM}
     # single directions, then the mean over a phi_o bin's width of azimuths (theta_o still
     # exactly on the cone): the Mie fiber's azimuthal glints are finer than any phi_o bin,
@@ -211,7 +231,7 @@ def plot(result: dict, path) -> None:
                title="single directions" if key == "single" else
                f"azimuths averaged over {r_['spread_deg']:g} deg (a phi_o bin), theta_o on the cone")
         ax.legend(fontsize=8)
-    axes[1].set_xticks(x, [f"{r['theta_i']:.0f}/{r['dphi']:g}" for r in d], rotation=90, fontsize=7)
+    axes[1].set_xticks(x, [f"{r['theta_i']:g}/{r['dphi']:g}" for r in d], rotation=90, fontsize=7)
     axes[1].set_xlabel("theta_i / dphi (deg), on the cone theta_o = -theta_i")
     fig.suptitle(f"the highlight: table lookups against explicit fibers ({result['paths']:.3g} paths per bake, "
                  f"{result['wavelength_nm']:g} nm)")
