@@ -6,21 +6,21 @@ directions on the specular cone, for theta_o layouts side by side (docs/BENCHMAR
 The config's ply (its fiber table from ``bcsdf run`` / ``bcsdf fiber``) is baked once per
 layout (``--layouts``) with the same paths and seed: ``uniform 36`` (36 equal 5 deg bins,
 the layout before the cone one), ``cone 35`` (a 2 deg bin on every node's cone, one bin
-between: theta_i nodes every 10 deg), ``graded cone 35`` (as many theta_i nodes, graded: 15
-deg apart up to 60, 5 deg from 60 to 80; the same bytes: the default's; ``--graded`` takes
-other nodes) and ``uniform 180`` (1 deg
-bins, five times the bytes: what finer bins alone buy). Every fiber of the ply is then
-rendered as its own cylinder with ``fiber_table`` (16 turns of the arrangement) at
-directions exactly on the cone ``theta_o = -theta_i``: ``theta_i`` on bake nodes and
-between them (each table's errors are split by its own nodes), ``dphi`` at the middle of a
-phi_o bin and on its edge; then again with each turn seen at its own azimuth across a phi_o bin's width (theta_o
-still exactly on the cone), against the lookup averaged over the same azimuths: a Mie
-fiber's azimuthal glints are finer than any phi_o bin, and this isolates the theta_o axis.
+between; theta_i nodes every 10 deg, as these two), ``graded cone 35`` (as many theta_i
+nodes, graded: 15 deg apart up to 60, 5 deg from 60 to 80; the same bytes: the default's;
+``--graded`` takes other nodes) and ``uniform 180`` (1 deg bins, five times the bytes: what
+finer bins alone buy). Every fiber of the ply is then rendered as its own cylinder with
+``fiber_table`` (16 turns of the arrangement) at directions exactly on the cone ``theta_o =
+-theta_i``: ``theta_i`` on bake nodes and between them (each table's errors are split by its
+own nodes), ``dphi`` at the middle of a phi_o bin and on its edge; then again with each turn
+seen at its own azimuth across a phi_o bin's width (theta_o still exactly on the cone),
+against the lookup averaged over the same azimuths: a Mie fiber's azimuthal glints are finer
+than any phi_o bin, and this isolates the theta_o axis.
 ``--models ROOT ...``: the table baked and the models exported under those artifacts roots
 (``bcsdf bake``, ``train`` and ``export`` of this config there, e.g. with another
-``bake.theta_o_layout``) are compared too, evaluated as the plugin does. Printed: ``lookup / explicit - 1`` per direction and
-layout (or model), and for each the median and largest error, how many directions lie
-within 5%, and its bytes.
+``bake.theta_o_layout``) are compared too, evaluated as the plugin does. Printed:
+``lookup / explicit - 1`` per direction and layout (or model), and for each the median and
+largest error (also for theta_i >= 65 deg), how many directions lie within 5%, and its bytes.
 Written: ``artifacts/<name>/closure/bench_highlight.json`` and ``highlight.png``.
 """
 
@@ -38,11 +38,12 @@ from ..artifacts import stage_dir
 from ..config import load_config
 
 GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # the default's theta_i nodes: as many as every 10 deg
-LAYOUTS = {"uniform 36": ["bake.theta_o_layout=uniform", "bake.n_theta_o=36"],
-           "cone 35": ["bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
-           "graded cone 35": ["bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2",
-                              "bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}"],
-           "uniform 180": ["bake.theta_o_layout=uniform", "bake.n_theta_o=180"]}
+EVERY_10 = ["bake.theta_i_deg=null", "bake.theta_i_step_deg=10"]    # theta_i nodes every 10 deg
+LAYOUTS = {"uniform 36": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=36"],
+           "cone 35": EVERY_10 + ["bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
+           "graded cone 35": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}",
+                              "bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
+           "uniform 180": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=180"]}
 # deg: nodes of a 10 deg bake and of the graded one, and between them (65, 72.5, 77.5, 85 near grazing)
 THETA_I = (20.0, 30.0, 45.0, 60.0, 65.0, 72.5, 75.0, 77.5, 85.0)
 DPHI = (32.5, 92.5, 152.5, 30.0, 90.0, 150.0)  # deg: phi_o bin middles, then edges (5 deg bins)
@@ -123,10 +124,10 @@ def model_entries(mi, cfg, roots) -> dict:
     """``{"table (ROOT)" | "mlp SIZE (ROOT)": (S_of, bytes, None)}``: the baked table and the
     models exported under each artifacts root (``bcsdf bake`` / ``train`` / ``export`` of this
     config there), evaluated as the plugin does."""
+    from models.bundle_table import BundleTable
+
     from .. import closure
     from ..artifacts import bundle_table_path
-
-    from models.bundle_table import BundleTable
 
     entries = {}
     for root in roots:
