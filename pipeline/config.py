@@ -287,9 +287,11 @@ class BakeCfg(Strict):
     estimator: Literal["fast", "thesis"] = "fast"
     paths_per_phi_i: int = Field(1_000_000, ge=1, le=10_000_000_000)
     batch_paths: int = Field(65536, ge=64, le=1 << 22)
-    theta_i_step_deg: Optional[float] = Field(10.0, gt=0.0, le=90.0)
+    theta_i_step_deg: Optional[float] = Field(None, gt=0.0, le=90.0,
+                                              description="incident longitudes every this many deg (10 if "
+                                                          "neither this nor theta_i_deg is given)")
     theta_i_deg: Optional[list[float]] = Field(
-        None, description="the incident longitudes 0..90 deg themselves, when not every theta_i_step_deg: "
+        None, description="the incident longitudes 0..90 deg themselves, instead of theta_i_step_deg: "
                           "graded nodes, e.g. finer near grazing (0 and 90 included, increasing)")
     phi_i_step_deg: float = Field(15.0, gt=0.0, le=90.0, description="ellipse only")
     n_theta_o: int = Field(36, ge=2, le=3600)
@@ -327,19 +329,21 @@ class BakeCfg(Strict):
 
     @model_validator(mode="after")
     def _one_node_rule(self):
-        if self.theta_i_deg is not None and self.theta_i_step_deg is not None \
-                and "theta_i_step_deg" in self.model_fields_set:
+        if self.theta_i_deg is not None and self.theta_i_step_deg is not None:
             raise ValueError("theta_i_deg and theta_i_step_deg both set: give the nodes or their step, not both "
-                             "(theta_i_step_deg: null to take the nodes)")
-        if self.theta_i_deg is None and self.theta_i_step_deg is None:
-            raise ValueError("theta_i_step_deg: null needs the nodes themselves in theta_i_deg")
+                             "(e.g. --set bake.theta_i_deg=null with a step)")
         return self
 
+    @property
+    def theta_i_step(self) -> float:
+        """The step of the incident longitudes (deg) when they are not listed."""
+        return 10.0 if self.theta_i_step_deg is None else self.theta_i_step_deg
+
     def theta_i_nodes_deg(self) -> np.ndarray:
-        """The incident longitudes ``0..90`` deg: ``theta_i_deg``, else every ``theta_i_step_deg``."""
+        """The incident longitudes ``0..90`` deg: ``theta_i_deg``, else every :attr:`theta_i_step`."""
         if self.theta_i_deg is not None:
             return np.asarray(self.theta_i_deg, float)
-        return np.clip(np.arange(0.0, 90.0 + 1e-9, self.theta_i_step_deg), 0.0, 90.0)
+        return np.clip(np.arange(0.0, 90.0 + 1e-9, self.theta_i_step), 0.0, 90.0)
 
     @property
     def n_batches(self) -> int:
@@ -369,7 +373,7 @@ class BakeCfg(Strict):
         if self.theta_o_layout == "cone":
             nodes = np.deg2rad(self.theta_i_nodes_deg())
             counts = cone_bin_counts(nodes)
-            which = (f"every {self.theta_i_step_deg:g} deg" if self.theta_i_deg is None
+            which = (f"every {self.theta_i_step:g} deg" if self.theta_i_deg is None
                      else f"at {', '.join(f'{t:g}' for t in self.theta_i_deg)} deg")
             if self.n_theta_o not in counts:
                 raise ValueError(f"n_theta_o: {self.n_theta_o} bins cannot follow the cones of theta_i nodes {which}; "

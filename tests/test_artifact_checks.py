@@ -35,7 +35,7 @@ CASES = {
     "passthrough above 1": (dict(passthrough=lambda p: p * 0 + 1.7), "passthrough reaches 1.7"),
     "negative passthrough": (dict(passthrough=lambda p: p * 0 - 0.5), "passthrough holds negative"),
     "passthrough of the wrong length": (dict(passthrough=lambda p: np.concatenate([p, p])), "passthrough has shape"),
-    "uneven theta_i": (dict(theta_i=lambda t: t ** 1.3 / t.max() ** 0.3), "axis theta_i: steps"),
+    "theta_i out of order": (dict(theta_i=lambda t: t[::-1]), "axis theta_i: must increase"),
     "uneven phi_o edges": (dict(phi_o_edges=lambda e: np.pi * np.sign(e) * (np.abs(e) / np.pi) ** 1.2),
                            "axis phi_o_edges: steps"),
     "unknown phi_o reduction": (dict(meta=lambda m: {**m, "reductions": {**m["reductions"], "phi_o": "sideways"}}),

@@ -94,8 +94,6 @@ CASES = {
         "theta_i_deg": [0, 30, 60, 85]}))], ["bake.theta_i_deg", "from 0 to 90"]),
     "graded nodes and a step": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
         "theta_i_deg": [0, 45, 80, 90], "theta_i_step_deg": 10}))], ["theta_i_deg and theta_i_step_deg"]),
-    "no theta_i nodes": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={"theta_i_step_deg": None}))],
-                         ["theta_i_step_deg: null", "theta_i_deg"]),
     "graded nodes, wrong cone bin count": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
         "theta_o_layout": "cone", "n_theta_o": 36, "theta_i_deg": [0, 45, 80, 90]}))],
         ["n_theta_o: 36", "at 0, 45, 80, 90 deg", "11, 17"]),

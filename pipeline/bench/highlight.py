@@ -41,7 +41,7 @@ GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # the default's theta_i node
 EVERY_10 = ["bake.theta_i_deg=null", "bake.theta_i_step_deg=10"]    # theta_i nodes every 10 deg
 LAYOUTS = {"uniform 36": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=36"],
            "cone 35": EVERY_10 + ["bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
-           "graded cone 35": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}",
+           "graded cone 35": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}",  # the default's
                               "bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
            "uniform 180": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=180"]}
 # deg: nodes of a 10 deg bake and of the graded one, and between them (65, 72.5, 77.5, 85 near grazing)

@@ -139,7 +139,7 @@ def run(cfg, out_root="artifacts") -> Path:
 def _nodes_said(b) -> str:
     """The bake's theta_i nodes in words: their step, or the graded nodes themselves."""
     if b.theta_i_deg is None:
-        return f"{b.theta_i_step_deg:g} deg apart"
+        return f"{b.theta_i_step:g} deg apart"
     return "at " + ", ".join(f"{t:g}" for t in b.theta_i_deg) + " deg"
 
 
