@@ -227,6 +227,41 @@ def test_table_lookup_keeps_its_bin_averages_and_moves_the_ridge_with_the_cone(t
     del table
 
 
+def misses_on_the_cone(mi, bundle, fiber_path, tables: dict, cases) -> dict:
+    """``{table name: [(lookup / explicit - 1, its 1 sigma), ...]}`` per ``(theta_i, dphi)``
+    case (deg): the fibers of ``bundle``, each its own cylinder with ``fiber_table``, rendered
+    with theta_o exactly on the specular cone (16 turns, each at its own azimuth across 10
+    deg), against each table's lookup averaged over the same azimuths; sigma from the
+    explicit views and the table's own error in the cone bins of the nodes its lookup blends."""
+    import mitsuba_ext
+
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    lam = list(WL).index(LAM)
+    bsdf = {"type": "fiber_table", "filename": str(fiber_path), "wavelength": LAM, "up": closure.UP}
+    spread = np.deg2rad(10.0) * ((np.arange(16) + 0.5) / 16 - 0.5)
+    measured = closure.explicit_intensities(
+        mi, bundle, bsdf, [(closure.direction(0.0, np.deg2rad(ti)),
+                            [closure.direction(np.deg2rad(dp) + o, -np.deg2rad(ti)) for o in spread])
+                           for ti, dp in cases], spp=8, resolution=32)
+    misses = {}
+    for name, t in tables.items():
+        misses[name] = []
+        for (ti, dp), (I, se) in zip(cases, measured):
+            S = lookup(t, 0.0, np.deg2rad(ti), np.deg2rad(dp) + spread, -np.deg2rad(ti))[:, lam].mean()
+            k_p = int(np.searchsorted(t.phi_o_edges, np.deg2rad(dp)) - 1)
+            near = np.argsort(np.abs(t.theta_i - np.deg2rad(ti)))[:2]
+            blended = near[:1] if np.isclose(t.theta_i[near[0]], np.deg2rad(ti)) else near
+            rel = []
+            for j in blended:  # the bin on (or, on an edge, below) the node's cone
+                k_t = int(np.searchsorted(t.theta_o_edges, -t.theta_i[j] - 1e-9) - 1)
+                rel.append(t.stderr[0, j, k_p, k_t, lam] / t.values[0, j, k_p, k_t, lam])
+            I_table = closure.predicted_intensity(1.0, bundle.bounding_radius * 1e-3, np.deg2rad(ti), S)
+            misses[name].append((I_table / I - 1, np.hypot(max(rel), se / I)))
+    print({k: np.round(v, 3).tolist() for k, v in misses.items()})
+    return misses
+
+
 def test_cone_layout_reads_the_highlight_where_equal_bins_miss_it(mono, tmp_path):
     """The highlight's resolution in small (``make bench-highlight`` measures the default
     ply): six ray-optics fibers (beta_m 0.1: longitudinal lobes of about 5 deg for R and
@@ -239,7 +274,6 @@ def test_cone_layout_reads_the_highlight_where_equal_bins_miss_it(mono, tmp_path
     the same bytes) put the cone on a bin edge and miss it by more (the test's power)."""
     import mitsuba as mi
 
-    import mitsuba_ext
     from models.bundle import poisson
     from models.fiber.ray import RayFiber
     from models.grid import cone_edges
@@ -252,28 +286,8 @@ def test_cone_layout_reads_the_highlight_where_equal_bins_miss_it(mono, tmp_path
     kw = dict(paths=1_000_000, theta_i=(20, 30, 60), n_phi_o=36)
     tables = {"cone": bake(bundle, fiber, n_theta_o=35, theta_o_edges=cone_edges(np.deg2rad(10), np.deg2rad(2)), **kw),
               "equal": bake(bundle, fiber, n_theta_o=36, **kw)}
-    mi.set_variant("llvm_ad_mono")
-    mitsuba_ext.register()
-    lam = list(WL).index(LAM)
-    bsdf = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": LAM, "up": closure.UP}
     cases = [(ti, dp) for ti in (20.0, 30.0, 60.0) for dp in (95.0, 155.0)]   # middles of 10-deg phi_o bins
-    spread = np.deg2rad(10.0) * ((np.arange(16) + 0.5) / 16 - 0.5)
-    measured = closure.explicit_intensities(
-        mi, bundle, bsdf, [(closure.direction(0.0, np.deg2rad(ti)),
-                            [closure.direction(np.deg2rad(dp) + o, -np.deg2rad(ti)) for o in spread])
-                           for ti, dp in cases], spp=8, resolution=32)
-    misses = {}
-    for name, t in tables.items():
-        misses[name] = []
-        for (ti, dp), (I, se) in zip(cases, measured):
-            S = lookup(t, 0.0, np.deg2rad(ti), np.deg2rad(dp) + spread, -np.deg2rad(ti))[:, lam].mean()
-            j = int(np.argmin(np.abs(t.theta_i - np.deg2rad(ti))))
-            k_p = int(np.searchsorted(t.phi_o_edges, np.deg2rad(dp)) - 1)
-            k_t = int(np.searchsorted(t.theta_o_edges, -np.deg2rad(ti) - 1e-9) - 1)  # the bin on or below the cone
-            rel_err = t.stderr[0, j, k_p, k_t, lam] / t.values[0, j, k_p, k_t, lam]
-            I_table = closure.predicted_intensity(1.0, bundle.bounding_radius * 1e-3, np.deg2rad(ti), S)
-            misses[name].append((I_table / I - 1, np.hypot(rel_err, se / I)))
-    print({k: np.round(v, 3).tolist() for k, v in misses.items()})
+    misses = misses_on_the_cone(mi, bundle, tmp_path / "fiber.npz", tables, cases)
     cone, equal = np.array(misses["cone"]), np.array(misses["equal"])
     assert np.all(np.abs(cone[:, 0]) <= 0.05 + 3 * cone[:, 1]), cone
     assert np.sum(np.abs(equal[:, 0]) > 0.05 + 3 * equal[:, 1]) >= 3, equal
@@ -290,7 +304,6 @@ def test_graded_nodes_read_the_grazing_highlight_between_nodes(mono, tmp_path):
     (the test's power; it also fails a Dr.Jit or numpy lookup that blends the wrong nodes)."""
     import mitsuba as mi
 
-    import mitsuba_ext
     from models.bundle import poisson
     from models.fiber.mie import MieFiber
     from models.grid import cone_edges
@@ -303,30 +316,8 @@ def test_graded_nodes_read_the_grazing_highlight_between_nodes(mono, tmp_path):
     nodes = {"every 10": (0, 10, 20, 30, 40, 50, 60, 70, 80, 90), "graded": (0, 15, 30, 45, 60, 65, 70, 75, 80, 90)}
     tables = {name: bake(bundle, fiber, paths=1_000_000, theta_i=t, n_phi_o=36, n_theta_o=35,
                          theta_o_edges=cone_edges(np.deg2rad(t), np.deg2rad(2))) for name, t in nodes.items()}
-    mi.set_variant("llvm_ad_mono")
-    mitsuba_ext.register()
-    lam = list(WL).index(LAM)
-    bsdf = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": LAM, "up": closure.UP}
     cases = [(ti, dp) for ti in (65.0, 72.5, 75.0, 77.5) for dp in (35.0, 95.0, 155.0)]  # 10-deg phi_o bin middles
-    spread = np.deg2rad(10.0) * ((np.arange(16) + 0.5) / 16 - 0.5)
-    measured = closure.explicit_intensities(
-        mi, bundle, bsdf, [(closure.direction(0.0, np.deg2rad(ti)),
-                            [closure.direction(np.deg2rad(dp) + o, -np.deg2rad(ti)) for o in spread])
-                           for ti, dp in cases], spp=8, resolution=32)
-    misses = {}
-    for name, t in tables.items():
-        misses[name] = []
-        for (ti, dp), (I, se) in zip(cases, measured):
-            S = lookup(t, 0.0, np.deg2rad(ti), np.deg2rad(dp) + spread, -np.deg2rad(ti))[:, lam].mean()
-            # the table's own error: the larger of the two blended nodes', in their cone bins
-            k_p = int(np.searchsorted(t.phi_o_edges, np.deg2rad(dp)) - 1)
-            rel = []
-            for j in np.argsort(np.abs(t.theta_i - np.deg2rad(ti)))[:2]:
-                k_t = int(np.searchsorted(t.theta_o_edges, -t.theta_i[j]) - 1)
-                rel.append(t.stderr[0, j, k_p, k_t, lam] / t.values[0, j, k_p, k_t, lam])
-            I_table = closure.predicted_intensity(1.0, bundle.bounding_radius * 1e-3, np.deg2rad(ti), S)
-            misses[name].append((I_table / I - 1, np.hypot(max(rel), se / I)))
-    print({k: np.round(v, 3).tolist() for k, v in misses.items()})
+    misses = misses_on_the_cone(mi, bundle, tmp_path / "fiber.npz", tables, cases)
     graded, coarse = np.array(misses["graded"]), np.array(misses["every 10"])
     assert np.all(np.abs(graded[:, 0]) <= 0.05 + 3 * graded[:, 1]), graded
     assert np.sum(np.abs(coarse[:, 0]) > 0.05 + 3 * coarse[:, 1]) >= 6, coarse
