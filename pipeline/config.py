@@ -142,11 +142,9 @@ class Fiber(Strict):
 
 
 def theta_nodes(nodes_deg, negative: bool = False, poles: bool = True) -> np.ndarray:
-    """A bake's incident longitudes (radians) from its nodes ``0..90`` deg (or a step
-    between them): ``0..90`` deg, or ``-90..90`` with ``negative``; ``poles=False`` leaves
-    out +-90 deg (a twisted ply's)."""
-    if np.ndim(nodes_deg) == 0:  # clipped: the arange's last node can pass 90 by a rounding error
-        nodes_deg = np.clip(np.arange(0.0, 90.0 + 1e-9, float(nodes_deg)), 0.0, 90.0)
+    """A bake's incident longitudes (radians) from its nodes ``0..90`` deg
+    (:meth:`BakeCfg.theta_i_nodes_deg`): ``0..90`` deg, or ``-90..90`` with ``negative``;
+    ``poles=False`` leaves out +-90 deg (a twisted ply's)."""
     half = np.deg2rad(np.asarray(nodes_deg, np.float64))
     nodes = np.concatenate([-half[::-1][half[::-1] > 0], half]) if negative else half
     return nodes if poles else nodes[np.abs(nodes) < np.pi / 2 - 1e-9]
@@ -343,7 +341,14 @@ class BakeCfg(Strict):
         """The incident longitudes ``0..90`` deg: ``theta_i_deg``, else every :attr:`theta_i_step`."""
         if self.theta_i_deg is not None:
             return np.asarray(self.theta_i_deg, float)
+        # clipped: the arange's last node can pass 90 by a rounding error
         return np.clip(np.arange(0.0, 90.0 + 1e-9, self.theta_i_step), 0.0, 90.0)
+
+    def theta_i_said(self) -> str:
+        """The incident longitudes in words, for messages and the report."""
+        if self.theta_i_deg is None:
+            return f"every {self.theta_i_step:g} deg"
+        return "at " + ", ".join(f"{t:g}" for t in self.theta_i_deg) + " deg"
 
     @property
     def n_batches(self) -> int:
@@ -373,10 +378,9 @@ class BakeCfg(Strict):
         if self.theta_o_layout == "cone":
             nodes = np.deg2rad(self.theta_i_nodes_deg())
             counts = cone_bin_counts(nodes)
-            which = (f"every {self.theta_i_step:g} deg" if self.theta_i_deg is None
-                     else f"at {', '.join(f'{t:g}' for t in self.theta_i_deg)} deg")
             if self.n_theta_o not in counts:
-                raise ValueError(f"n_theta_o: {self.n_theta_o} bins cannot follow the cones of theta_i nodes {which}; "
+                raise ValueError(f"n_theta_o: {self.n_theta_o} bins cannot follow the cones of theta_i nodes "
+                                 f"{self.theta_i_said()}; "
                                  f"a cone layout has {', '.join(map(str, counts[:4]))}, ... bins (a cone bin per "
                                  "node and equal bins between)")
             narrowest = float(np.rad2deg(np.diff(cone_nodes(nodes)).min()))

@@ -61,7 +61,7 @@ def run(cfg, out_root="artifacts") -> Path:
         b = cfg.bake
         body += (f"<p>Output bins: {b.n_phi_o} in phi_o; {b.n_theta_o} in theta_o, "
                  + (f"following the specular cone (a {b.cone_bin_deg:g}-deg bin centred on the cone of every "
-                    f"theta_i node ({_nodes_said(b)}), equal bins between)"
+                    f"theta_i node ({b.theta_i_said()}), equal bins between)"
                     if b.theta_o_layout == "cone" else "equal") + ".</p>")
         if "reductions" in s:
             r = s["reductions"]
@@ -134,13 +134,6 @@ def run(cfg, out_root="artifacts") -> Path:
     write_text(out / "index.html", page)
     print(f"[report] wrote {out / 'index.html'}")
     return out
-
-
-def _nodes_said(b) -> str:
-    """The bake's theta_i nodes in words: their step, or the graded nodes themselves."""
-    if b.theta_i_deg is None:
-        return f"{b.theta_i_step:g} deg apart"
-    return "at " + ", ".join(f"{t:g}" for t in b.theta_i_deg) + " deg"
 
 
 def _f4(x: float) -> str:
