@@ -323,23 +323,25 @@ def cone_lookup(reader, phi_i, theta_i, phi_o, theta_o, nearest: bool, xp=np):
     half_pi = float(np.pi / 2)
     theta_i = xp.clip(theta_i, -half_pi, half_pi)
     u, sin_i = xp.sin(theta_o), xp.sin(theta_i)
+    # the theta_i nodes and their cones' shifts are the same for every phi_i node
+    corners = node_corners(reader.theta_i, theta_i, False, nearest, xp)
+    shifts = [sin_i - reader.sin_theta_i(b) for b, _ in corners]
+    # light shifted past a pole comes back over it at phi + pi. A lane near the lower pole
+    # takes it from the node below (shift >= 0), near the upper pole from the node above
+    # (shift <= 0): one read per lane, not one per node
+    (b0, w0), (b1, w1) = corners[0], corners[-1]
+    s0, s1 = shifts[0], shifts[-1]
+    lower = u < 0.0
+    s_pole = select(lower, s0, s1)
+    back = select(lower, (s0 > 0) & (u <= s0 - 1.0), (s1 < 0) & (u >= 1.0 + s1))
+    u_back = select(lower, -2.0 - u + s_pole, 2.0 - u + s_pole)
+    b_back, w_back = select(lower, b0, b1), select(lower, w0, w1)
     for a, wa in node_corners(reader.phi_i, phi_i, True, nearest, xp):
-        corners = node_corners(reader.theta_i, theta_i, False, nearest, xp)
-        shifts = [sin_i - reader.sin_theta_i(b) for b, _ in corners]
         # each node read at the same distance from its own cone, in u = sin(theta_o) ...
         for (b, wb), s in zip(corners, shifts):
             reader.read(a, b, phi_o, u + s, select(xp.abs(u + s) <= 1.0, wa * wb, 0.0))
-        # ... and its light shifted past a pole comes back over it at phi + pi. A lane near
-        # the lower pole takes it from the node below (s >= 0), near the upper pole from the
-        # node above (s <= 0): one read per lane, not one per node
-        (b0, w0), (b1, w1) = corners[0], corners[-1]
-        s0, s1 = shifts[0], shifts[-1]
-        lower = u < 0.0
-        s = select(lower, s0, s1)
-        back = select(lower, (s0 > 0) & (u <= s0 - 1.0), (s1 < 0) & (u >= 1.0 + s1))
-        u_back = select(lower, -2.0 - u + s, 2.0 - u + s)
-        reader.read(a, select(lower, b0, b1), phi_o + float(np.pi), u_back,
-                    select(back, wa * select(lower, w0, w1), 0.0))
+        # ... and the light it shifted past a pole
+        reader.read(a, b_back, phi_o + float(np.pi), u_back, select(back, wa * w_back, 0.0))
 
 
 def cell_offsets(phi_o0, n_phi, theta_cells: Cells, phi, u, xp=np):
