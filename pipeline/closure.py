@@ -146,13 +146,31 @@ def rendered_intensity(mi, scene, w_o, half_size) -> float:
     return intensity(render_image(mi, scene), w_o, half_size)
 
 
-def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float) -> dict:
+def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float | None) -> dict:
     """The BSDF of one explicit fiber that leaves as a bake with ``exit_model`` does:
     ``fiber_ray`` (each path from its own exit) for the h-resolved ``lobe`` exit,
     ``fiber_table`` (the displaced exit of ``bundle_path``, h uniform) otherwise. The
-    ``entry`` exit has no explicit counterpart yet; it is compared with ``fiber_table``."""
+    ``entry`` exit has no explicit counterpart yet; it is compared with ``fiber_table``.
+    ``wavelength_nm``: what a mono variant renders; ``None`` for a spectral variant."""
     plugin = "fiber_ray" if exit_model == "lobe" else "fiber_table"
-    return {"type": plugin, "filename": str(fiber_table), "wavelength": float(wavelength_nm), "up": UP}
+    bsdf = {"type": plugin, "filename": str(fiber_table), "up": UP}
+    return bsdf if wavelength_nm is None else {**bsdf, "wavelength": float(wavelength_nm)}
+
+
+def luminance_weights(mi, wavelength_nm) -> np.ndarray:
+    """Weights ``w`` with ``sum_k w_k S_k`` = the luminance a spectral variant's
+    ``luminance`` film records of the table spectrum ``S_k`` under a flat light.
+
+    The plugins interpolate a table's wavelengths linearly and hold the end values
+    beyond them (``mitsuba_ext.bsdf``); Mitsuba's film weighs each sampled wavelength by
+    its own CIE 1931 ``y`` (an analytic fit, ``mi.cie1931_y``, not the tabulated
+    observer) over its sampling range, normalized so that a flat spectrum of 1 reads 1.
+    """
+    wl = np.asarray(wavelength_nm, np.float64)
+    fine = np.linspace(360.0, 830.0, 4701)      # Mitsuba's CIE range, 0.1 nm
+    y_bar = np.asarray(mi.cie1931_y(mi.Float(fine)), np.float64)
+    hats = np.stack([np.interp(fine, wl, np.eye(len(wl))[k]) for k in range(len(wl))])
+    return hats @ y_bar / y_bar.sum()
 
 
 def explicit_shapes(bundle, fiber_bsdf: dict, half_length: float, unit: float = 1e-3) -> dict:
@@ -345,18 +363,28 @@ def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
 
 
 # -- measurements over many directions (the render stage and bench_closure) ------------
-def evaluator(mi, kind: str, path, wavelength_nm: float):
+def evaluator(mi, kind: str, path, wavelength_nm: float | None):
     """``S_of(pi, ti, po, to)``: what a renderer is given, at the wavelength nearest
-    ``wavelength_nm``, evaluated the way its own code does, outside any render: a float
-    for scalar angles, an array for arrays (broadcast; one evaluation for all of them).
+    ``wavelength_nm`` (``None``: the luminance a spectral render records,
+    :func:`luminance_weights`), evaluated the way its own code does, outside any render:
+    a float for scalar angles, an array for arrays (broadcast; one evaluation for all).
 
-    ``kind``: ``fiber`` (a ``fiber_table.npz``, numpy), ``table`` (a ``bundle_table.npz``,
-    the numpy lookup), ``mlp`` (``weights.npz``, Dr.Jit) or ``onnx`` (``model.onnx``,
-    onnxruntime).
+    ``kind``: ``fiber`` (a ``fiber_table.npz``, numpy; one wavelength), ``table`` (a
+    ``bundle_table.npz``, the numpy lookup), ``mlp`` (``weights.npz``, Dr.Jit) or ``onnx``
+    (``model.onnx``, onnxruntime).
     """
+    def weights(wavelength):
+        """The table's spectrum -> the value asked for: one wavelength's, or the luminance."""
+        wl = np.asarray(wavelength, np.float64)
+        if wavelength_nm is None:
+            return luminance_weights(mi, wl)
+        return np.eye(len(wl))[int(np.argmin(np.abs(wl - wavelength_nm)))]
+
     if kind == "fiber":
         from models.fiber.base import FiberTable
 
+        if wavelength_nm is None:
+            raise ValueError("evaluator: a fiber table is evaluated at one wavelength")
         fiber = FiberTable.load(path)
         return _on_arrays(lambda pi_, ti, po, to: fiber.eval(phi_i=pi_, theta_i=ti, phi_o=po, theta_o=to,
                                                               wavelength=wavelength_nm))
@@ -364,18 +392,26 @@ def evaluator(mi, kind: str, path, wavelength_nm: float):
         from models.bundle_table import BundleTable, lookup
 
         t = BundleTable.load(path, expand=True)
-        k = int(np.argmin(np.abs(t.wavelength - wavelength_nm)))
-        return _on_arrays(lambda pi_, ti, po, to: lookup(t, pi_, ti, po, to)[..., k])
+        w = weights(t.wavelength)
+        return _on_arrays(lambda pi_, ti, po, to: lookup(t, pi_, ti, po, to) @ w)
     from mitsuba_ext.neural import DrJitMLP, OnnxMLP
 
     if kind == "mlp":
         mlp = DrJitMLP(path)
-        k = int(np.argmin(np.abs(np.asarray(mlp.spec.wavelength) - wavelength_nm)))
-        return _on_arrays(lambda *angles: mlp.eval(*(mi.Float(a.astype(np.float32)) for a in angles))[k].numpy())
+        w = weights(mlp.spec.wavelength)
+        used = np.flatnonzero(w)   # the network's other outputs are never computed
+
+        def S_mlp(*angles):
+            import drjit as dr
+
+            S = mlp.eval(*(mi.Float(a.astype(np.float32)) for a in angles))
+            dr.eval(*(S[k] for k in used))   # one kernel for every output used
+            return sum(w[k] * S[k].numpy().astype(np.float64) for k in used)
+        return _on_arrays(S_mlp)
     if kind == "onnx":
         onnx = OnnxMLP(path)
-        k = int(np.argmin(np.abs(np.asarray(onnx.spec.wavelength) - wavelength_nm)))
-        return _on_arrays(lambda *angles: onnx.eval(*(a.astype(np.float32) for a in angles))[:, k])
+        w = weights(onnx.spec.wavelength)
+        return _on_arrays(lambda *angles: onnx.eval(*(a.astype(np.float32) for a in angles)) @ w)
     raise ValueError(f"evaluator: kind {kind!r}; use fiber, table, mlp or onnx")
 
 

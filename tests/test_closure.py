@@ -150,6 +150,50 @@ def test_bundle_table_backend_renders_its_table(mono, tables, which, twist):
     assert np.allclose(r, 1.0, atol=0.01), r
 
 
+@pytest.fixture
+def spectral(mi_llvm):
+    """Mitsuba's spectral variant with the plugins registered; the session's variant after."""
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    mi.set_variant("llvm_ad_spectral")
+    mitsuba_ext.register()
+    yield mi
+    mi.set_variant("llvm_ad_rgb")
+
+
+def test_a_spectral_render_records_the_lookups_luminance(spectral, tables, tmp_path):
+    """The luminance of a spectral render (Mitsuba samples wavelengths over 360-830 nm and
+    weighs them by its own CIE y) against ``closure.luminance_weights`` applied to the
+    lookup's spectrum: the measure ``make bench-highlight`` compares the highlight in. A
+    weighting by the tabulated observer under D65 (what a mono render takes for
+    luminance) reads this red-rising table 3-4% low, and fails."""
+    mi = spectral
+    from mitsuba_ext.frame import spectral_weights
+
+    # the synthetic table, dyed: it scatters 5% in blue, 40% in green of what it does in red
+    t = BundleTable.load(tables["circle"])
+    dye = np.array([0.05, 0.4, 1.0])
+    t.absorbed = t.absorbed + t.scattered * (1 - dye)   # what the dye takes is absorbed
+    t.values, t.stderr = t.values * dye, t.stderr * dye
+    t.save(tmp_path / "dyed.npz")
+    bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "dyed.npz"), "up": closure.UP}
+    S = closure.evaluator(mi, "table", tmp_path / "dyed.npz", None)
+    pairs = pairs_deg(offsets=(0.8, -1.7))
+    rows = closure.far_field_ratios(mi, bsdf, 0.2, S, pairs, spp=64)
+    r = np.array([row[3] for row in rows])
+    print(np.round(r, 4))
+    assert len(r) >= 12 and np.allclose(r, 1.0, atol=0.01), r
+    # the power: the luminance of the tabulated observer under D65 (a mono render's), or the
+    # mean over the table's wavelengths, differs from the spectral film's here
+    t = BundleTable.load(tmp_path / "dyed.npz", expand=True)
+    spectrum = lookup(t, *np.asarray(pairs).T)
+    y_film = spectrum @ closure.luminance_weights(mi, t.wavelength)
+    for wrong in (spectral_weights(t.wavelength, "mono")[0], np.full(len(t.wavelength), 1 / len(t.wavelength))):
+        assert np.median(np.abs(spectrum @ wrong / y_film - 1)) > 0.03
+
+
 @pytest.mark.parametrize("backend", ["mlp", "onnx"])
 def test_bundle_neural_backends_render_their_model(mono, trained, backend):
     mi = mono

@@ -2,6 +2,7 @@
 directions on the specular cone, for theta_o layouts side by side (docs/BENCHMARKS.md).
 
     python -m pipeline.bench.highlight [CONFIG] [--artifacts DIR] [--paths N] [--spp N]
+                                       [--layouts L ...] [--measures {550 nm,luminance} ...]
 
 The config's ply (its fiber table from ``bcsdf run`` / ``bcsdf fiber``) is baked once per
 layout (``--layouts``) with the same paths and seed: ``uniform 36`` (36 equal 5 deg bins,
@@ -15,7 +16,13 @@ finer bins alone buy). Every fiber of the ply is then rendered as its own cylind
 own nodes), ``dphi`` at the middle of a phi_o bin and on its edge; then again with each turn
 seen at its own azimuth across a phi_o bin's width (theta_o still exactly on the cone),
 against the lookup averaged over the same azimuths: a Mie fiber's azimuthal glints are finer
-than any phi_o bin, and this isolates the theta_o axis.
+than any phi_o bin, and this isolates the theta_o axis. Each is measured (``--measures``)
+at 550 nm (mono renders, the lookups at the table's 550 nm) and in the luminance a picture
+shows (spectral renders under a flat sun, ``llvm_ad_spectral``'s luminance film, against
+the lookups weighted by ``closure.luminance_weights``): one wavelength's interference
+ripples wash out over the spectrum. For each measure the explicit fibers at single
+directions are also compared with their own mean over a phi_o bin's azimuths: structure
+that no table with these bins can hold, a floor under its single-direction errors.
 ``--models ROOT ...``: the table baked and the models exported under those artifacts roots
 (``bcsdf bake``, ``train`` and ``export`` of this config there, e.g. with another
 ``bake.theta_o_layout``) are compared too, evaluated as the plugin does. Printed:
@@ -77,10 +84,12 @@ def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: 
     return tables
 
 
-def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0) -> list:
+def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0, wavelength_nm: float | None = LAM) -> list:
     """``[(theta_i, dphi, S, S_err)]``: the explicit fibers' far field (1/sr) on the cone;
     ``spread_deg``: turn ``k`` of the 16 is seen at ``dphi + spread ((k + 0.5) / 16 - 0.5)``
-    (the mean over that azimuth range, theta_o still exactly on the cone)."""
+    (the mean over that azimuth range, theta_o still exactly on the cone). At one
+    wavelength (a mono render), or, for ``wavelength_nm=None``, the luminance of a
+    spectral render under a flat sun (``llvm_ad_spectral``, what a picture shows)."""
     import mitsuba as mi
 
     import mitsuba_ext
@@ -88,10 +97,10 @@ def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0) -> list:
     from .. import closure
     from ..build import build_bundle
 
-    mi.set_variant("llvm_ad_mono")
+    mi.set_variant("llvm_ad_mono" if wavelength_nm is not None else "llvm_ad_spectral")
     mitsuba_ext.register()
     bundle = build_bundle(cfg)
-    fiber = closure.explicit_fiber(stage_dir(cfg, "fiber", artifacts) / "fiber_table.npz", "uniform", LAM)
+    fiber = closure.explicit_fiber(stage_dir(cfg, "fiber", artifacts) / "fiber_table.npz", "uniform", wavelength_nm)
     cases = [(ti, dp) for ti in THETA_I for dp in DPHI]
     turns = 16
     requests = [(closure.direction(0.0, np.deg2rad(ti)), [closure.direction(np.deg2rad(dp + o), -np.deg2rad(ti))
@@ -110,20 +119,24 @@ def spread(width_deg: float, n: int = 16) -> np.ndarray:
     return width_deg * ((np.arange(n) + 0.5) / n - 0.5)
 
 
-def table_entries(tables: dict) -> dict:
-    """``{layout: (S_of, bytes, bake seconds, theta_i nodes)}``: each baked table's lookup at 550 nm."""
+def table_entries(mi, tables: dict, wavelength_nm: float | None = LAM) -> dict:
+    """``{layout: (S_of, bytes, bake seconds, theta_i nodes)}``: each baked table's lookup at
+    ``wavelength_nm``, or its luminance in a spectral render (``None``)."""
     from models.bundle_table import lookup
 
+    from .. import closure
+
     def reader(t):
-        lam = int(np.argmin(np.abs(t.wavelength - LAM)))
-        return lambda *angles: lookup(t, *angles)[..., lam]
+        w = (closure.luminance_weights(mi, t.wavelength) if wavelength_nm is None
+             else np.eye(len(t.wavelength))[int(np.argmin(np.abs(t.wavelength - wavelength_nm)))])
+        return lambda *angles: lookup(t, *angles) @ w
     return {name: (reader(t), int(t.values.nbytes), seconds, t.theta_i) for name, (t, seconds) in tables.items()}
 
 
-def model_entries(mi, cfg, roots) -> dict:
+def model_entries(mi, cfg, roots, wavelength_nm: float | None = LAM) -> dict:
     """``{"table (ROOT)" | "mlp SIZE (ROOT)": (S_of, bytes, None)}``: the baked table and the
     models exported under each artifacts root (``bcsdf bake`` / ``train`` / ``export`` of this
-    config there), evaluated as the plugin does."""
+    config there), evaluated as the plugin does (at ``wavelength_nm``, or the luminance)."""
     from models.bundle_table import BundleTable
 
     from .. import closure
@@ -133,9 +146,10 @@ def model_entries(mi, cfg, roots) -> dict:
     for root in roots:
         table = bundle_table_path(cfg, root)
         nodes = BundleTable.load(table, expand=True).theta_i
-        entries[f"table ({root})"] = (closure.evaluator(mi, "table", table, LAM), table.stat().st_size, None, nodes)
+        entries[f"table ({root})"] = (closure.evaluator(mi, "table", table, wavelength_nm), table.stat().st_size,
+                                      None, nodes)
         for weights in sorted((stage_dir(cfg, "export", root)).glob("*/weights.npz")):
-            entries[f"mlp {weights.parent.name} ({root})"] = (closure.evaluator(mi, "mlp", weights, LAM),
+            entries[f"mlp {weights.parent.name} ({root})"] = (closure.evaluator(mi, "mlp", weights, wavelength_nm),
                                                             weights.stat().st_size, None, nodes)
     return entries
 
@@ -172,6 +186,18 @@ def compare(entries: dict, explicit: list, spread_deg: float) -> dict:
     return result
 
 
+MEASURES = {"550 nm": LAM, "luminance": None}   # what the explicit fibers and the lookups are compared in
+
+
+def within_bin(single: list, phi_bin: list) -> dict:
+    """How far the explicit fibers at single directions lie from their own mean over a
+    phi_o bin's azimuths: azimuthal structure that no table with these bins can hold, a
+    floor under its single-direction errors."""
+    e = np.abs([s[2] / b[2] - 1 for s, b in zip(single, phi_bin)])
+    return {"median": float(np.median(e)), "max": float(e.max()), "within_5pct": int(np.sum(e <= 0.05)),
+            "n": len(e)}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("config", nargs="?", default="configs/default.yaml")
@@ -182,27 +208,39 @@ def main(argv=None) -> int:
                    help="the layouts baked (" + ", ".join(map(repr, LAYOUTS)) + ")")
     p.add_argument("--graded", default=GRADED, metavar="NODES",
                    help=f"the graded layout's theta_i nodes in degrees, a YAML list (default {GRADED})")
+    p.add_argument("--measures", nargs="+", default=list(MEASURES), choices=list(MEASURES), metavar="MEASURE",
+                   help="compare at 550 nm (mono renders) and/or in the luminance of spectral renders "
+                        "(default both)")
     p.add_argument("--models", nargs="*", default=[], metavar="ROOT",
                    help="artifacts roots whose exported models of this config are compared too")
     args = p.parse_args(argv)
     cfg = load_config(args.config)
     if cfg.bake.exit not in ("auto", "uniform") or cfg.fiber.model == "ray" or cfg.bundle.twist is not None:
         raise SystemExit("bench.highlight compares a parallel ply with the uniform exit (fiber_table explicit fibers)")
-    entries = table_entries(bake_layouts(args.config, args.artifacts, args.paths, args.layouts, args.graded))
-    result = {"paths": args.paths, "wavelength_nm": LAM}
-    # single directions, then the mean over a phi_o bin's width of azimuths (theta_o still
-    # exactly on the cone): the Mie fiber's azimuthal glints are finer than any phi_o bin,
-    # so the second isolates the theta_o axis
-    for key, spread_deg in (("single", 0.0), ("phi_bin", 360.0 / cfg.bake.n_phi_o)):
-        t0 = time.perf_counter()
-        explicit = explicit_on_cone(cfg, args.artifacts, args.spp, spread_deg)
-        if args.models and key == "single":  # the renders chose the mono variant the models run in
-            import mitsuba as mi
+    tables = bake_layouts(args.config, args.artifacts, args.paths, args.layouts, args.graded)
+    result = {"paths": args.paths, "measures": {}}
+    for measure in args.measures:
+        wavelength_nm = MEASURES[measure]
+        part = result["measures"][measure] = {"wavelength_nm": wavelength_nm}
+        # single directions, then the mean over a phi_o bin's width of azimuths (theta_o still
+        # exactly on the cone): a Mie fiber's azimuthal glints at one wavelength are finer than
+        # any phi_o bin, so the second isolates the theta_o axis
+        explicit = {}
+        for key, spread_deg in (("single", 0.0), ("phi_bin", 360.0 / cfg.bake.n_phi_o)):
+            t0 = time.perf_counter()
+            explicit[key] = explicit_on_cone(cfg, args.artifacts, args.spp, spread_deg, wavelength_nm)
+            import mitsuba as mi  # the renders chose the variant the lookups and models run in
 
-            entries.update(model_entries(mi, cfg, args.models))
-        print(f"[highlight] explicit fibers at {len(explicit)} directions (azimuths over {spread_deg:g} deg) in "
-              f"{time.perf_counter() - t0:.0f} s; lookup / explicit - 1 on the cone (" + ", ".join(entries) + ")")
-        result[key] = compare(entries, explicit, spread_deg)
+            entries = table_entries(mi, tables, wavelength_nm)
+            entries.update(model_entries(mi, cfg, args.models, wavelength_nm))
+            print(f"[highlight] {measure}: explicit fibers at {len(explicit[key])} directions (azimuths over "
+                  f"{spread_deg:g} deg) in {time.perf_counter() - t0:.0f} s; lookup / explicit - 1 on the cone ("
+                  + ", ".join(entries) + ")")
+            part[key] = compare(entries, explicit[key], spread_deg)
+        part["within_bin"] = floor = within_bin(explicit["single"], explicit["phi_bin"])
+        print(f"[highlight] {measure}: the explicit fibers at single directions against their own mean over a "
+              f"phi_o bin: median {floor['median']:.1%}, largest {floor['max']:.1%}, within 5% at "
+              f"{floor['within_5pct']} of {floor['n']} (structure finer than the bins)")
     out = stage_dir(cfg, "closure", args.artifacts)
     write_text(out / "bench_highlight.json", json.dumps(result, indent=2))
     plot(result, out / "highlight.png")
@@ -211,16 +249,19 @@ def main(argv=None) -> int:
 
 
 def plot(result: dict, path) -> None:
-    """``lookup / explicit - 1`` per direction, one marker per layout; a panel per measure."""
+    """``lookup / explicit - 1`` per direction, one marker per layout; a panel per measure
+    (single directions, a phi_o bin's azimuths) and spectrum (550 nm, luminance)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from ..plots import save_figure
 
-    fig, axes = plt.subplots(2, 1, figsize=(12, 7.5), dpi=110, sharex=True)
-    for ax, key in zip(axes, ("single", "phi_bin")):
-        r_ = result[key]
+    panels = [(measure, key) for measure in result["measures"] for key in ("single", "phi_bin")]
+    fig, axes = plt.subplots(len(panels), 1, figsize=(12, 3.75 * len(panels)), dpi=110, sharex=True,
+                             squeeze=False)
+    for ax, (measure, key) in zip(axes[:, 0], panels):
+        r_ = result["measures"][measure][key]
         d = r_["directions"]
         x = np.arange(len(d))
         for (name, r), m in zip(r_["layouts"].items(), "os^Dv<>pPXd*"):
@@ -229,13 +270,14 @@ def plot(result: dict, path) -> None:
         ax.axhspan(-5, 5, color="0.9", zorder=0)
         ax.axhline(0, color="k", lw=0.5)
         ax.set(ylabel="lookup / explicit - 1 (%)",
-               title="single directions" if key == "single" else
-               f"azimuths averaged over {r_['spread_deg']:g} deg (a phi_o bin), theta_o on the cone")
+               title=f"{measure}: " + ("single directions" if key == "single" else
+                                       f"azimuths averaged over {r_['spread_deg']:g} deg (a phi_o bin), "
+                                       "theta_o on the cone"))
         ax.legend(fontsize=8)
-    axes[1].set_xticks(x, [f"{r['theta_i']:g}/{r['dphi']:g}" for r in d], rotation=90, fontsize=7)
-    axes[1].set_xlabel("theta_i / dphi (deg), on the cone theta_o = -theta_i")
-    fig.suptitle(f"the highlight: table lookups against explicit fibers ({result['paths']:.3g} paths per bake, "
-                 f"{result['wavelength_nm']:g} nm)")
+    axes[-1, 0].set_xticks(x, [f"{r['theta_i']:g}/{r['dphi']:g}" for r in d], rotation=90, fontsize=7)
+    axes[-1, 0].set_xlabel("theta_i / dphi (deg), on the cone theta_o = -theta_i")
+    fig.suptitle(f"the highlight: table lookups against explicit fibers ({result['paths']:.3g} paths per bake; "
+                 "luminance: spectral renders under a flat sun)")
     fig.tight_layout()
     save_figure(fig, path)
 
