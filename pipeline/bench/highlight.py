@@ -51,8 +51,9 @@ LAYOUTS = {"uniform 36": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_thet
            "graded cone 35": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}",  # the default's
                               "bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
            "uniform 180": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=180"]}
-# deg: nodes of a 10 deg bake and of the graded one, and between them (65, 72.5, 77.5, 85 near grazing)
-THETA_I = (20.0, 30.0, 45.0, 60.0, 65.0, 72.5, 75.0, 77.5, 85.0)
+# deg: nodes of a 10 deg bake and of the graded one, and between them (65, 72.5, 77.5, 85, 87.5 near
+# grazing: between the last node and the pole, whichever it is)
+THETA_I = (20.0, 30.0, 45.0, 60.0, 65.0, 72.5, 75.0, 77.5, 85.0, 87.5)
 DPHI = (32.5, 92.5, 152.5, 30.0, 90.0, 150.0)  # deg: phi_o bin middles, then edges (5 deg bins)
 LAM = 550.0
 
