@@ -218,6 +218,8 @@ def main(argv=None) -> int:
     cfg = load_config(args.config)
     if cfg.bake.exit not in ("auto", "uniform") or cfg.fiber.model == "ray" or cfg.bundle.twist is not None:
         raise SystemExit("bench.highlight compares a parallel ply with the uniform exit (fiber_table explicit fibers)")
+    import mitsuba as mi
+
     tables = bake_layouts(args.config, args.artifacts, args.paths, args.layouts, args.graded)
     result = {"paths": args.paths, "measures": {}}
     for measure in args.measures:
@@ -230,8 +232,7 @@ def main(argv=None) -> int:
         for key, spread_deg in (("single", 0.0), ("phi_bin", 360.0 / cfg.bake.n_phi_o)):
             t0 = time.perf_counter()
             explicit[key] = explicit_on_cone(cfg, args.artifacts, args.spp, spread_deg, wavelength_nm)
-            import mitsuba as mi  # the renders chose the variant the lookups and models run in
-
+            # in the variant the renders chose (the models run in it)
             entries = table_entries(mi, tables, wavelength_nm)
             entries.update(model_entries(mi, cfg, args.models, wavelength_nm))
             print(f"[highlight] {measure}: explicit fibers at {len(explicit[key])} directions (azimuths over "
