@@ -11,6 +11,16 @@ from models.spectrum import spectrum_to_srgb
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # linear sRGB -> Y
 
 
+def slice_nodes(theta_i, every_deg: float = 15.0) -> list[int]:
+    """The ``theta_i`` nodes (radians) whose slices a stage draws: the node nearest every
+    multiple of ``every_deg`` over -90..90 deg that lies within the nodes' range, each once
+    (a slice per node took most of the fiber stage: 19 figures for 5-deg nodes)."""
+    theta_i = np.asarray(theta_i, np.float64)
+    marks = np.deg2rad(np.arange(-90.0, 90.0 + 1e-9, every_deg))
+    marks = marks[(marks >= theta_i.min() - 1e-9) & (marks <= theta_i.max() + 1e-9)]
+    return sorted({int(np.argmin(np.abs(theta_i - m))) for m in marks} or {0})
+
+
 def log_scale(Y: np.ndarray) -> tuple[float, float]:
     """``(Y0, Y_max)`` of the log tone map: its knee at the bright band (the 97th
     percentile of the positive values, so the lobe tails do not set the exposure) and

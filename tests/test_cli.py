@@ -57,6 +57,41 @@ def test_missing_config_file(tmp_path):
     assert r.returncode == 2 and "does not exist" in r.stderr
 
 
+def test_the_stages_draw_the_slices_nearest_every_15_deg():
+    """A slice per node took most of the fiber stage (19 figures for 5-deg nodes): the
+    fiber and bake stages draw the node nearest every 15 deg of the nodes' range, once each."""
+    from pipeline.plots import slice_nodes
+
+    def drawn(nodes_deg):
+        t = np.deg2rad(np.asarray(nodes_deg, float))
+        return np.rad2deg(t[slice_nodes(t)]).round(6).tolist()
+    assert drawn(range(0, 91, 5)) == [0, 15, 30, 45, 60, 75, 90]
+    assert drawn([0, 15, 30, 45, 60, 65, 70, 75, 80, 90]) == [0, 15, 30, 45, 60, 75, 90]
+    assert drawn([0, 30, 60, 90]) == [0, 30, 60, 90]
+    assert drawn([-80, -40, 0, 40, 80]) == [-80, -40, 0, 40, 80]   # a twisted ply's, no mirror
+    assert drawn([30]) == [30]
+
+
+@pytest.mark.parametrize("model", ["ray", "grid"])
+def test_a_fiber_slice_averaged_before_the_product_is_the_same(model):
+    """``slice_at_node`` averages adjacent azimuths before multiplying by the longitudinal
+    lobe (which has no azimuth): the same image as averaging the full slice after (to the
+    float32 lobes' rounding)."""
+    from models.fiber.patterns import PatternFiber
+    from models.fiber.ray import RayFiber
+    from pipeline.stages.fiber import slice_at_node
+
+    wl, nodes = np.array([450.0, 650.0]), np.deg2rad(np.arange(0, 91, 30.0))
+    table = (RayFiber(wl, [1.55] * 2, [0.2, 0.0], 0.3, 0.3, 2.0, n_h=32) if model == "ray"
+             else PatternFiber(wl, "grid", n_stripes_theta=6, n_stripes_phi=8, albedo=0.9)).tabulate(nodes)
+    theta_o = np.linspace(-np.pi / 2, np.pi / 2, 91)
+    for i in range(len(nodes)):
+        full = slice_at_node(table, i, theta_o)
+        n = full.shape[1] // 4
+        after = full[:, : 4 * n].reshape(len(theta_o), n, 4, -1).mean(2)
+        assert np.allclose(slice_at_node(table, i, theta_o, group=4), after, rtol=1e-6, atol=1e-9 * after.max())
+
+
 def test_fiber_stage_end_to_end_and_failure_keeps_artifacts(tmp_path):
     cfg = write_config(tmp_path / "tiny.yaml", ior={"cauchy_a": 1.55, "k": 1e-3})
     out = tmp_path / "art"

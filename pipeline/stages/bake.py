@@ -5,7 +5,8 @@ Reads ``artifacts/<name>/fiber/fiber_table.npz`` (refused if it was made from ot
 
 * ``bundle_table.npz``  the :class:`models.bundle_table.BundleTable`;
 * ``arrangement.png``   the fibers and the bounding shape;
-* ``slices/phi_i_XX_theta_i_YY.png``  the table per incident direction, in sRGB;
+* ``slices/phi_i_XX_theta_i_YY.png``  the table per incident direction (the theta_i nodes nearest
+  every 15 deg, ``plots.slice_nodes``), in sRGB;
 * ``energy.png``        scattered, passthrough, absorbed and lost against theta_i;
 * ``summary.json``      timing, path and vertex counts, energy balance;
 * ``checkpoint.npz``    while baking: the running sums. Interrupting the bake and
@@ -37,7 +38,7 @@ from ..artifacts import load_fiber_table, stage_dir
 from ..build import batch_seed, build_ply, code_version, cross_section, make_spec, tracer
 from ..config import BAKE_SECTIONS, theta_nodes
 from ..metrics import write_metrics
-from ..plots import save_figure, spectral_image, theta_rows
+from ..plots import save_figure, slice_nodes, spectral_image, theta_rows
 
 
 def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None) -> Path:
@@ -310,7 +311,8 @@ def plot_table(table: BundleTable, folder: Path) -> None:
     relative = table.meta["reductions"]["phi_o"] == "relative"
     n_phi = len(table.phi_o)
     for a, phi_i in enumerate(table.phi_i):
-        for j, theta_i in enumerate(table.theta_i):
+        for j in slice_nodes(table.theta_i):
+            theta_i = table.theta_i[j]
             f = theta_rows(table.values[a, j].transpose(1, 0, 2), table.theta_o_edges)  # [theta_o, phi_o, lambda]
             if relative:  # dphi over [0, 360): forward (180) in the middle
                 f = np.roll(f, n_phi // 2, axis=1)

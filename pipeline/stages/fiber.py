@@ -4,9 +4,9 @@ Writes, under ``artifacts/<name>/fiber/``:
 
 * ``fiber_table.npz``  the :class:`models.fiber.FiberTable` the baker looks up;
 * ``summary.json``     energy (albedo) and extinction per (theta_i, lambda), timing;
-* ``theta_i_XX.png``   f over (dphi, theta_o) at each tabulated theta_i, all
-  wavelengths combined into sRGB (CIE 1931, D65), log tone-mapped so that the
-  diffraction peak and the faint chromatic fringes show together;
+* ``theta_i_XX.png``   f over (dphi, theta_o) at the tabulated theta_i nearest every
+  15 deg, all wavelengths combined into sRGB (CIE 1931, D65), log tone-mapped so
+  that the diffraction peak and the faint chromatic fringes show together;
 * ``energy.png``       albedo (and extinction ratio) against theta_i per wavelength.
 """
 
@@ -25,7 +25,7 @@ from models.io import write_text
 
 from ..config import FIBER_SECTIONS
 from ..metrics import write_metrics
-from ..plots import save_figure, spectral_image
+from ..plots import save_figure, slice_nodes, spectral_image
 from ..artifacts import stage_dir
 
 
@@ -58,7 +58,7 @@ def run(cfg, out_root="artifacts") -> Path:
                                            "tabulate_seconds": seconds})
 
     # -- Pictures -----------------------------------------------------------
-    for i in range(len(table.theta_i)):
+    for i in slice_nodes(table.theta_i):
         plot_slice(table, i, out / f"theta_i_{np.rad2deg(table.theta_i[i]):04.1f}.png")
     plot_energy(table.theta_i, table.wavelength, energy, ext, out / "energy.png", cfg.fiber.model)
     print(f"[fiber] {cfg.fiber.model}: {len(table.theta_i)} theta_i x {len(table.phi)} phi x "
@@ -67,28 +67,35 @@ def run(cfg, out_root="artifacts") -> Path:
     return out
 
 
-def slice_at_node(table: FiberTable, i: int, theta_o: np.ndarray) -> np.ndarray:
-    """``f[theta_o, phi, lambda]`` at the table's i-th theta_i, on its own phi grid."""
+def slice_at_node(table: FiberTable, i: int, theta_o: np.ndarray, group: int = 1) -> np.ndarray:
+    """``f[theta_o, phi, lambda]`` at the table's i-th theta_i, on its own phi grid, or
+    averaged over ``group`` adjacent azimuths (before the product with the longitudinal
+    lobe, which does not depend on the azimuth: the same numbers, fewer of them)."""
     ti = table.theta_i[i]
-    f = np.zeros((len(theta_o), len(table.phi), len(table.wavelength)))
+    n_cols = len(table.phi) // group
+
+    def grouped(N):  # [..., phi, lambda] -> [..., phi / group, lambda]
+        N = N[..., : n_cols * group, :]
+        return N.reshape(N.shape[:-2] + (n_cols, group, N.shape[-1])).mean(axis=-2)
+
+    f = np.zeros((len(theta_o), n_cols, len(table.wavelength)))
     for lobe in table.lobes:
         M = lobe.longitudinal(ti, theta_o)[:, None, None]
         if lobe.dense:
             a, b, w = linear(table.theta_o, theta_o)
-            N = (1 - w)[:, None, None] * lobe.azimuthal[i, a] + w[:, None, None] * lobe.azimuthal[i, b]
+            Ni = grouped(lobe.azimuthal[i])
+            N = (1 - w)[:, None, None] * Ni[a] + w[:, None, None] * Ni[b]
         else:
-            N = lobe.azimuthal[i, 0][None]
+            N = grouped(lobe.azimuthal[i, 0])[None]
         f += M * N
     return f
 
 
 def plot_slice(table: FiberTable, i: int, path: Path, max_columns: int = 1440) -> None:
     theta_o = np.linspace(-np.pi / 2, np.pi / 2, 361)
-    f = slice_at_node(table, i, theta_o)
-    # Average adjacent azimuth samples down to at most max_columns (keeps the energy)
-    group = int(np.ceil(len(table.phi) / max_columns))
-    n_cols = len(table.phi) // group
-    f = f[:, : n_cols * group].reshape(len(theta_o), n_cols, group, -1).mean(axis=2)
+    # adjacent azimuth samples averaged down to at most max_columns (keeps the energy)
+    f = slice_at_node(table, i, theta_o, group=int(np.ceil(len(table.phi) / max_columns)))
+    n_cols = f.shape[1]
     # Roll so that dphi runs over [0, 360): forward scattering (180) in the middle
     f = np.roll(f, n_cols // 2, axis=1)
     spectral_image(f, table.wavelength, path,
