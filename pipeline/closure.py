@@ -16,7 +16,8 @@ Everything here is in the bundle frame of docs/DESIGN.md: ``sin(theta) = w.y``,
 :func:`scene` builds the Mitsuba scene for any set of shapes (one cylinder with a
 ``fiber_bundle`` or ``fiber_table`` BSDF, or every fiber of a ply as its own cylinder),
 :func:`rendered_intensity` renders and measures, :func:`predicted_intensity` is the
-formula above. Mono variants render one wavelength (the BSDFs' ``wavelength``).
+formula above. Mono variants render one wavelength (the BSDFs' ``wavelength``); a spectral
+variant's luminance film records what :func:`luminance_weights` makes of a table's spectrum.
 
 Example::
 
