@@ -25,6 +25,15 @@ def spectral_values(spec, wavelength_nm) -> np.ndarray:
     return np.interp(wl, pairs[:, 0], pairs[:, 1])
 
 
+def hat_basis(wavelength_nm, fine_nm) -> np.ndarray:
+    """``[len(fine_nm), n_lambda]``: each sample's hat function of linear interpolation
+    between the ``wavelength_nm`` samples, held constant beyond the first and last (how the
+    plugins reconstruct a table's spectrum), evaluated at ``fine_nm``."""
+    wl = np.asarray(wavelength_nm, dtype=np.float64)
+    eye = np.eye(len(wl))
+    return np.stack([np.interp(fine_nm, wl, eye[k]) for k in range(len(wl))], -1)
+
+
 def spectrum_to_srgb(values: np.ndarray, wavelength_nm: np.ndarray) -> np.ndarray:
     """Linear sRGB of spectra ``values[..., n_lambda]`` seen under D65.
 
@@ -44,8 +53,7 @@ def spectrum_to_srgb(values: np.ndarray, wavelength_nm: np.ndarray) -> np.ndarra
     d65 = colour.SDS_ILLUMINANTS["D65"]
     fine = cmfs.wavelengths
     s = np.interp(fine, d65.wavelengths, d65.values)
-    # hat basis of linear interpolation: basis[f, k] = interpolant of the k-th unit spectrum
-    basis = np.stack([np.interp(fine, wl, np.eye(len(wl))[k]) for k in range(len(wl))], -1)
+    basis = hat_basis(wl, fine)  # basis[f, k] = interpolant of the k-th unit spectrum
     weights = basis.T @ (cmfs.values * (s * np.gradient(fine))[:, None])  # (n_lambda, 3)
     weights /= weights[:, 1].sum()
     return colour.XYZ_to_sRGB(values @ weights, apply_cctf_encoding=False)

@@ -167,11 +167,20 @@ def luminance_weights(mi, wavelength_nm) -> np.ndarray:
     its own CIE 1931 ``y`` (an analytic fit, ``mi.cie1931_y``, not the tabulated
     observer) over its sampling range, normalized so that a flat spectrum of 1 reads 1.
     """
-    wl = np.asarray(wavelength_nm, np.float64)
+    from models.spectrum import hat_basis
+
     fine = np.linspace(360.0, 830.0, 4701)      # Mitsuba's CIE range, 0.1 nm
     y_bar = np.asarray(mi.cie1931_y(mi.Float(fine)), np.float64)
-    hats = np.stack([np.interp(fine, wl, np.eye(len(wl))[k]) for k in range(len(wl))])
-    return hats @ y_bar / y_bar.sum()
+    return y_bar @ hat_basis(wavelength_nm, fine) / y_bar.sum()
+
+
+def spectrum_weights(mi, wavelength, wavelength_nm: float | None) -> np.ndarray:
+    """Weights over a table's ``wavelength`` samples for the value asked for: the sample
+    nearest ``wavelength_nm``, or (``None``) the luminance a spectral render records."""
+    wl = np.asarray(wavelength, np.float64)
+    if wavelength_nm is None:
+        return luminance_weights(mi, wl)
+    return np.eye(len(wl))[int(np.argmin(np.abs(wl - wavelength_nm)))]
 
 
 def explicit_shapes(bundle, fiber_bsdf: dict, half_length: float, unit: float = 1e-3) -> dict:
@@ -366,21 +375,14 @@ def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
 # -- measurements over many directions (the render stage and bench_closure) ------------
 def evaluator(mi, kind: str, path, wavelength_nm: float | None):
     """``S_of(pi, ti, po, to)``: what a renderer is given, at the wavelength nearest
-    ``wavelength_nm`` (``None``: the luminance a spectral render records,
-    :func:`luminance_weights`), evaluated the way its own code does, outside any render:
+    ``wavelength_nm`` (``None``: the luminance a spectral render records;
+    :func:`spectrum_weights`), evaluated the way its own code does, outside any render:
     a float for scalar angles, an array for arrays (broadcast; one evaluation for all).
 
     ``kind``: ``fiber`` (a ``fiber_table.npz``, numpy; one wavelength), ``table`` (a
     ``bundle_table.npz``, the numpy lookup), ``mlp`` (``weights.npz``, Dr.Jit) or ``onnx``
     (``model.onnx``, onnxruntime).
     """
-    def weights(wavelength):
-        """The table's spectrum -> the value asked for: one wavelength's, or the luminance."""
-        wl = np.asarray(wavelength, np.float64)
-        if wavelength_nm is None:
-            return luminance_weights(mi, wl)
-        return np.eye(len(wl))[int(np.argmin(np.abs(wl - wavelength_nm)))]
-
     if kind == "fiber":
         from models.fiber.base import FiberTable
 
@@ -393,13 +395,13 @@ def evaluator(mi, kind: str, path, wavelength_nm: float | None):
         from models.bundle_table import BundleTable, lookup
 
         t = BundleTable.load(path, expand=True)
-        w = weights(t.wavelength)
+        w = spectrum_weights(mi, t.wavelength, wavelength_nm)
         return _on_arrays(lambda pi_, ti, po, to: lookup(t, pi_, ti, po, to) @ w)
     from mitsuba_ext.neural import DrJitMLP, OnnxMLP
 
     if kind == "mlp":
         mlp = DrJitMLP(path)
-        w = weights(mlp.spec.wavelength)
+        w = spectrum_weights(mi, mlp.spec.wavelength, wavelength_nm)
         used = np.flatnonzero(w)   # the network's other outputs are never computed
 
         def S_mlp(*angles):
@@ -411,7 +413,7 @@ def evaluator(mi, kind: str, path, wavelength_nm: float | None):
         return _on_arrays(S_mlp)
     if kind == "onnx":
         onnx = OnnxMLP(path)
-        w = weights(onnx.spec.wavelength)
+        w = spectrum_weights(mi, onnx.spec.wavelength, wavelength_nm)
         return _on_arrays(lambda *angles: onnx.eval(*(a.astype(np.float32) for a in angles)) @ w)
     raise ValueError(f"evaluator: kind {kind!r}; use fiber, table, mlp or onnx")
 

@@ -128,8 +128,7 @@ def table_entries(mi, tables: dict, wavelength_nm: float | None = LAM) -> dict:
     from .. import closure
 
     def reader(t):
-        w = (closure.luminance_weights(mi, t.wavelength) if wavelength_nm is None
-             else np.eye(len(t.wavelength))[int(np.argmin(np.abs(t.wavelength - wavelength_nm)))])
+        w = closure.spectrum_weights(mi, t.wavelength, wavelength_nm)
         return lambda *angles: lookup(t, *angles) @ w
     return {name: (reader(t), int(t.values.nbytes), seconds, t.theta_i) for name, (t, seconds) in tables.items()}
 
@@ -228,13 +227,13 @@ def main(argv=None) -> int:
         # single directions, then the mean over a phi_o bin's width of azimuths (theta_o still
         # exactly on the cone): a Mie fiber's azimuthal glints at one wavelength are finer than
         # any phi_o bin, so the second isolates the theta_o axis
-        explicit = {}
+        explicit, entries = {}, None
         for key, spread_deg in (("single", 0.0), ("phi_bin", 360.0 / cfg.bake.n_phi_o)):
             t0 = time.perf_counter()
             explicit[key] = explicit_on_cone(cfg, args.artifacts, args.spp, spread_deg, wavelength_nm)
-            # in the variant the renders chose (the models run in it)
-            entries = table_entries(mi, tables, wavelength_nm)
-            entries.update(model_entries(mi, cfg, args.models, wavelength_nm))
+            if entries is None:  # once per measure, in the variant its renders chose (the models run in it)
+                entries = table_entries(mi, tables, wavelength_nm)
+                entries.update(model_entries(mi, cfg, args.models, wavelength_nm))
             print(f"[highlight] {measure}: explicit fibers at {len(explicit[key])} directions (azimuths over "
                   f"{spread_deg:g} deg) in {time.perf_counter() - t0:.0f} s; lookup / explicit - 1 on the cone ("
                   + ", ".join(entries) + ")")
