@@ -58,6 +58,16 @@ def visible_length(half_size, theta_o) -> float:
     return 2.0 * half_size / np.cos(theta_o)
 
 
+def fiber_half_length(half_size, theta_o) -> float:
+    """Half the length the closure scene's fibers need for views at longitudes ``theta_o``
+    (radians, any shape): 40 film half sizes, or twice the half :func:`visible_length` of
+    the most grazing view. A film along a nearly axial ``w_o`` sees ``2 half_size /
+    cos(theta_o)`` of the axis, more than 80 half sizes beyond 88.57 deg: with shorter fibers
+    it would see past their ends and read the intensity low (13% at 88.75 deg)."""
+    cos_o = float(np.cos(np.max(np.abs(np.asarray(theta_o, float)))))
+    return float(half_size * max(40.0, visible_length(1.0, np.arccos(max(cos_o, 1e-6)))))
+
+
 def cylinder(R, bsdf: dict, center_xz=(0.0, 0.0), half_length=1.0) -> dict:
     """A cylinder of radius ``R`` parallel to ``+y`` through ``(x, z) = center_xz``."""
     x, z = map(float, center_xz)
@@ -328,7 +338,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     twisted = isinstance(bundle, TwistedBundle)
     section = bundle.bundle if twisted else bundle
     hs = 1.2 * section.bounding_radius * unit
-    half_length = 40 * hs
+    half_length = fiber_half_length(hs, [np.arcsin(np.clip(w_o[1], -1, 1)) for _, views in requests for w_o in views])
     n_views = len(requests[0][1])
     placements = view_placements(bundle, n_views, unit, turns)
     if any(len(views) != n_views for _, views in requests):
@@ -461,11 +471,13 @@ def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, sp
             dr.set_flag(f, dr.flag(f) and not evaluated)
         hs, loaded = 1.5 * R, None
         make = shape or (lambda R_, b, half_length: cylinder(R_, b, half_length=half_length))
-        for pi_, ti, po, to in np.asarray(pairs)[continuous(S_of, pairs)]:
+        pairs = np.asarray(pairs)[continuous(S_of, pairs)]
+        half_length = fiber_half_length(hs, pairs[:, 3]) if len(pairs) else 0.0
+        for pi_, ti, po, to in pairs:
             predicted = predicted_intensity(1.0, R, ti, S_of(pi_, ti, po, to))
             w_i, w_o = direction(pi_, ti), direction(po, to)
             if loaded is None:
-                loaded = mi.load_dict(scene(mi, {"f": make(R, bsdf, 40 * hs)}, w_i, w_o, hs, spp=spp))
+                loaded = mi.load_dict(scene(mi, {"f": make(R, bsdf, half_length)}, w_i, w_o, hs, spp=spp))
                 params = mi.traverse(loaded)
             else:  # one scene for every pair, its sun and camera moved: loading a BSDF cost more than a render
                 params["sensor.to_world"] = _camera(mi, w_o, hs)[2]

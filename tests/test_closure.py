@@ -94,6 +94,19 @@ def test_one_explicit_fiber_renders_its_model(mono, tmp_path, model):
     assert np.allclose(r, 1.0, atol=0.01), r
 
 
+def test_the_closure_scene_sees_no_fiber_end_at_nearly_axial_views(mono, tmp_path):
+    """Views within 1.5 deg of the axis (the film then spans more than 80 film half sizes of
+    it): the fiber must still fill the film, or the intensity reads 0.84 of the far field."""
+    mi = mono
+    fiber_models()["isotropic"]().save(tmp_path / "fiber.npz")
+    bsdf = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": LAM, "up": closure.UP}
+    S = closure.evaluator(mi, "fiber", tmp_path / "fiber.npz", LAM)
+    pairs = np.deg2rad([[20.0, 30.0, 112.0, -88.8], [20.0, 45.0, 60.0, 88.8], [20.0, 88.0, 172.0, -88.8]])
+    r = ratios(mi, bsdf, 0.02, S, pairs)
+    print(np.round(r, 4))
+    assert np.allclose(r, 1.0, atol=0.01), r
+
+
 @pytest.mark.parametrize("shape", ["cylinder", "linearcurve"])
 def test_one_explicit_h_resolved_fiber_renders_its_model(mono, tmp_path, shape):
     """``fiber_ray`` on a cylinder: each pixel evaluates the paths at its own offset h, and
