@@ -96,7 +96,7 @@ def test_one_explicit_fiber_renders_its_model(mono, tmp_path, model):
 
 def test_the_closure_scene_sees_no_fiber_end_at_nearly_axial_views(mono, tmp_path):
     """Views within 1.5 deg of the axis (the film then spans more than 80 film half sizes of
-    it): the fiber must still fill the film, or the intensity reads 0.84 of the far field."""
+    it): the fiber must still fill the film, or the intensity reads 0.66 of the far field."""
     mi = mono
     fiber_models()["isotropic"]().save(tmp_path / "fiber.npz")
     bsdf = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": LAM, "up": closure.UP}
