@@ -205,7 +205,8 @@ def _run(args, cfg) -> None:
         # all or nothing (the sweep keeps each member as it finishes, as a bake keeps its checkpoint)
         with contextlib.nullcontext() if stage == "sweep" else journal(config_dir(cfg, args.artifacts)):
             _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
-        graph.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0, work=estimate.work(stage, cfg))
+        graph.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0, work=estimate.work(stage, cfg),
+                    probe=estimate.measured_probe())
     shipped = Path(args.config).resolve() == graph.ROOT / "configs" / f"{cfg.name}.yaml"
     if args.command == "run" and shipped and not args.overrides \
             and Path(args.artifacts).resolve() == graph.ROOT / "artifacts":

@@ -5,26 +5,64 @@ size the config implies: paths times the chord of the bundle in fibers, epochs t
 times the model's width, pixels times samples ...) times **seconds per unit of work**.
 That rate comes from the last run of the same stage on this machine when there is one
 (its stamp records work and seconds), else from the default config measured on the
-reference 2-core machine (``REFERENCE`` below; figures in docs/BENCHMARKS.md). Good to a
-factor of about two: enough to decide between waiting and coming back tomorrow, not a
-benchmark.
+reference 2-core machine (``REFERENCE`` below; figures in docs/BENCHMARKS.md).
+
+The same machine runs the same stages 1.5x faster on one day than on another (shared
+hosts). So the rate is scaled by the machine's **pace**: a fixed 0.3-s :func:`probe` (matrix
+products on two threads, array arithmetic, a Python loop) timed now, over the same probe
+when the rate was measured (``PROBE_REFERENCE``, or the one a stamp recorded). Good to
+about a third: enough to decide between waiting and coming back tomorrow, not a benchmark.
 """
 
 from __future__ import annotations
 
 import json
+import time
 
 from .graph import stamp_path
 
-# seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone
-# with a cold Dr.Jit kernel cache, session 10 (the stages' stamps; docs/BENCHMARKS.md,
-# "The whole default pipeline"); export: session 19 (cooperative vectors for the large MLP);
-# fiber, train and report: sessions 21-23 (fewer fiber slices; training 150-206 s on this
-# machine from day to day, the median taken; the report no longer times anything)
+# seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone with
+# a fresh HOME (cold Dr.Jit kernel cache), session 24, its stages' stamps (docs/BENCHMARKS.md,
+# "The whole default pipeline"), at the pace PROBE_REFERENCE; cloth and sweep: their rates of
+# sessions 16-19 times 0.67, the ratio of the other stages' rates then and now
 OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "cloth": 8.0, "stability": 0.0,
-            "sweep": 3.0, "report": 2.0}
-REFERENCE = {"fiber": 4.4e-4, "bake": 8.4e-7, "train": 1.25e-6, "export": 3.3, "render": 1.9e-6,
-             "cloth": 1.5e-5, "stability": 8.0, "sweep": 8.4e-7, "report": 0.0}  # a sweep's work: its members' bakes
+            "sweep": 3.0, "report": 1.0}
+REFERENCE = {"fiber": 2.9e-4, "bake": 5.75e-7, "train": 8.5e-7, "export": 1.97, "render": 1.23e-6,
+             "cloth": 1.0e-5, "stability": 6.3, "sweep": 5.75e-7, "report": 0.0}  # a sweep's work: its members' bakes
+PROBE_REFERENCE = 10.6e-3  # seconds of probe() on the machine and day REFERENCE was measured
+_PROBE: list = []  # this process's probe, measured once
+
+
+def probe() -> float:
+    """Seconds of a fixed piece of work like the stages' (float32 matrix products on the
+    BLAS threads, array arithmetic, a Python loop), the mean of 30 repeats after one to warm
+    up: this machine's pace now. The whole probe (~0.3 s, once per process) spans several
+    periods of a CPU quota (0.1 s), so a throttled machine shows, as a busy one does."""
+    if not _PROBE:
+        import numpy as np
+
+        rng = np.random.default_rng(0)
+        a = rng.standard_normal((256, 256)).astype(np.float32)
+        x = rng.standard_normal(200_000).astype(np.float32)
+
+        def once():
+            for _ in range(60):
+                a @ a
+            np.exp(-x * x) + np.sqrt(np.abs(x))
+            s = 0.0
+            for k in range(10_000):
+                s += 0.5 * k
+        once()
+        t0 = time.perf_counter()
+        for _ in range(30):
+            once()
+        _PROBE.append((time.perf_counter() - t0) / 30)
+    return _PROBE[0]
+
+
+def measured_probe() -> float | None:
+    """:func:`probe`, if this process has measured it (what a stage's stamp records)."""
+    return _PROBE[0] if _PROBE else None
 
 
 def _fiber_work(cfg) -> float:
@@ -107,15 +145,17 @@ def work(stage: str, cfg) -> float:
 
 
 def estimate(stage: str, cfg, root="artifacts") -> tuple[float, str]:
-    """Seconds ``stage`` should take for this config, and where the rate came from."""
+    """Seconds ``stage`` should take for this config, and where the rate came from; the
+    rate scaled by the machine's pace now against its pace when the rate was measured."""
     overhead = OVERHEAD[stage]
     try:
         record = json.loads(stamp_path(stage, cfg, root).read_text())
         rate = max(record["seconds"] - overhead, 0.0) / max(record["work"], 1e-30)
-        source = "its last run here"
+        then, source = record.get("probe"), "its last run here"
     except (OSError, ValueError, KeyError, TypeError):
-        rate, source = REFERENCE[stage], "the reference machine"
-    return overhead + work(stage, cfg) * rate, source
+        rate, then, source = REFERENCE[stage], PROBE_REFERENCE, "the reference machine"
+    pace = probe() / then if then else 1.0
+    return overhead + work(stage, cfg) * rate * pace, source + (f", pace x{pace:.2f}" if then else "")
 
 
 def describe(seconds: float) -> str:
@@ -133,5 +173,5 @@ def plan(cfg, stages, root="artifacts") -> str:
         seconds, source = estimate(stage, cfg, root)
         total += seconds
         lines.append(f"  {stage:<9} ~{describe(seconds):>7}   (rate from {source})")
-    return "\n".join([f"[run] estimate for {cfg.name}: ~{describe(total)} in all (rough: a factor of 2)"] + lines)
+    return "\n".join([f"[run] estimate for {cfg.name}: ~{describe(total)} in all (rough: a third either way)"] + lines)
 

@@ -96,14 +96,17 @@ def stamp_path(stage: str, cfg, root="artifacts") -> Path:
     return config_dir(cfg, root) / ".stamps" / f"{stage}.json"
 
 
-def stamp(stage: str, cfg, root="artifacts", seconds: float | None = None, work: float | None = None) -> None:
+def stamp(stage: str, cfg, root="artifacts", seconds: float | None = None, work: float | None = None,
+          probe: float | None = None) -> None:
     """Record that ``stage`` just ran for this config: its fingerprint, its outputs, and
     how long it took for how much ``work`` (``pipeline.estimate.work``, what the estimate
-    scales from)."""
+    scales from) at the machine's pace ``probe`` (``pipeline.estimate.probe``, if measured)."""
     outs = {str(p.relative_to(root)): digest([p], Path(root)) for p in spec(stage, cfg, root)["outs"]}
     record = {"fingerprint": fingerprint(stage, cfg, root), "outs": outs}
     if seconds is not None and work is not None:
         record.update(seconds=seconds, work=work)
+        if probe is not None:
+            record["probe"] = probe
     write_text(stamp_path(stage, cfg, root), json.dumps(record, indent=1))
 
 

@@ -152,6 +152,34 @@ def test_run_skips_what_is_up_to_date_and_force_reruns_it(tmp_path, monkeypatch,
     assert cli.main(["--artifacts", art, "run", str(cfg), "--force"]) == 0
     assert ran == ["fiber", "stability", "report"]
     assert "[run] fiber: forced" in capsys.readouterr().out
+    # the run measured the machine's pace for its estimate, and its stamps record it
+    stamp = json.loads((tmp_path / "art" / "tiny" / ".stamps" / "fiber.json").read_text())
+    assert stamp["probe"] > 0 and stamp["seconds"] >= 0 and stamp["work"] > 0
+
+
+def test_the_estimate_follows_the_machines_pace(tmp_path, monkeypatch):
+    """A stage's rate is scaled by the pace now over the pace it was measured at: its last
+    run's (a stamp's probe), or the reference machine's; a stamp without one, unscaled."""
+    from pipeline import estimate, graph
+    from pipeline.config import load_config
+
+    cfg = load_config(ROOT / "configs" / "default.yaml")
+    w = estimate.work("train", cfg)
+    path = graph.stamp_path("train", cfg, tmp_path)
+    path.parent.mkdir(parents=True)
+    monkeypatch.setattr(estimate, "_PROBE", [0.02])  # twice as slow as the stamp's run
+    path.write_text(json.dumps({"seconds": 3.0 + 100.0, "work": w, "probe": 0.01}))
+    seconds, source = estimate.estimate("train", cfg, tmp_path)
+    assert seconds == pytest.approx(3.0 + 200.0) and "last run here, pace x2.00" in source
+    path.write_text(json.dumps({"seconds": 3.0 + 100.0, "work": w}))
+    assert estimate.estimate("train", cfg, tmp_path)[0] == pytest.approx(103.0)
+    path.unlink()
+    seconds, source = estimate.estimate("train", cfg, tmp_path)
+    pace = 0.02 / estimate.PROBE_REFERENCE
+    assert seconds == pytest.approx(3.0 + w * estimate.REFERENCE["train"] * pace) and "reference" in source
+    # and the probe is a real measurement, milliseconds of work
+    monkeypatch.setattr(estimate, "_PROBE", [])
+    assert 1e-4 < estimate.probe() < 1.0 and estimate.measured_probe() == estimate.probe()
 
 
 def test_atomic_writes_keep_the_old_file_on_failure_and_give_the_usual_mode(tmp_path):
