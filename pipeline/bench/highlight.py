@@ -3,6 +3,7 @@ directions on the specular cone, for theta_o layouts side by side (docs/BENCHMAR
 
     python -m pipeline.bench.highlight [CONFIG] [--artifacts DIR] [--paths N] [--spp N]
                                        [--layouts L ...] [--measures {550 nm,luminance} ...]
+                                       [--theta-i DEG ...] [--models ROOT ...]
 
 The config's ply (its fiber table from ``bcsdf run`` / ``bcsdf fiber``) is baked once per
 layout (``--layouts``) with the same paths and seed: ``uniform 36`` (36 equal 5 deg bins,
@@ -85,8 +86,10 @@ def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: 
     return tables
 
 
-def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0, wavelength_nm: float | None = LAM) -> list:
-    """``[(theta_i, dphi, S, S_err)]``: the explicit fibers' far field (1/sr) on the cone;
+def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0, wavelength_nm: float | None = LAM,
+                     theta_i=THETA_I) -> list:
+    """``[(theta_i, dphi, S, S_err)]``: the explicit fibers' far field (1/sr) on the cone at
+    ``theta_i`` (degrees) and every :data:`DPHI`;
     ``spread_deg``: turn ``k`` of the 16 is seen at ``dphi + spread ((k + 0.5) / 16 - 0.5)``
     (the mean over that azimuth range, theta_o still exactly on the cone). At one
     wavelength (a mono render), or, for ``wavelength_nm=None``, the luminance of a
@@ -102,7 +105,7 @@ def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0, waveleng
     mitsuba_ext.register()
     bundle = build_bundle(cfg)
     fiber = closure.explicit_fiber(stage_dir(cfg, "fiber", artifacts) / "fiber_table.npz", "uniform", wavelength_nm)
-    cases = [(ti, dp) for ti in THETA_I for dp in DPHI]
+    cases = [(ti, dp) for ti in theta_i for dp in DPHI]
     turns = 16
     requests = [(closure.direction(0.0, np.deg2rad(ti)), [closure.direction(np.deg2rad(dp + o), -np.deg2rad(ti))
                                                           for o in spread(spread_deg, turns)])
@@ -172,18 +175,25 @@ def compare(entries: dict, explicit: list, spread_deg: float) -> dict:
     for name, (_, nbytes, seconds, nodes) in entries.items():
         node = np.min(np.abs(theta_i[:, None] - np.asarray(nodes)[None, :]), 1) < 1e-6  # this table's own nodes
         e = np.abs(result["layouts"][name]["errors"])
+        grazing = theta_i >= np.deg2rad(65.0) - 1e-9
         summary = {"bytes": nbytes, "bake_seconds": seconds, "median": float(np.median(e)),
                    "max": float(e.max()), "within_5pct": int(np.sum(e <= 0.05)), "n": len(e),
-                   "median_at_nodes": float(np.median(e[node])), "median_between": float(np.median(e[~node])),
-                   "median_grazing": float(np.median(e[theta_i >= np.deg2rad(65.0) - 1e-9])),
-                   "max_grazing": float(e[theta_i >= np.deg2rad(65.0) - 1e-9].max())}
+                   "median_at_nodes": _stat(np.median, e[node]), "median_between": _stat(np.median, e[~node]),
+                   "median_grazing": _stat(np.median, e[grazing]), "max_grazing": _stat(np.max, e[grazing])}
         result["layouts"][name].update(summary, theta_i_nodes=np.rad2deg(nodes).round(6).tolist(),
                                        at_node=node.tolist())
-        print(f"[highlight] {name:11}: |error| median {summary['median']:.1%} (nodes {summary['median_at_nodes']:.1%}, "
-              f"between {summary['median_between']:.1%}; theta_i >= 65: {summary['median_grazing']:.1%}, largest "
-              f"{summary['max_grazing']:.1%}), max {summary['max']:.1%}, within 5% at "
-              f"{summary['within_5pct']} of {summary['n']}; {summary['bytes'] / 2**20:.2f} MiB")
+        pct = {k: "-" if v is None else f"{v:.1%}" for k, v in summary.items() if k.startswith(("median", "max"))}
+        print(f"[highlight] {name:11}: |error| median {pct['median']} (nodes {pct['median_at_nodes']}, between "
+              f"{pct['median_between']}; theta_i >= 65: {pct['median_grazing']}, largest {pct['max_grazing']}), max "
+              f"{pct['max']}, within 5% at {summary['within_5pct']} of {summary['n']}; "
+              f"{summary['bytes'] / 2**20:.2f} MiB")
     return result
+
+
+def _stat(f, e):
+    """``f`` of the errors ``e`` (a float), or ``None`` where there are none (directions
+    given by ``--theta-i`` may miss the nodes or grazing incidence)."""
+    return float(f(e)) if len(e) else None
 
 
 MEASURES = {"550 nm": LAM, "luminance": None}   # what the explicit fibers and the lookups are compared in
@@ -211,9 +221,14 @@ def main(argv=None) -> int:
     p.add_argument("--measures", nargs="+", default=list(MEASURES), choices=list(MEASURES), metavar="MEASURE",
                    help="compare at 550 nm (mono renders) and/or in the luminance of spectral renders "
                         "(default both)")
+    p.add_argument("--theta-i", nargs="+", type=float, default=list(THETA_I), metavar="DEG",
+                   help="incident longitudes of the directions, degrees below 90 (default "
+                        + " ".join(f"{t:g}" for t in THETA_I) + ")")
     p.add_argument("--models", nargs="*", default=[], metavar="ROOT",
                    help="artifacts roots whose exported models of this config are compared too")
     args = p.parse_args(argv)
+    if not all(0.0 <= t < 90.0 for t in args.theta_i):
+        p.error(f"--theta-i: degrees in [0, 90), got {args.theta_i}")
     cfg = load_config(args.config)
     if cfg.bake.exit not in ("auto", "uniform") or cfg.fiber.model == "ray" or cfg.bundle.twist is not None:
         raise SystemExit("bench.highlight compares a parallel ply with the uniform exit (fiber_table explicit fibers)")
@@ -230,7 +245,7 @@ def main(argv=None) -> int:
         explicit, entries = {}, None
         for key, spread_deg in (("single", 0.0), ("phi_bin", 360.0 / cfg.bake.n_phi_o)):
             t0 = time.perf_counter()
-            explicit[key] = explicit_on_cone(cfg, args.artifacts, args.spp, spread_deg, wavelength_nm)
+            explicit[key] = explicit_on_cone(cfg, args.artifacts, args.spp, spread_deg, wavelength_nm, args.theta_i)
             if entries is None:  # once per measure, in the variant its renders chose (the models run in it)
                 entries = table_entries(mi, tables, wavelength_nm)
                 entries.update(model_entries(mi, cfg, args.models, wavelength_nm))
@@ -266,8 +281,9 @@ def plot(result: dict, path) -> None:
         d = r_["directions"]
         x = np.arange(len(d))
         for (name, r), m in zip(r_["layouts"].items(), "os^Dv<>pPXd*"):
-            ax.plot(x, np.array(r["errors"]) * 100, m, label=f"{name} ({r['bytes'] / 2**20:.2f} MiB): median "
-                    f"{r['median']:.1%}, at nodes {r['median_at_nodes']:.1%}")
+            at_nodes = "" if r["median_at_nodes"] is None else f", at nodes {r['median_at_nodes']:.1%}"
+            ax.plot(x, np.array(r["errors"]) * 100, m,
+                    label=f"{name} ({r['bytes'] / 2**20:.2f} MiB): median {r['median']:.1%}{at_nodes}")
         ax.axhspan(-5, 5, color="0.9", zorder=0)
         ax.axhline(0, color="k", lw=0.5)
         ax.set(ylabel="lookup / explicit - 1 (%)",
