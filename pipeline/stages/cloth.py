@@ -282,7 +282,8 @@ def run(cfg, out_root="artifacts") -> Path:
                                           else props[c.backends[0]], geometry.radius)}
         fly_info["share"] = flyaway_share(cfg, {**plies, **extra}, info["bbox_mm"])
         summary["flyaways"] = fly_info
-        print(f"[cloth] flyaways' share of the radiance: {fly_info['share']['cloth_pixels']:.1%} on the cloth's "
+        print(f"[cloth] flyaways' share of the radiance (with them minus without, over with; negative where they "
+              f"shade the plies more than they scatter): {fly_info['share']['cloth_pixels']:.1%} on the cloth's "
               f"pixels, {fly_info['share']['frame']:.1%} of the frame")
     images = {}
     for backend in c.backends:

@@ -429,7 +429,9 @@ def cloth_section(root: Path, out: Path) -> str:
         body += (f"<p>Flyaways: {f['hairs']:,} hair-type flyaways of {html.escape(f['yarn'])} (Zhao et al. 2016; "
                  f"{f['hairs_per_mm']:.3g} per mm of ply, density x{f['density_scale']:g}), explicit fibers of radius "
                  f"{1000 * f['fiber_radius_mm']:.0f} um with <code>{html.escape(f['plugin'])}</code>, "
-                 f"{f['control_points']:,} control points. Their share of the rendered radiance (table, "
+                 f"{f['control_points']:,} control points. Their share of the rendered radiance (the render with "
+                 f"them minus the one without, over the one with; negative where they shade the plies more than "
+                 f"they scatter; table, "
                  f"{share['size'][0]} x {share['size'][1]}): <b>{share['cloth_pixels']:.1%}</b> on the cloth's pixels "
                  f"({share['cloth_pixel_fraction']:.0%} of the frame), {share['frame']:.1%} of the whole frame.</p>")
     rows = "".join(f"<tr><td>{b}</td><td>{e['seconds']:.1f}</td><td>{e.get('flip', float('nan')):.4f}</td></tr>"
