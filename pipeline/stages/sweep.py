@@ -138,7 +138,8 @@ def bake_members(todo, bundles: dict, root: Path, workers, scheduler) -> None:
                 if b.finished:
                     mi.set_variant(b.cfg.bake.variant)  # the summary's probe traces here
                     b.finish()
-                    graph.stamp("bake", b.cfg, root, seconds=b.elapsed, work=estimate.work("bake", b.cfg))
+                    graph.stamp("bake", b.cfg, root, seconds=b.elapsed, work=estimate.work("bake", b.cfg),
+                                probe=estimate.measured_probe())
                     bar.set_postfix(members=f"{sum(x.finished for x in bakes)}/{len(bakes)}", refresh=False)
 
 
