@@ -14,7 +14,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from models.spectrum import spectrum_to_srgb
+from models.spectrum import hat_basis, spectrum_to_srgb
 
 
 # -- small pure functions: the geometry of the bundle frame -----------------------
@@ -145,7 +145,7 @@ def spectral_weights(wavelength_nm, variant_kind: str, mono_nm=None) -> np.ndarr
         if not wl[0] <= mono_nm <= wl[-1]:
             raise ValueError(f"fiber_bundle: wavelength {mono_nm} nm is outside the table's "
                              f"{wl[0]:.0f}..{wl[-1]:.0f} nm")
-        return np.array([[np.interp(mono_nm, wl, eye[k]) for k in range(len(wl))]])
+        return hat_basis(wl, [mono_nm])
     import colour
 
     rgb = spectrum_to_srgb(eye, wl)  # Y is the second row of XYZ
