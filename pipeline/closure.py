@@ -186,12 +186,15 @@ def luminance_weights(mi, wavelength_nm) -> np.ndarray:
 
 
 def spectrum_weights(mi, wavelength, wavelength_nm: float | None) -> np.ndarray:
-    """Weights over a table's ``wavelength`` samples for the value asked for: the sample
-    nearest ``wavelength_nm``, or (``None``) the luminance a spectral render records."""
+    """Weights over a table's ``wavelength`` samples for the value asked for: a mono
+    variant's at ``wavelength_nm`` (the plugins' own, ``mitsuba_ext.frame.spectral_weights``:
+    linear between samples), or (``None``) the luminance a spectral render records."""
+    from mitsuba_ext.frame import spectral_weights
+
     wl = np.asarray(wavelength, np.float64)
     if wavelength_nm is None:
         return luminance_weights(mi, wl)
-    return np.eye(len(wl))[int(np.argmin(np.abs(wl - wavelength_nm)))]
+    return spectral_weights(wl, "mono", float(wavelength_nm))[0]
 
 
 def explicit_shapes(bundle, fiber_bsdf: dict, half_length: float, unit: float = 1e-3) -> dict:
@@ -385,9 +388,9 @@ def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
 
 # -- measurements over many directions (the render stage and bench_closure) ------------
 def evaluator(mi, kind: str, path, wavelength_nm: float | None):
-    """``S_of(pi, ti, po, to)``: what a renderer is given, at the wavelength nearest
-    ``wavelength_nm`` (``None``: the luminance a spectral render records;
-    :func:`spectrum_weights`), evaluated the way its own code does, outside any render:
+    """``S_of(pi, ti, po, to)``: what a renderer is given, at ``wavelength_nm`` (``None``:
+    the luminance a spectral render records; :func:`spectrum_weights`), evaluated the way
+    its own code does, outside any render:
     a float for scalar angles, an array for arrays (broadcast; one evaluation for all).
 
     ``kind``: ``fiber`` (a ``fiber_table.npz``, numpy; one wavelength), ``table`` (a
