@@ -65,8 +65,7 @@ def fiber_half_length(half_size, theta_o) -> float:
     cos(theta_o)`` of the axis, more than 80 half sizes beyond 88.57 deg: with shorter fibers
     it would see past their ends and read the intensity low (the default ply at 88.75 deg:
     23%; one fiber at 88.8 deg: 34%)."""
-    cos_o = float(np.cos(np.max(np.abs(np.asarray(theta_o, float)))))
-    return float(half_size * max(40.0, visible_length(1.0, np.arccos(max(cos_o, 1e-6)))))
+    return float(half_size * max(40.0, visible_length(1.0, np.max(np.abs(np.asarray(theta_o, float))))))
 
 
 def cylinder(R, bsdf: dict, center_xz=(0.0, 0.0), half_length=1.0) -> dict:
