@@ -15,7 +15,10 @@ Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``exp
               other measure each side's own noise. FLIP of the bundle against the
               explicit reference, mean radiance, time *at equal noise* (variance per
               sample x seconds per sample: Monte Carlo variance falls as 1/spp) and peak
-              memory, at camera distances where a ply spans 1 .. 8 pixels.
+              memory, at camera distances where a ply spans 1 .. 8 pixels. The bundle
+              is rendered a second time with ``displaced_exit`` off (all light leaves a
+              ply where it entered, as single scattering does): where the exit model
+              moves the colour (multiply scattered light is red in the dyed yarn).
 ``memory``    the whole model, counted: its plies' control points with the table (or
               the MLP) against every fiber of every ply as a curve.
 ``overlap``   two straight plies touching and interpenetrating, explicit fibers against
@@ -149,10 +152,11 @@ def patch_scene(cfg, ply_px, out: Path):
 
 def child_explicit(config, root, which, ply_px, spp, seeds, out):
     """The patch rendered ``seeds`` times at ``spp`` each: ``which`` = ``bundle`` (the plies
-    with the bake's table) or ``explicit`` (every fiber of every ply as its own curve with
-    the single-fiber model); both carry the same flyaways; ``sky``: nothing but the sky
-    (which pixels the cloth changes). Saves the means of the two halves of the seeds
-    (their difference is the noise of the mean)."""
+    with the bake's table), ``bundle_entry`` (the same, light leaving each ply where it
+    entered: ``bundle_path``'s ``displaced_exit`` off) or ``explicit`` (every fiber of every
+    ply as its own curve with the single-fiber model); all carry the same flyaways; ``sky``:
+    nothing but the sky (which pixels the cloth changes). Saves the means of the two halves
+    of the seeds (their difference is the noise of the mean)."""
     from models.cloth.fibers import explicit_fibers
     from models.cloth.flyaways import tapered
     from models.cloth.curves import write_mitsuba_curves
@@ -174,7 +178,7 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     geometry_points = 0
     # the curves' ends at the patch's cut tapered over a short tip: Mitsuba 3.9's
     # bsplinecurve crashes now and then on rays that hit a blunt open end (its PR #1928)
-    if which == "bundle":
+    if which in ("bundle", "bundle_entry"):
         with atomic_path(out / "patch_plies.txt") as tmp, open(tmp, "w") as fh:
             write_mitsuba_curves(fh, (tapered(C, g.radius) for C in g.curves))
         shapes["yarn"] = scenes.ply_shape(out / "patch_plies.txt", props, g.radius)
@@ -199,6 +203,8 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     scene = scenes.cloth_scene(mi, c, shapes, bbox, spp, view=view)
     scene["integrator"].update(overlaps=OVERLAPS,  # both sides alike (the patch's yarns interpenetrate)
                                max_depth=EXPLICIT_DEPTH)
+    if which == "bundle_entry":
+        scene["integrator"]["displaced_exit"] = False
     scene = mi.load_dict(scene)
     loaded = peak_mb()
 
@@ -451,7 +457,8 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
         row = {"ply_px": px}
         pair = {}
         try:
-            for which, (spp, seeds) in (("bundle", BUNDLE_SPP), ("explicit", EXPLICIT_SPP)):
+            for which, (spp, seeds) in (("bundle", BUNDLE_SPP), ("bundle_entry", BUNDLE_SPP),
+                                        ("explicit", EXPLICIT_SPP)):
                 m = _child("explicit", config, root, which, px, spp // 4 if quick else spp, seeds, tmp)
                 data = np.load(Path(tmp) / f"{which}_{px}.npz")
                 pair[which] = (data["a"], data["b"])
@@ -493,6 +500,11 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
         row["memory_ratio"] = (row["explicit"]["peak_mb"] - row["explicit"]["base_mb"]) / max(
             1.0, row["bundle"]["peak_mb"] - row["bundle"]["base_mb"])
         row["geometry_ratio"] = row["explicit"]["control_points"] / row["bundle"]["control_points"]
+        # the exit model's share of the colour: the bundle with light leaving where it entered
+        entry = 0.5 * (pair["bundle_entry"][0] + pair["bundle_entry"][1])
+        row["entry_exit"] = {"flip": masked_flip(ref, entry, exposure, mask),
+                             "mean_ratio": float(entry[mask].mean() / ref[mask].mean()),
+                             "mean_ratio_rgb": (entry[mask].mean(0) / ref[mask].mean(0)).tolist()}
         explicit.append(row)
         np.save(Path(tmp) / f"pair_{px}.npy", np.stack([ref, test]))
         print(f"[explicit] {px} px: FLIP {row['flip']:.3f}, half the samples {row['flip_half_samples']:.3f}, "
@@ -500,7 +512,9 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
               f"bundle halves {row['flip_bundle_noise']:.3f}), mean x{row['mean_ratio']:.3f} (RGB "
               f"{np.round(row['mean_ratio_rgb'], 3).tolist()}), equal-noise time "
               f"x{row['time_ratio_equal_noise']:.1f}, memory x{row['memory_ratio']:.1f}, geometry "
-              f"x{row['geometry_ratio']:.0f}", flush=True)
+              f"x{row['geometry_ratio']:.0f}; light leaving where it entered: FLIP {row['entry_exit']['flip']:.3f}, "
+              f"mean x{row['entry_exit']['mean_ratio']:.3f} (RGB {np.round(row['entry_exit']['mean_ratio_rgb'], 3).tolist()})",
+              flush=True)
     return explicit
 
 
@@ -580,6 +594,8 @@ def plot_explicit(plt, explicit, tmp, path_explicit):
     ax[0].plot([r["ply_px"] for r in e], [r["flip"] for r in e], "o-", label="bundle vs explicit fibers")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_extrapolated"] for r in e], "o:", color="C0", alpha=0.6,
                label="bundle vs explicit, extrapolated to no noise")
+    ax[0].plot([r["ply_px"] for r in e if "entry_exit" in r], [r["entry_exit"]["flip"] for r in e if "entry_exit" in r],
+               "s-", color="C3", alpha=0.7, label="bundle, light leaving where it entered, vs explicit")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_explicit_noise"] for r in e], "x--",
                label="explicit: half vs half (its noise)")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_bundle_noise"] for r in e], "+:",
