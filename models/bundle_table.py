@@ -10,6 +10,11 @@ lambda)::
 
     sum_bins S * solid_angle + P_pass + absorbed + lost = 1
 
+``single`` (optional; tables baked before 2026-12-03 have none) is the part of the
+scattered light ``sum_bins S * solid_angle`` that left after exactly one fiber event, per
+(phi_i, theta_i, lambda): in a dyed yarn the blue light that leaves at all leaves after
+one fiber, the red after many (docs/BENCHMARKS.md, "Cloth").
+
 Axes and bins (radians, nm):
 
 =============  =================================================================
@@ -78,6 +83,7 @@ class BundleTable:
     # [phi_i, theta_i]: where the passthrough depends on theta_i (twisted plies); then
     # ``passthrough`` is its mean over theta_i
     passthrough_theta: np.ndarray | None = None
+    single: np.ndarray | None = None  # [phi_i, theta_i, lambda]: scattered after one fiber event
 
     # -- derived axes --------------------------------------------------------
     @property
@@ -116,8 +122,9 @@ class BundleTable:
         arrays = {k: getattr(self, k) for k in ARRAYS}
         arrays["values"] = arrays["values"].astype(np.float32)
         arrays["stderr"] = arrays["stderr"].astype(np.float32)
-        if self.passthrough_theta is not None:
-            arrays["passthrough_theta"] = self.passthrough_theta
+        for name in ("passthrough_theta", "single"):
+            if getattr(self, name) is not None:
+                arrays[name] = getattr(self, name)
         header = {"format": FORMAT, "meta": self.meta}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
@@ -132,7 +139,7 @@ class BundleTable:
                 if header.get("format") != FORMAT:
                     raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
                 table = cls(**{k: z[k] for k in ARRAYS}, meta=header["meta"],
-                            passthrough_theta=z["passthrough_theta"] if "passthrough_theta" in z.files else None)
+                            **{k: z[k] if k in z.files else None for k in ("passthrough_theta", "single")})
             table.validate()
             if expand:  # expanded for a lookup
                 table.check_lookup()
@@ -150,7 +157,9 @@ class BundleTable:
                  len(self.theta_o_edges) - 1, len(self.wavelength))
         if self.values.shape != shape or self.stderr.shape != shape:
             raise ValueError(f"values have shape {self.values.shape}, the axes give {shape}")
-        optional = (("passthrough_theta", shape[:2]),) if self.passthrough_theta is not None else ()
+        optional = tuple((name, want) for name, want in (("passthrough_theta", shape[:2]),
+                                                         ("single", shape[:2] + shape[4:]))
+                         if getattr(self, name) is not None)
         for name, want in (("passthrough", shape[:1]), ("passthrough_stderr", shape[:1]),
                            ("absorbed", shape[:2] + shape[4:]), ("lost", shape[:2] + shape[4:])) + optional:
             if np.shape(getattr(self, name)) != want:
@@ -169,6 +178,8 @@ class BundleTable:
         for name in ("passthrough", "absorbed", "lost") + tuple(n for n, _ in optional):
             if np.any(getattr(self, name) > 1 + 1e-6):
                 raise ValueError(f"{name} reaches {float(np.max(getattr(self, name))):.4g}; a probability is at most 1")
+        if self.single is not None and np.any(self.single > self.scattered * (1 + 1e-4) + 1e-6):
+            raise ValueError("single exceeds the scattered light it is a part of")
         reductions = self.meta.get("reductions", {"phi_o": "relative"})
         for key, allowed in REDUCTIONS.items():
             if reductions.get(key) not in allowed:
@@ -201,7 +212,7 @@ class BundleTable:
         return t
 
     def _replace(self, **kw):
-        data = {k: getattr(self, k) for k in ARRAYS} | {"meta": dict(self.meta),
+        data = {k: getattr(self, k) for k in ARRAYS} | {"meta": dict(self.meta), "single": self.single,
                                                         "passthrough_theta": self.passthrough_theta}
         data.update(kw)
         return BundleTable(**data)
@@ -217,6 +228,7 @@ class BundleTable:
             theta_i=np.concatenate([-self.theta_i[pos][::-1], self.theta_i])[order],
             values=cat(self.values, 1, 3), stderr=cat(self.stderr, 1, 3),
             absorbed=cat(self.absorbed, 1), lost=cat(self.lost, 1),
+            single=None if self.single is None else cat(self.single, 1),
             passthrough_theta=None if self.passthrough_theta is None else cat(self.passthrough_theta, 1))
 
     def _mirror_phi(self, twisted: bool = False):
@@ -255,6 +267,7 @@ class BundleTable:
         return self._replace(phi_i=np.array(phis), values=pick(self.values, True, (0, 2)),
                              stderr=pick(self.stderr, True, (0, 2)),
                              absorbed=pick(self.absorbed, False), lost=pick(self.lost, False),
+                             single=None if self.single is None else pick(self.single, False),
                              passthrough=pick(self.passthrough, False, ()),
                              passthrough_stderr=pick(self.passthrough_stderr, False, ()),
                              passthrough_theta=None if self.passthrough_theta is None

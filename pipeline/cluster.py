@@ -88,9 +88,7 @@ def pack(tally) -> dict:
     a = tally.arrays()
     nz = np.flatnonzero((a["sum"] != 0) | (a["sum_sq"] != 0))
     return {"shape": a["sum"].shape, "index": nz.astype(np.int64), "sum": a["sum"].ravel()[nz],
-            "sum_sq": a["sum_sq"].ravel()[nz], **{k: a[k] for k in ("absorbed", "lost", "paths", "passthrough",
-                                                                        "paths_theta", "passthrough_theta",
-                                                                        "vertices")}}
+            "sum_sq": a["sum_sq"].ravel()[nz], **{k: v for k, v in a.items() if k not in ("sum", "sum_sq")}}
 
 
 def unpack(packed: dict):

@@ -60,6 +60,20 @@ def test_a_consistent_table_still_loads(table_path):
     assert BundleTable.load(table_path).passthrough.max() <= 1
 
 
+def test_the_singly_scattered_part_is_checked_and_optional(table_path):
+    """``single`` is optional (tables baked before it have none and load as before); where
+    present it is a part of the scattered light and cannot exceed it."""
+    t = BundleTable.load(table_path)
+    assert t.single is None and BundleTable.load(table_path, expand=True).single is None
+    t.single = 0.5 * t.scattered
+    t.save(table_path)
+    assert np.allclose(BundleTable.load(table_path).single, 0.5 * t.scattered)
+    t.single = np.minimum(1.0, 1.1 * t.scattered)  # a probability still, but more than its whole
+    t.save(table_path)
+    with pytest.raises(ValueError, match="single exceeds the scattered light"):
+        BundleTable.load(table_path)
+
+
 @pytest.mark.parametrize("field,value,says", [
     ("s0", float("nan"), "s0"), ("y_max", -1.0, "y_max"), ("cone_scale", 0.0, "cone_scale"),
     ("passthrough", [1.5], "passthrough"), ("wavelength", [550.0, 450.0], "wavelength"),

@@ -93,6 +93,23 @@ def test_single_fiber_reproduces_its_model(request, estimator, which):
     rel = np.abs(bal["scattered"][0] - albedo) / albedo
     assert np.max(rel) < (0.02 if estimator == "fast" else 0.05)
     assert np.allclose(bal["absorbed"][0], 1 - albedo, atol=1e-6)
+    # one convex fiber: light that leaves it never meets another, so all of it left after one event
+    assert np.allclose(table.single, bal["scattered"], rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("estimator", ["fast", "thesis"])
+def test_the_singly_scattered_light_is_what_a_one_bounce_bake_scatters(iso_fiber, estimator):
+    """``single`` (light that left after one fiber event) against an independent reading of
+    the same thing: a bake whose bounce cap is 1 keeps exactly the paths that leave after
+    their first fiber (the rest is ``lost``), with the same seed the same paths. A dense
+    lossless bundle, where most light meets several fibers."""
+    dense = poisson((120.0, 120.0), 20.0, seed=2)
+    paths = 20_000 if estimator == "fast" else 100_000
+    full = bake(dense, iso_fiber, estimator, paths=paths, max_bounces=2000)
+    once = bake(dense, iso_fiber, estimator, paths=paths, max_bounces=1)
+    assert np.allclose(full.single, once.scattered, rtol=1e-5, atol=1e-9)
+    share = full.single / full.scattered
+    assert np.all((share > 0.1) & (share < 0.9)), share  # several fibers: neither all nor none
 
 
 @pytest.mark.parametrize("theta_i", [(0.0, 30.0, 60.0), (0.0, 45.0, 75.0, 90.0)], ids=["step", "graded"])

@@ -42,7 +42,7 @@ def test_resume_gives_the_same_table(tmp_path, mi_llvm):
     ta = BundleTable.load(tmp_path / "a" / "b" / "bake" / "bundle_table.npz")
     tb = BundleTable.load(tmp_path / "b" / "b" / "bake" / "bundle_table.npz")
     assert np.array_equal(ta.values, tb.values) and np.array_equal(ta.stderr, tb.stderr)
-    assert np.array_equal(ta.passthrough, tb.passthrough)
+    assert np.array_equal(ta.passthrough, tb.passthrough) and np.array_equal(ta.single, tb.single)
     assert not (tmp_path / "b" / "b" / "bake" / "checkpoint.npz").exists()
     # the table describes itself and expands its reductions
     assert ta.meta["reductions"] == {"theta_i": "mirror", "phi_i": "mirror_xz", "phi_o": "absolute"}
@@ -53,6 +53,8 @@ def test_resume_gives_the_same_table(tmp_path, mi_llvm):
     assert np.array_equal(full.values[a315], full.values[a45][:, ::-1])
     # mirror along the axis: S(-theta_i, -theta_o) = S(theta_i, theta_o)
     assert np.array_equal(full.values[:, 2], full.values[:, 4][:, :, ::-1])
+    assert full.single.shape == full.absorbed.shape and np.array_equal(full.single[:, 2], full.single[:, 4])
+    assert np.array_equal(full.single[a315], full.single[a45])
     pictures = list((tmp_path / "a" / "b" / "bake" / "slices").glob("*.png"))
     assert len(pictures) == 3 * 4 and (tmp_path / "a" / "b" / "bake" / "energy.png").exists()
 

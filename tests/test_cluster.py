@@ -41,7 +41,8 @@ def _table(root):
 
 
 def _same(a, b):
-    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("values", "stderr", "passthrough", "absorbed"))
+    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("values", "stderr", "passthrough", "absorbed",
+                                                                                      "single"))
 
 
 def _fiber(serial, root):

@@ -40,7 +40,8 @@ def _table(root, member):
 
 
 def _same(a, b):
-    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("values", "stderr", "passthrough", "absorbed"))
+    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("values", "stderr", "passthrough", "absorbed",
+                                                                                      "single"))
 
 
 def test_a_sweep_on_a_cluster_bakes_each_member_as_its_own_bake_and_resumes(tmp_path, capsys, monkeypatch):

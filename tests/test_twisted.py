@@ -13,6 +13,8 @@
   agree once shifted.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -253,6 +255,12 @@ def test_lossless_twisted_ply_conserves_energy(migration):
     assert np.allclose(total, 1.0, atol=1e-3), total  # a lossless path's weight stays 1: no noise
     assert np.all(table.absorbed < 1e-5) and np.all(table.lost < 1e-3)
     assert np.all(np.isfinite(table.values)) and np.all(table.values >= 0)
+    # the singly scattered part, read independently: a bake capped at one fiber event keeps
+    # exactly the paths that leave after their first (the same seed, the same paths)
+    once = dataclasses.replace(spec, max_bounces=1)
+    capped = table_of(TwistedBaker(ply, fiber, once).trace(0, 40_000, 5), once, fiber)
+    assert np.allclose(table.single, capped.scattered, rtol=1e-5, atol=1e-9)
+    assert np.all((table.single > 0.05 * table.scattered) & (table.single < 0.95 * table.scattered))
 
 
 def test_a_turn_of_a_twisted_ply_is_a_shift_along_its_axis(ray_fiber):

@@ -213,6 +213,7 @@ class Baker:
         order = np.concatenate([esc, np.flatnonzero(capped), np.flatnonzero(~(escaped | capped))])
         n_esc, n_cap = len(esc), int(capped.sum())
         esc_bins = bin_of[esc]
+        esc_once = final["depth"][esc] == 1  # no fiber after the first: singly scattered
         perm = mi.UInt32(order.astype(np.uint32))
         per_path = [dr.gather(mi.Float, x, perm) for x in [theta1_d, dphi1_d, factor] + B + final["R"]]
         lobe_path = tuple(dr.gather(type(x), x, perm) for x in lobe_state)
@@ -233,6 +234,8 @@ class Baker:
                                             shape=(len(sums), k))
                 sums += one_hot @ W[:k]
                 sums_sq += one_hot @ np.square(W[:k], dtype=np.float64)
+                tally.single[phi_index] += W[:k][esc_once[lo:lo + k]].sum(axis=0, dtype=np.float64).reshape(
+                    n_ti, self.n_lambda)
             c0, c1 = max(lo, n_esc) - lo, max(lo, min(hi, n_esc + n_cap)) - lo  # capped rows
             if c1 > c0:
                 tally.lost[phi_index] += W[c0:c1].sum(axis=0, dtype=np.float64).reshape(n_ti, self.n_lambda)
@@ -468,6 +471,7 @@ class Baker:
             if depth >= spec.max_bounces:
                 np.add.at(tally.lost[phi_index], (j[alive], lam[alive]), w)
                 break
+        np.add.at(tally.single[phi_index], (j[esc_idx[0]], lam[esc_idx[0]]), esc_w[0])  # left the first fiber
         idx, bins, ws = (np.concatenate(a) for a in (esc_idx, esc_bin, esc_w))
         n_bins = spec.n_phi_o * spec.n_theta_o
         flat = (j[idx] * n_bins + bins) * n_l + lam[idx]

@@ -71,6 +71,8 @@ class Tally:
     parallel bake carries every ``theta_i`` at once, one of the twisted bake a single
     one, so the counts per ``theta_i`` node are kept too (``paths_theta``,
     ``passthrough_theta``): the passthrough of a twisted ply depends on ``theta_i``.
+    ``single`` is the part of ``sum`` (over every output bin) that left after exactly one
+    fiber event: the singly scattered light.
     """
 
     sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
@@ -81,10 +83,12 @@ class Tally:
     passthrough: np.ndarray  # [phi_i]
     paths_theta: np.ndarray  # [phi_i, theta_i] paths that carried each theta_i
     passthrough_theta: np.ndarray  # [phi_i, theta_i]
+    single: np.ndarray     # [phi_i, theta_i, lambda]
     vertices: int = 0
     extra: dict = field(default_factory=dict)
 
-    SUMS = ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough", "paths_theta", "passthrough_theta")
+    SUMS = ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough", "paths_theta", "passthrough_theta",
+            "single")
 
     @classmethod
     def zeros(cls, spec: BakeSpec, n_lambda: int):
@@ -92,7 +96,8 @@ class Tally:
         return cls(np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
                    np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
                    np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
-                   np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)), np.zeros(shape), np.zeros(shape))
+                   np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)), np.zeros(shape), np.zeros(shape),
+                   np.zeros(shape + (n_lambda,)))
 
     def count(self, phi_index: int, n_paths: int, passed: int) -> None:
         """Paths launched and passed through at azimuth ``phi_index``, each carrying every theta_i."""

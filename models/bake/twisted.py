@@ -182,6 +182,9 @@ class TwistedBaker:
                 n_ti, spec.n_phi_o, spec.n_theta_o)
             tally.sum_sq[phi_index, ..., l] += np.bincount(flat, W[esc, l] ** 2, n_ti * n_bins).reshape(
                 n_ti, spec.n_phi_o, spec.n_theta_o)
+        once = esc & (out["depth"] == 1)  # one fiber event: singly scattered
+        for l in range(L):
+            tally.single[phi_index, :, l] += np.bincount(j[once], W[once, l], n_ti)
         capped = status == CAPPED
         R = np.stack([r.numpy() for r in out["R"]], -1).astype(np.float64) * weight[j][:, None]
         for l in range(L):

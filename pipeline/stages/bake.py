@@ -198,6 +198,9 @@ class Bake:
                    "passthrough": table.passthrough.tolist(),
                    **{k: float(np.mean(v)) for k, v in balance.items()},
                    "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1))),
+                   # the share of the scattered light that left after one fiber event, per wavelength
+                   "single_share": (table.single.sum(axis=(0, 1))
+                                    / np.maximum(balance["scattered"].sum(axis=(0, 1)), 1e-300)).tolist(),
                    **{f"{q}_mc_error": batch_means_error(v, self.sizes, [a for a, _ in self.work])
                       for q, v in self.batch_estimates.items()}}
         summary["reductions"] = {"used": self.reductions, **reduction_cost(cfg, self.baker, elapsed)}
@@ -214,7 +217,9 @@ class Bake:
         self.ckpt.unlink(missing_ok=True)
         print(f"[bake] {cfg.name} ({c.estimator}): {tally.paths.sum():.3g} paths, {tally.vertices:.3g} vertices "
               f"in {elapsed:.1f} s ({summary['vertices_per_second'] / 1e6:.2f} M vertices/s); passthrough "
-              f"{table.passthrough.mean():.3f}; energy total {np.mean(balance['total']):.4f}; wrote {out}")
+              f"{table.passthrough.mean():.3f}; energy total {np.mean(balance['total']):.4f}; scattered after one "
+              f"fiber {summary['single_share'][0]:.0%} ({table.wavelength[0]:.0f} nm) .. "
+              f"{summary['single_share'][-1]:.0%} ({table.wavelength[-1]:.0f} nm); wrote {out}")
         return out
 
 
@@ -302,6 +307,7 @@ def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: 
         passthrough=p, passthrough_stderr=np.sqrt(p * (1 - p) / tally.paths),
         passthrough_theta=p_theta if per_theta else None,
         absorbed=tally.absorbed / tally.paths[:, None, None], lost=tally.lost / tally.paths[:, None, None],
+        single=tally.single / tally.paths[:, None, None],
         phi_i=spec.phi_i, theta_i=spec.theta_i, phi_o_edges=spec.phi_o_edges,
         theta_o_edges=spec.theta_o_edges, wavelength=fiber.wavelength.copy(),
         meta={"reductions": reductions, "units": {"angles": "rad", "wavelength": "nm", "values": "1/sr"}})
@@ -331,7 +337,9 @@ def plot_balance(table: BundleTable, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     bal = table.energy_balance()
-    fig, ax = plt.subplots(figsize=(6.5, 4.2), dpi=110)
+    single = table.single is not None
+    fig, axes = plt.subplots(1, 2 if single else 1, figsize=(11.5 if single else 6.5, 4.2), dpi=110, squeeze=False)
+    ax = axes[0, 0]
     t = np.rad2deg(table.theta_i)
     parts = [("scattered", "#4c72b0"), ("passthrough", "#bbbbbb"), ("absorbed", "#c44e52"), ("lost", "#dd8452")]
     base = np.zeros(len(t))
@@ -340,8 +348,21 @@ def plot_balance(table: BundleTable, path: Path) -> None:
         ax.fill_between(t, base, base + v, color=color, label=name, step=None, alpha=0.9)
         base = base + v
     ax.plot(t, base, "k--", lw=1, label="total")
+    if single:  # the part of the scattered band that left after one fiber event
+        ax.fill_between(t, 0, table.single.mean(axis=(0, 2)), facecolor="none", edgecolor="#1b2a49", hatch="//",
+                        lw=0, label="of it, after one fiber")
     ax.set(xlabel="theta_i [deg]", ylabel="fraction of light entering 2 R_b", ylim=(0, max(1.05, base.max() * 1.02)),
            title="energy balance (mean over phi_i and wavelengths)")
     ax.legend(loc="lower left", fontsize=8)
+    if single:
+        ax = axes[0, 1]
+        nodes = [j for j in slice_nodes(table.theta_i) if t[j] >= 0] or list(slice_nodes(table.theta_i))
+        for k, j in enumerate(nodes):
+            s = bal["scattered"][:, j].sum(0)
+            ax.plot(table.wavelength, table.single[:, j].sum(0) / np.maximum(s, 1e-300),
+                    color=plt.cm.viridis(k / max(1, len(nodes) - 1)), label=f"theta_i {t[j]:.0f} deg")
+        ax.set(xlabel="wavelength [nm]", ylabel="share of the scattered light", ylim=(0, 1.02),
+               title="scattered after one fiber event (over phi_i)")
+        ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)

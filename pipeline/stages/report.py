@@ -58,6 +58,11 @@ def run(cfg, out_root="artifacts") -> Path:
                 f"wavelength): scattered {s['scattered']:.4f}, passthrough {np.mean(s['passthrough']):.4f}, "
                 f"absorbed {_f4(s['absorbed'])}, lost {_f4(s['lost'])}, total {s['total']:.4f} (largest "
                 f"deviation from 1 of any incidence and wavelength: {s['max_abs_energy_error']:.4f}).</p>")
+        if "single_share" in s:  # bakes of 2026-12-03 on
+            share, wl = s["single_share"], cfg.wavelengths.grid()
+            body += (f"<p>Of the scattered light, {share[0]:.0%} at {wl[0]:.0f} nm and {share[-1]:.0%} at "
+                     f"{wl[-1]:.0f} nm left the ply after one fiber event (the rest after several; "
+                     "<code>single</code> in the table, right panel of the energy plot).</p>")
         b = cfg.bake
         body += (f"<p>Output bins: {b.n_phi_o} in phi_o; {b.n_theta_o} in theta_o, "
                  + (f"following the specular cone (a {b.cone_bin_deg:g}-deg bin centred on the cone of every "
