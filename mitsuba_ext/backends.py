@@ -6,7 +6,10 @@ angles (radians):
 * ``eval(phi_i, theta_i, phi_o, theta_o)`` -> list of ``n_lambda`` arrays, ``S`` in 1/sr;
 * ``passthrough(phi_i, theta_i)`` -> the probability that a ray crosses the bundle untouched;
 * ``sampling_grid(Float)`` -> a :class:`~mitsuba_ext.sampling.DirectionGrid` to
-  importance-sample outgoing directions.
+  importance-sample outgoing directions;
+
+and hold ``single_share``: per wavelength, the share of the scattered light that left the
+bake's ply after one fiber event (``None`` where the table or model has none).
 
 The table backend samples from its own bins. The neural backends have no table at
 render time: they tabulate their own output on a coarse grid when the BSDF is built
@@ -71,6 +74,7 @@ class TableBackend:
         self.wavelength = np.asarray(self.table.wavelength, float)
         self.relative = self.dj.relative
         self.nbytes = self.dj.nbytes
+        self.single_share = self.table.single_share()
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         return self.dj.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup)
@@ -97,6 +101,7 @@ class _NeuralBackend:
         self.spec = spec
         self.wavelength = np.asarray(spec.wavelength, float)
         self.relative = spec.relative_phi
+        self.single_share = np.asarray(spec.single_share, float) if spec.single_share else None
 
     def passthrough(self, phi_i, theta_i):
         s = self.spec

@@ -205,6 +205,11 @@ class FiberBundleBSDF(CurveBSDF):
     uniform share; ``pdf`` is that proposal's density (Mitsuba's chi-square test),
     and the weight ``eval / pdf`` is exact whatever the proposal.
 
+    **Attributes** for ``bundle_path``: ``passthrough`` and ``radius`` at a hit, and, where
+    the bake recorded it (the table's ``single``, or the exported model's metadata),
+    ``single_share``: per wavelength, the share of the scattered light that left the
+    ply after one fiber event (``bundle_path`` sends that share from where it entered).
+
     ``mi.traverse`` exposes ``twist``, ``twist_rate``, ``up``, ``radius`` and
     ``sampling_uniform`` (non-differentiable; edit them and ``params.update()``, as with
     Mitsuba's own plugins: the next render uses them).
@@ -302,6 +307,17 @@ class FiberBundleBSDF(CurveBSDF):
         weight = dr.select(passes, 1.0, value / dr.maximum(bs.pdf, 1e-20))
         ok = active & (bs.pdf > 0)
         return bs, dr.select(ok & dr.isfinite(weight), weight, 0.0)
+
+    def has_attribute(self, name, active=True):
+        return name in ("passthrough", "radius") or (name == "single_share" and self.backend.single_share is not None)
+
+    def eval_attribute(self, name, si, active=True):
+        """``single_share``: per wavelength of this render, the share of the bundle's scattered
+        light that left after one fiber event (``bundle_path`` sends it from where it entered)."""
+        if name == "single_share" and self.backend.single_share is not None:
+            q = [dr.zeros(mi.Float, dr.width(si.t)) + float(v) for v in self.backend.single_share]
+            return dr.clip(self._spectrum(q, si), 0.0, 1.0)
+        return dr.zeros(mi.UnpolarizedSpectrum, dr.width(si.t))
 
     def to_string(self):
         return (f"FiberBundleBSDF[backend={self.backend.name}, wavelengths={len(self.wavelength)}, "

@@ -40,6 +40,15 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
       The radius comes from the shape (``|dp/du| = 2 pi r`` per hit on
       ``cylinder`` and ``bsplinecurve``), else the BSDF's ``radius``, else a probe
       ray across the shape.
+    * **light that scattered once leaves where it entered**: where the BSDF has a
+      ``single_share`` (``fiber_bundle`` from a bake that records it: the share ``q`` of
+      the scattered light, per wavelength, that left the ply after one fiber event),
+      each bundle vertex leaves from its hit point with probability ``P``, the mean of
+      ``q`` over the path's wavelengths, else from the displaced exit, each wavelength
+      weighted by ``q / P`` or ``(1 - q) / (1 - P)`` (unbiased for either part). In a
+      dyed yarn most blue light that leaves a ply leaves after one fiber, near where it
+      entered; the displaced exit alone made cloth 17% short in blue against explicit
+      fibers (docs/BENCHMARKS.md, "Cloth").
 
     On scenes without bundles it is ``path``, sample for sample.
 
@@ -57,6 +66,9 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
          - Depth at which Russian roulette starts (default 5).
        * - displaced_exit
          - Leave bundles from the displaced exit point (default ``true``).
+       * - exit_split
+         - Send the ``single_share`` of a bundle's light from where it entered (default
+           ``true``; without a share, or with ``displaced_exit`` off, it does nothing).
        * - max_passes
          - Most bundle crossings of one path or shadow ray (default 64).
        * - shadow_rr
@@ -87,6 +99,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth
         self.rr_depth = integer("bundle_path", "rr_depth", props.get("rr_depth", 5), lo=1)
         self.displace = boolean("bundle_path", "displaced_exit", props.get("displaced_exit", True))
+        self.split = boolean("bundle_path", "exit_split", props.get("exit_split", True))
         self.max_passes = integer("bundle_path", "max_passes", props.get("max_passes", 64), lo=1)
         self.shadow_rr = number("bundle_path", "shadow_rr", props.get("shadow_rr", 0.1), 0.0, 1.0)
         self.overlaps = boolean("bundle_path", "overlaps", props.get("overlaps", False))
@@ -311,6 +324,17 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             if dr.hint(self.displace, mode="scalar"):
                 h = 2.0 * sampler.next_1d(bundle) - 1.0
 
+            # --- light that scattered once: from the hit, the rest from the displaced exit ---
+            single = mi.Bool(False)
+            w_exit = mi.UnpolarizedSpectrum(1.0)
+            if dr.hint(self.displace & self.split, mode="scalar"):
+                split = (bundle & (radius > 0) & bsdf.has_attribute("single_share", bundle)
+                         & ~bsdf.has_attribute("paths", bundle))
+                q = dr.clip(bsdf.eval_attribute("single_share", si, split), 0.0, 1.0)
+                P = dr.clip(dr.mean(q), 0.02, 0.98)  # never 0 or 1: each part keeps its chance
+                single = split & (sampler.next_1d(split) < P)
+                w_exit = dr.select(split, dr.select(single, q / P, (1.0 - q) / (1.0 - P)), 1.0)
+
             # ------------------ emitter sampling ------------------
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(active_em), False, active_em)
@@ -326,7 +350,8 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
                 dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
                 d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
                 moved = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
-                shadow = dr.select(bundle & (radius > 0), self._backed(scene, moved, radius, bundle & shadowed), shadow)
+                displaced = bundle & (radius > 0) & ~single
+                shadow = dr.select(displaced, self._backed(scene, moved, radius, displaced & shadowed), shadow)
             T = self._transmittance(scene, sampler, shadow, shadowed)
             wo = si.to_local(ds.d)
 
@@ -335,7 +360,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             sample_2 = sampler.next_2d(active_next)
             bsdf_val, bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_next)
             mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
-            nee = bsdf_val * T * mis_em
+            nee = bsdf_val * T * mis_em * w_exit
             if dr.hint((self._paths > 0) & self.displace, mode="scalar"):  # h-resolved fibers in the scene
                 nee = dr.select(lobed, self._emitter_paths(scene, sampler, si, bsdf, ds, radius, h, lobed), nee)
             result = dr.select(active_em, dr.fma(throughput, nee * em_weight, result), result)
@@ -351,7 +376,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             if dr.hint(self.displace, mode="scalar"):
                 p_exit, radial = displaced_exit(si, radius, h, wo_world)
                 moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
-                next_ray = dr.select(bundle & ~passed & (radius > 0), moved, next_ray)
+                next_ray = dr.select(bundle & ~passed & (radius > 0) & ~single, moved, next_ray)
             if dr.hint((self._paths > 0) & self.displace, mode="scalar"):
                 lobed_next = bundle & ~passed & (radius > 0) & bsdf.has_attribute("paths", bundle)
                 p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world,
@@ -361,7 +386,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             next_ray = self._backed(scene, next_ray, radius, active_next & bundle)
             ray = dr.select(active_next, next_ray, ray)
 
-            throughput = dr.select(active_next, throughput * bsdf_weight, throughput)
+            throughput = dr.select(active_next, throughput * bsdf_weight * dr.select(passed, 1.0, w_exit), throughput)
             eta = dr.select(active_next, eta * bs.eta, eta)
             # Mitsuba's rule (a hit on a non-null BSDF), plus a bundle seen from outside: it
             # scatters even when this sample passes through (its emitter sample counts)
@@ -394,7 +419,8 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         return []
 
     def to_string(self):
-        return f"BundlePathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
+        return (f"BundlePathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
+                f"displaced_exit={self.displace}, exit_split={self.split}]")
 
 
 PLUGINS = {"bundle_path": BundlePathIntegrator}

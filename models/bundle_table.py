@@ -104,6 +104,13 @@ class BundleTable:
         """``integral S d omega_o`` per (phi_i, theta_i, lambda)."""
         return np.einsum("abpql,pq->abl", self.values.astype(np.float64), self.solid_angle)
 
+    def single_share(self) -> np.ndarray | None:
+        """Of all the scattered light (every incidence), the share that left after one fiber
+        event, per wavelength; ``None`` for a table without ``single``."""
+        if self.single is None:
+            return None
+        return self.single.sum(axis=(0, 1)) / np.maximum(self.scattered.sum(axis=(0, 1)), 1e-300)
+
     def passthrough_at_nodes(self) -> np.ndarray:
         """``P_pass`` per (phi_i, theta_i) node: [phi_i, theta_i]."""
         if self.passthrough_theta is not None:

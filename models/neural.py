@@ -71,6 +71,9 @@ class NeuralSpec:
     # where P_pass depends on theta_i (twisted plies): [phi_i node][theta_i node], and those nodes
     passthrough_theta: list = field(default_factory=list)
     passthrough_theta_i: list = field(default_factory=list)
+    # per wavelength: the share of the scattered light that left after one fiber event (the
+    # table's ``single_share``; empty for tables without it), for the renderer's exit choice
+    single_share: list = field(default_factory=list)
     format: str = FORMAT
 
     def __post_init__(self):
@@ -92,6 +95,9 @@ class NeuralSpec:
                     np.any((q < 0) | (q > 1)):
                 raise ValueError("model metadata: passthrough_theta must hold a probability in [0, 1] per "
                                  "(passthrough_phi_i, passthrough_theta_i)")
+        q = np.asarray(self.single_share, float)
+        if q.size and (q.shape != wl.shape or not np.all(np.isfinite(q)) or np.any((q < 0) | (q > 1 + 1e-6))):
+            raise ValueError("model metadata: single_share must be empty or hold a share in [0, 1] per wavelength")
         bad = [f for f in self.folds if f not in FOLDS]
         if bad or ("dphi" in self.folds and not self.relative_phi) or ("xz" in self.folds and self.relative_phi):
             raise ValueError(f"folds {self.folds} do not fit a {'relative' if self.relative_phi else 'absolute'}"

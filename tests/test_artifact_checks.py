@@ -77,6 +77,7 @@ def test_the_singly_scattered_part_is_checked_and_optional(table_path):
 @pytest.mark.parametrize("field,value,says", [
     ("s0", float("nan"), "s0"), ("y_max", -1.0, "y_max"), ("cone_scale", 0.0, "cone_scale"),
     ("passthrough", [1.5], "passthrough"), ("wavelength", [550.0, 450.0], "wavelength"),
+    ("single_share", [0.5, 1.5, 0.2], "single_share"), ("single_share", [0.5], "single_share"),
 ])
 def test_model_metadata_out_of_its_domain_is_refused(trained, tmp_path, field, value, says):
     import shutil

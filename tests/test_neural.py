@@ -298,3 +298,21 @@ def test_a_model_not_worth_rendering_is_said(tmp_path, capsys):
     train_stage.run(cfg, tmp_path)
     out = capsys.readouterr().out
     assert "[train] warning: tiny is" in out and "not worth rendering" in out and "train.epochs" in out
+
+
+def test_the_exported_model_carries_the_tables_single_share(mi_llvm, tmp_path):
+    """The share of singly scattered light (the table's ``single``) travels with the model,
+    so that ``bundle_path`` gives table and MLP renders the same exit model."""
+    from mitsuba_ext.backends import MLPBackend, TableBackend
+
+    cfg = make_config(tmp_path, name="share", models={"tiny": [4]}, epochs=2, calibration_steps=0)
+    path = tmp_path / "share" / "bake" / "bundle_table.npz"
+    table = synthetic_table(cfg, path)
+    table.single = table.scattered * np.array([0.8, 0.5, 0.2])
+    table.save(path)
+    train_stage.run(cfg, tmp_path)
+    export_stage.run(cfg, tmp_path)
+    share = TableBackend(path, mi_llvm.Float).single_share
+    assert np.allclose(share, [0.8, 0.5, 0.2])
+    mlp = MLPBackend(tmp_path / "share" / "export" / "tiny" / "weights.npz", mi_llvm.Float)
+    assert np.allclose(mlp.single_share, share)

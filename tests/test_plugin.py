@@ -278,6 +278,47 @@ def test_white_furnace_matches_the_tables_energy_balance(mi_plug, tables):
     assert abs(expected.mean() - 1.0) > 0.05  # the check is not trivially "everything is white"
 
 
+def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_path):
+    """``bundle_path``'s exit split against its two limits, which need no split: a row of
+    touching plies lit from the side, where the exit matters (the displaced exit sends light
+    across a ply and past its neighbours' shadow: 30% brighter here than leaving from the hit).
+    A table whose light all scattered once (``single = scattered``) renders as
+    ``displaced_exit`` off; none (``single = 0``) as the displaced exit; half as their mean
+    (each wavelength's weight ``q / P`` or ``(1 - q) / (1 - P)``); ``exit_split`` off ignores
+    the share."""
+    mi = mi_plug
+    table = BundleTable.load(tables["circle"])
+    paths = {}
+    for q in (0.0, 0.5, 1.0):
+        table.single = q * table.scattered
+        paths[q] = tmp_path / f"share_{q}.npz"
+        table.save(paths[q])
+
+    def mean(q, **integrator):
+        to_world = (mi.ScalarTransform4f().look_at([0, 1.5, 4], [0, 0, 0], [0, 1, 0])
+                    @ mi.ScalarTransform4f().scale([0.7, 0.7, 1]))
+        scene = {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": 8, **integrator},
+                 "sensor": {"type": "orthographic", "to_world": to_world,
+                            "film": {"type": "hdrfilm", "width": 32, "height": 24, "rfilter": {"type": "box"}},
+                            "sampler": {"type": "independent", "sample_count": 256}},
+                 # from below the plies' axis, so that the camera is on the synthetic ridge's cone
+                 "light": {"type": "directional", "direction": [0.9, 0.33, 0.1], "irradiance": {"type": "rgb",
+                                                                                                 "value": 3.0}}}
+        for k, x in enumerate((-1.0, -0.5, 0.0, 0.5, 1.0)):
+            scene[f"ply_{k}"] = {"type": "cylinder", "p0": [x, -2, 0], "p1": [x, 2, 0], "radius": 0.25,
+                                 "bsdf": {"type": "fiber_bundle", "table": str(paths[q])}}
+        img = np.array(mi.render(mi.load_dict(scene)))
+        assert np.all(np.isfinite(img))
+        return float(img.mean())
+
+    entry, displaced = mean(0.0, displaced_exit=False), mean(0.0)
+    gap = displaced - entry
+    assert gap > 0.2 * entry, (entry, displaced)  # the exits differ here
+    assert abs(mean(1.0) - entry) < 0.1 * gap
+    assert abs(mean(0.5) - 0.5 * (entry + displaced)) < 0.1 * gap
+    assert abs(mean(1.0, exit_split=False) - displaced) < 0.1 * gap
+
+
 def test_passthrough_shadow_transmittance_is_unbiased(mi_plug, tables):
     """NEE through bundles (bundle_path) and BSDF sampling alone (path) agree on average."""
     mi = mi_plug

@@ -199,8 +199,7 @@ class Bake:
                    **{k: float(np.mean(v)) for k, v in balance.items()},
                    "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1))),
                    # the share of the scattered light that left after one fiber event, per wavelength
-                   "single_share": (table.single.sum(axis=(0, 1))
-                                    / np.maximum(balance["scattered"].sum(axis=(0, 1)), 1e-300)).tolist(),
+                   "single_share": table.single_share().tolist(),
                    **{f"{q}_mc_error": batch_means_error(v, self.sizes, [a for a, _ in self.work])
                       for q, v in self.batch_estimates.items()}}
         summary["reductions"] = {"used": self.reductions, **reduction_cost(cfg, self.baker, elapsed)}

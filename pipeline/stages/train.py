@@ -151,7 +151,8 @@ def prepare(cfg, table, table_path) -> Problem:
                       config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"],
                       folds=folds, passthrough=table.passthrough.tolist(), passthrough_phi_i=table.phi_i.tolist(),
                       passthrough_theta=[] if table.passthrough_theta is None else table.passthrough_theta.tolist(),
-                      passthrough_theta_i=[] if table.passthrough_theta is None else table.theta_i.tolist())
+                      passthrough_theta_i=[] if table.passthrough_theta is None else table.theta_i.tolist(),
+                      single_share=[] if table.single is None else table.single_share().tolist())
     data = fold_table(table, base)
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
