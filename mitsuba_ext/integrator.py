@@ -40,15 +40,17 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
       The radius comes from the shape (``|dp/du| = 2 pi r`` per hit on
       ``cylinder`` and ``bsplinecurve``), else the BSDF's ``radius``, else a probe
       ray across the shape.
-    * **light that scattered once leaves where it entered**: where the BSDF has a
-      ``single_share`` (``fiber_bundle`` from a bake that records it: the share ``q`` of
-      the scattered light, per wavelength, that left the ply after one fiber event),
-      each bundle vertex leaves from its hit point with probability ``P``, the mean of
-      ``q`` over the path's wavelengths, else from the displaced exit, each wavelength
-      weighted by ``q / P`` or ``(1 - q) / (1 - P)`` (unbiased for either part). In a
-      dyed yarn most blue light that leaves a ply leaves after one fiber, near where it
-      entered; the displaced exit alone made cloth 17% short in blue against explicit
-      fibers (docs/BENCHMARKS.md, "Cloth").
+    * **light that scattered once leaves where it entered** (``exit_split``, off by
+      default): where the BSDF has a ``single_share`` (``fiber_bundle`` from a bake that
+      records it: the share ``q`` of the scattered light, per wavelength, that left the
+      ply after one fiber event), each bundle vertex leaves from its hit point with
+      probability ``P``, the mean of ``q`` over the path's wavelengths, else from the
+      displaced exit, each wavelength weighted by ``q / P`` or ``(1 - q) / (1 - P)``
+      (unbiased for either part). In a dyed yarn most blue light that leaves a ply leaves
+      after one fiber, near where it entered: on a knitted patch the split brings the
+      bundle's blue from 17% to 6% short of explicit fibers, but its weights, multiplied
+      over a path's many bounces, give it about 11x the variance (docs/BENCHMARKS.md,
+      "Cloth"): a choice of colour against noise, hence opt-in.
 
     On scenes without bundles it is ``path``, sample for sample.
 
@@ -68,7 +70,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
          - Leave bundles from the displaced exit point (default ``true``).
        * - exit_split
          - Send the ``single_share`` of a bundle's light from where it entered (default
-           ``true``; without a share, or with ``displaced_exit`` off, it does nothing).
+           ``false``; without a share, or with ``displaced_exit`` off, it does nothing).
        * - max_passes
          - Most bundle crossings of one path or shadow ray (default 64).
        * - shadow_rr
@@ -99,7 +101,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth
         self.rr_depth = integer("bundle_path", "rr_depth", props.get("rr_depth", 5), lo=1)
         self.displace = boolean("bundle_path", "displaced_exit", props.get("displaced_exit", True))
-        self.split = boolean("bundle_path", "exit_split", props.get("exit_split", True))
+        self.split = boolean("bundle_path", "exit_split", props.get("exit_split", False))
         self.max_passes = integer("bundle_path", "max_passes", props.get("max_passes", 64), lo=1)
         self.shadow_rr = number("bundle_path", "shadow_rr", props.get("shadow_rr", 0.1), 0.0, 1.0)
         self.overlaps = boolean("bundle_path", "overlaps", props.get("overlaps", False))

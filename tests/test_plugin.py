@@ -284,8 +284,8 @@ def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_
     across a ply and past its neighbours' shadow: 30% brighter here than leaving from the hit).
     A table whose light all scattered once (``single = scattered``) renders as
     ``displaced_exit`` off; none (``single = 0``) as the displaced exit; half as their mean
-    (each wavelength's weight ``q / P`` or ``(1 - q) / (1 - P)``); ``exit_split`` off ignores
-    the share."""
+    (each wavelength's weight ``q / P`` or ``(1 - q) / (1 - P)``); ``exit_split`` off (the
+    default) ignores the share."""
     mi = mi_plug
     table = BundleTable.load(tables["circle"])
     paths = {}
@@ -311,12 +311,12 @@ def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_
         assert np.all(np.isfinite(img))
         return float(img.mean())
 
-    entry, displaced = mean(0.0, displaced_exit=False), mean(0.0)
+    entry, displaced = mean(0.0, displaced_exit=False), mean(0.0, exit_split=True)
     gap = displaced - entry
     assert gap > 0.2 * entry, (entry, displaced)  # the exits differ here
-    assert abs(mean(1.0) - entry) < 0.1 * gap
-    assert abs(mean(0.5) - 0.5 * (entry + displaced)) < 0.1 * gap
-    assert abs(mean(1.0, exit_split=False) - displaced) < 0.1 * gap
+    assert abs(mean(1.0, exit_split=True) - entry) < 0.1 * gap
+    assert abs(mean(0.5, exit_split=True) - 0.5 * (entry + displaced)) < 0.1 * gap
+    assert abs(mean(1.0) - displaced) < 0.1 * gap  # off by default
 
 
 def test_passthrough_shadow_transmittance_is_unbiased(mi_plug, tables):
