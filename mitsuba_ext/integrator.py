@@ -48,7 +48,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
       displaced exit, each wavelength weighted by ``q / P`` or ``(1 - q) / (1 - P)``
       (unbiased for either part). In a dyed yarn most blue light that leaves a ply leaves
       after one fiber, near where it entered: on a knitted patch the split brings the
-      bundle's blue from 17% to 6% short of explicit fibers, but its weights, multiplied
+      bundle's blue from 18% to 9% short of explicit fibers, but its weights, multiplied
       over a path's many bounces, give it about 11x the variance (docs/BENCHMARKS.md,
       "Cloth"): a choice of colour against noise, hence opt-in.
 
