@@ -208,7 +208,7 @@ class FiberBundleBSDF(CurveBSDF):
     **Attributes** for ``bundle_path``: ``passthrough`` and ``radius`` at a hit, and, where
     the bake recorded it (the table's ``single``, or the exported model's metadata),
     ``single_share``: per wavelength, the share of the scattered light that left the
-    ply after one fiber event (``bundle_path`` with ``exit_split`` sends that share from
+    ply after one fiber event (``bundle_path``'s ``exit_split`` sends that share from
     where it entered).
 
     ``mi.traverse`` exposes ``twist``, ``twist_rate``, ``up``, ``radius`` and

@@ -13,7 +13,7 @@ import mitsuba as mi
 
 from mitsuba_ext.crossing import bundle_axis, check_bundles, displaced_exit, far_side, mis_weight, offset_ray
 from mitsuba_ext.frame import LinearCurves
-from mitsuba_ext.params import boolean, integer, number
+from mitsuba_ext.params import boolean, choice, integer, number
 
 if mi.variant() is None:
     raise ImportError("mitsuba_ext.integrator: choose a Mitsuba variant first (mi.set_variant), then "
@@ -46,11 +46,13 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
       ply after one fiber event), each bundle vertex leaves from its hit point with
       probability ``P``, the mean of ``q`` over the path's wavelengths, else from the
       displaced exit, each wavelength weighted by ``q / P`` or ``(1 - q) / (1 - P)``
-      (unbiased for either part). In a dyed yarn most blue light that leaves a ply leaves
-      after one fiber, near where it entered: on a knitted patch the split brings the
-      bundle's blue from 18% to 9% short of explicit fibers, but its weights, multiplied
-      over a path's many bounces, give it about 11x the variance (docs/BENCHMARKS.md,
-      "Cloth"): a choice of colour against noise, hence opt-in.
+      (unbiased for either part): for the emitter sample's shadow ray only
+      (``"emitter"``) or for the path's next ray too (``"all"``). In a dyed yarn most
+      blue light that leaves a ply leaves after one fiber, near where it entered: on a
+      knitted patch ``"all"`` brings the bundle's blue from 18% to 9% short of explicit
+      fibers, but its weights, multiplied over a path's many bounces, give it about 11x
+      the variance; ``"emitter"`` (one weight per path vertex, never multiplied) about
+      half the correction for 1.3x (docs/BENCHMARKS.md, "Cloth").
 
     On scenes without bundles it is ``path``, sample for sample.
 
@@ -69,8 +71,10 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
        * - displaced_exit
          - Leave bundles from the displaced exit point (default ``true``).
        * - exit_split
-         - Send the ``single_share`` of a bundle's light from where it entered (default
-           ``false``; without a share, or with ``displaced_exit`` off, it does nothing).
+         - Send the ``single_share`` of a bundle's light from where it entered: ``"none"``
+           (default), ``"emitter"`` (the shadow rays of next-event estimation) or
+           ``"all"`` (the path's next rays too). Without a share, or with
+           ``displaced_exit`` off, it does nothing.
        * - max_passes
          - Most bundle crossings of one path or shadow ray (default 64).
        * - shadow_rr
@@ -101,7 +105,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth
         self.rr_depth = integer("bundle_path", "rr_depth", props.get("rr_depth", 5), lo=1)
         self.displace = boolean("bundle_path", "displaced_exit", props.get("displaced_exit", True))
-        self.split = boolean("bundle_path", "exit_split", props.get("exit_split", False))
+        self.split = choice("bundle_path", "exit_split", props.get("exit_split", "none"), ("none", "emitter", "all"))
         self.max_passes = integer("bundle_path", "max_passes", props.get("max_passes", 64), lo=1)
         self.shadow_rr = number("bundle_path", "shadow_rr", props.get("shadow_rr", 0.1), 0.0, 1.0)
         self.overlaps = boolean("bundle_path", "overlaps", props.get("overlaps", False))
@@ -329,13 +333,16 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             # --- light that scattered once: from the hit, the rest from the displaced exit ---
             single = mi.Bool(False)
             w_exit = mi.UnpolarizedSpectrum(1.0)
-            if dr.hint(self.displace & self.split, mode="scalar"):
+            if dr.hint(self.displace & (self.split != "none"), mode="scalar"):
                 split = (bundle & (radius > 0) & bsdf.has_attribute("single_share", bundle)
                          & ~bsdf.has_attribute("paths", bundle))
                 q = dr.clip(bsdf.eval_attribute("single_share", si, split), 0.0, 1.0)
                 P = dr.clip(dr.mean(q), 0.02, 0.98)  # never 0 or 1: each part keeps its chance
                 single = split & (sampler.next_1d(split) < P)
                 w_exit = dr.select(split, dr.select(single, q / P, (1.0 - q) / (1.0 - P)), 1.0)
+            # the path's next ray follows the choice only for "all": its weights multiply along the path
+            single_next = single if self.split == "all" else mi.Bool(False)
+            w_next = w_exit if self.split == "all" else mi.UnpolarizedSpectrum(1.0)
 
             # ------------------ emitter sampling ------------------
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
@@ -378,7 +385,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             if dr.hint(self.displace, mode="scalar"):
                 p_exit, radial = displaced_exit(si, radius, h, wo_world)
                 moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
-                next_ray = dr.select(bundle & ~passed & (radius > 0) & ~single, moved, next_ray)
+                next_ray = dr.select(bundle & ~passed & (radius > 0) & ~single_next, moved, next_ray)
             if dr.hint((self._paths > 0) & self.displace, mode="scalar"):
                 lobed_next = bundle & ~passed & (radius > 0) & bsdf.has_attribute("paths", bundle)
                 p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world,
@@ -388,7 +395,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             next_ray = self._backed(scene, next_ray, radius, active_next & bundle)
             ray = dr.select(active_next, next_ray, ray)
 
-            throughput = dr.select(active_next, throughput * bsdf_weight * dr.select(passed, 1.0, w_exit), throughput)
+            throughput = dr.select(active_next, throughput * bsdf_weight * dr.select(passed, 1.0, w_next), throughput)
             eta = dr.select(active_next, eta * bs.eta, eta)
             # Mitsuba's rule (a hit on a non-null BSDF), plus a bundle seen from outside: it
             # scatters even when this sample passes through (its emitter sample counts)

@@ -58,6 +58,13 @@ def boolean(plugin: str, name: str, value) -> bool:
     return bool(value)
 
 
+def choice(plugin: str, name: str, value, options) -> str:
+    """One of the strings ``options``."""
+    if not isinstance(value, str) or value not in options:
+        _refuse(plugin, name, value, "one of " + ", ".join(repr(o) for o in options))
+    return value
+
+
 def vector3(plugin: str, name: str, value) -> np.ndarray:
     """Three finite numbers (a list, a Mitsuba vector or point); not a string."""
     if isinstance(value, str):

@@ -284,8 +284,9 @@ def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_
     across a ply and past its neighbours' shadow: 30% brighter here than leaving from the hit).
     A table whose light all scattered once (``single = scattered``) renders as
     ``displaced_exit`` off; none (``single = 0``) as the displaced exit; half as their mean
-    (each wavelength's weight ``q / P`` or ``(1 - q) / (1 - P)``); ``exit_split`` off (the
-    default) ignores the share."""
+    (each wavelength's weight ``q / P`` or ``(1 - q) / (1 - P)``); ``exit_split`` ``"none"``
+    (the default) ignores the share; ``"emitter"`` splits the shadow rays alone, which is all
+    of it where the light arrives directly."""
     mi = mi_plug
     table = BundleTable.load(tables["circle"])
     paths = {}
@@ -297,7 +298,7 @@ def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_
     def mean(q, **integrator):
         to_world = (mi.ScalarTransform4f().look_at([0, 1.5, 4], [0, 0, 0], [0, 1, 0])
                     @ mi.ScalarTransform4f().scale([0.7, 0.7, 1]))
-        scene = {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": 8, **integrator},
+        scene = {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": 8} | integrator,
                  "sensor": {"type": "orthographic", "to_world": to_world,
                             "film": {"type": "hdrfilm", "width": 32, "height": 24, "rfilter": {"type": "box"}},
                             "sampler": {"type": "independent", "sample_count": 256}},
@@ -311,12 +312,18 @@ def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_
         assert np.all(np.isfinite(img))
         return float(img.mean())
 
-    entry, displaced = mean(0.0, displaced_exit=False), mean(0.0, exit_split=True)
+    entry, displaced = mean(0.0, displaced_exit=False), mean(0.0, exit_split="all")
     gap = displaced - entry
     assert gap > 0.2 * entry, (entry, displaced)  # the exits differ here
-    assert abs(mean(1.0, exit_split=True) - entry) < 0.1 * gap
-    assert abs(mean(0.5, exit_split=True) - 0.5 * (entry + displaced)) < 0.1 * gap
+    assert abs(mean(1.0, exit_split="all") - entry) < 0.1 * gap
+    assert abs(mean(0.5, exit_split="all") - 0.5 * (entry + displaced)) < 0.1 * gap
     assert abs(mean(1.0) - displaced) < 0.1 * gap  # off by default
+    # direct light alone (one bounce, a directional light): "emitter" is all there is to split
+    direct = {"max_depth": 2}
+    entry, displaced = mean(0.0, displaced_exit=False, **direct), mean(0.0, exit_split="emitter", **direct)
+    gap = displaced - entry
+    assert gap > 0.1 * entry, (entry, displaced)
+    assert abs(mean(1.0, exit_split="emitter", **direct) - entry) < 0.1 * gap
 
 
 def test_passthrough_shadow_transmittance_is_unbiased(mi_plug, tables):

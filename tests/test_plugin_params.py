@@ -34,6 +34,7 @@ INTEGRATOR_CASES = {
     "max_depth": (3.7, "'max_depth' must be an integer"),
     "rr_depth": (0, "'rr_depth' must be an integer >= 1"),
     "displaced_exit": ("false", "'displaced_exit' must be a boolean"),
+    "exit_split": (True, "'exit_split' must be one of 'none', 'emitter', 'all'"),
     "max_passes": ("64", "'max_passes' must be an integer"),
     "hide_emitters": (1, "hide_emitters\" has the wrong type"),  # Mitsuba's own Integrator checks this one
 }
