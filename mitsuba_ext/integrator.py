@@ -331,17 +331,17 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
                 h = 2.0 * sampler.next_1d(bundle) - 1.0
 
             # --- light that scattered once: from the hit, the rest from the displaced exit ---
-            single = mi.Bool(False)
+            from_hit = mi.Bool(False)
             w_exit = mi.UnpolarizedSpectrum(1.0)
             if dr.hint(self.displace & (self.split != "none"), mode="scalar"):
                 split = (bundle & (radius > 0) & bsdf.has_attribute("single_share", bundle)
                          & ~bsdf.has_attribute("paths", bundle))
                 q = dr.clip(bsdf.eval_attribute("single_share", si, split), 0.0, 1.0)
                 P = dr.clip(dr.mean(q), 0.02, 0.98)  # never 0 or 1: each part keeps its chance
-                single = split & (sampler.next_1d(split) < P)
-                w_exit = dr.select(split, dr.select(single, q / P, (1.0 - q) / (1.0 - P)), 1.0)
+                from_hit = split & (sampler.next_1d(split) < P)
+                w_exit = dr.select(split, dr.select(from_hit, q / P, (1.0 - q) / (1.0 - P)), 1.0)
             # the path's next ray follows the choice only for "all": its weights multiply along the path
-            single_next = single if self.split == "all" else mi.Bool(False)
+            from_hit_next = from_hit if self.split == "all" else mi.Bool(False)
             w_next = w_exit if self.split == "all" else mi.UnpolarizedSpectrum(1.0)
 
             # ------------------ emitter sampling ------------------
@@ -359,7 +359,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
                 dist = dr.select(ds.delta & (ds.dist == dr.inf), dr.inf, dr.norm(ds.p - p_exit))
                 d_exit = dr.select(dr.isinf(dist), ds.d, dr.normalize(ds.p - p_exit))
                 moved = offset_ray(p_exit, radial, d_exit, si.wavelengths, dist * (1.0 - mi.math.ShadowEpsilon))
-                displaced = bundle & (radius > 0) & ~single
+                displaced = bundle & (radius > 0) & ~from_hit
                 shadow = dr.select(displaced, self._backed(scene, moved, radius, displaced & shadowed), shadow)
             T = self._transmittance(scene, sampler, shadow, shadowed)
             wo = si.to_local(ds.d)
@@ -385,7 +385,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
             if dr.hint(self.displace, mode="scalar"):
                 p_exit, radial = displaced_exit(si, radius, h, wo_world)
                 moved = offset_ray(p_exit, radial, wo_world, si.wavelengths)
-                next_ray = dr.select(bundle & ~passed & (radius > 0) & ~single_next, moved, next_ray)
+                next_ray = dr.select(bundle & ~passed & (radius > 0) & ~from_hit_next, moved, next_ray)
             if dr.hint((self._paths > 0) & self.displace, mode="scalar"):
                 lobed_next = bundle & ~passed & (radius > 0) & bsdf.has_attribute("paths", bundle)
                 p_path, n_path, single = self._sampled_exit(si, bsdf, radius, bs.sampled_component, wo_world,
