@@ -21,6 +21,18 @@ if mi.variant() is None:
 VARIANT = mi.variant()  # the variant this class derives from
 
 
+def exit_probability(q, throughput):
+    """The chance that a bundle vertex's light leaves from where it entered, given the
+    share ``q`` of singly scattered light per wavelength: ``q`` averaged over the path's
+    wavelengths weighted by the throughput each carries, so that the wavelengths that
+    carry the path keep weights ``q / P`` and ``(1 - q) / (1 - P)`` near 1 (in a dyed
+    yarn the red runs long and the blue dies out: an unweighted mean would give the red
+    0.4 or 1.6 at every vertex). Never 0 or 1: each exit keeps its chance."""
+    total = dr.sum(throughput)
+    mean = dr.select(total > 0, dr.sum(throughput * q) / dr.maximum(total, 1e-30), dr.mean(q))
+    return dr.clip(mean, 0.02, 0.98)
+
+
 class BundlePathIntegrator(mi.SamplingIntegrator):
     r"""Bundle path tracer (``bundle_path``)
     -------------------------------------
@@ -44,7 +56,8 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
       default): where the BSDF has a ``single_share`` (``fiber_bundle`` from a bake that
       records it: the share ``q`` of the scattered light, per wavelength, that left the
       ply after one fiber event), each bundle vertex leaves from its hit point with
-      probability ``P``, the mean of ``q`` over the path's wavelengths, else from the
+      probability ``P``, the mean of ``q`` over the path's wavelengths weighted by their
+      throughput (:func:`exit_probability`), else from the
       displaced exit, each wavelength weighted by ``q / P`` or ``(1 - q) / (1 - P)``
       (unbiased for either part): for the emitter sample's shadow ray only
       (``"emitter"``) or for the path's next ray too (``"all"``). In a dyed yarn most
@@ -337,7 +350,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
                 split = (bundle & (radius > 0) & bsdf.has_attribute("single_share", bundle)
                          & ~bsdf.has_attribute("paths", bundle))
                 q = dr.clip(bsdf.eval_attribute("single_share", si, split), 0.0, 1.0)
-                P = dr.clip(dr.mean(q), 0.02, 0.98)  # never 0 or 1: each part keeps its chance
+                P = exit_probability(q, mi.unpolarized_spectrum(throughput))
                 from_hit = split & (sampler.next_1d(split) < P)
                 w_exit = dr.select(split, dr.select(from_hit, q / P, (1.0 - q) / (1.0 - P)), 1.0)
             # the path's next ray follows the choice only for "all": its weights multiply along the path

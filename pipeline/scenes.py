@@ -194,7 +194,7 @@ def cloth_scene(mi, c, shapes: dict, bbox, spp: int, seed: int = 0, view=None) -
     lo, hi = (np.asarray(v, float) for v in bbox)
     scene = {
         "type": "scene",
-        "integrator": {"type": "bundle_path", "max_depth": c.max_depth},
+        "integrator": {"type": "bundle_path", "max_depth": c.max_depth, "exit_split": c.exit_split},
         "sensor": {"type": "perspective", "fov": c.fov_deg, "fov_axis": "x",
                    "to_world": mi.ScalarTransform4f().look_at(np.asarray(eye).tolist(), np.asarray(target).tolist(),
                                                               [0, 1, 0]),

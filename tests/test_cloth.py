@@ -456,12 +456,25 @@ def test_a_model_too_large_for_memory_is_refused_before_building():
     (["cloth.ply_pitch_mm=0"], "ply_pitch_mm"),
     (["cloth.flyaways={yarn: Wool}"], "is not in"),
     (["cloth.flyaways={density_scale: -1}"], "density_scale"),
+    (["cloth.exit_split=both"], "exit_split"),
 ])
 def test_bad_cloth_configs_are_refused_when_loaded(sets, says):
     from pipeline.config import ConfigError, load_config
 
     with pytest.raises(ConfigError, match=says):
         load_config(ROOT / "configs" / "glove.yaml", sets)
+
+
+def test_the_cloth_scene_renders_with_the_configs_exit_model(mi_llvm):
+    """``cloth.exit_split`` is what the scene's ``bundle_path`` is given (its effect on the
+    picture: tests/test_plugin.py::test_light_that_scattered_once_leaves_where_it_entered)."""
+    from pipeline import scenes
+    from pipeline.config import load_config
+
+    for split in ("none", "emitter", "all"):
+        c = load_config(ROOT / "configs" / "glove.yaml", [f"cloth.exit_split={split}"]).cloth
+        scene = scenes.cloth_scene(mi_llvm, c, {}, ([0, 0, 0], [1, 1, 1]), 1)
+        assert scene["integrator"]["exit_split"] == split
 
 
 def test_readme_cloth_example_runs_as_written(tmp_path, monkeypatch):

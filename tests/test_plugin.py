@@ -326,6 +326,52 @@ def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_
     assert abs(mean(1.0, exit_split="emitter", **direct) - entry) < 0.1 * gap
 
 
+def test_each_wavelength_leaves_by_its_own_share(mi_plug, tables, tmp_path):
+    """The exit split with a share that differs between wavelengths (all of the 450 nm
+    light scattered once, half of 550, none of 650): one path chooses one exit for all its
+    wavelengths with one probability ``P``, so each is weighted by its own ``q / P`` or
+    ``(1 - q) / (1 - P)``. Under direct light alone (one bundle vertex) each channel must
+    be the mixture of the two exits' renders in its own share, ``q_c entry + (1 - q_c)
+    displaced``, whatever ``P`` was; ``q_c`` is the BSDF's ``single_share`` in that channel."""
+    mi = mi_plug
+    table = BundleTable.load(tables["circle"])
+    paths = {}
+    for name, q in (("none", [0.0, 0.0, 0.0]), ("all", [1.0, 1.0, 1.0]), ("graded", [1.0, 0.5, 0.0])):
+        table.single = table.scattered * np.asarray(q)
+        paths[name] = tmp_path / f"share_{name}.npz"
+        table.save(paths[name])
+
+    def image(name, **integrator):
+        to_world = (mi.ScalarTransform4f().look_at([0, 1.5, 4], [0, 0, 0], [0, 1, 0])
+                    @ mi.ScalarTransform4f().scale([0.7, 0.7, 1]))
+        scene = {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": 2} | integrator,
+                 "sensor": {"type": "orthographic", "to_world": to_world,
+                            "film": {"type": "hdrfilm", "width": 32, "height": 24, "rfilter": {"type": "box"}},
+                            "sampler": {"type": "independent", "sample_count": 512}},
+                 "light": {"type": "directional", "direction": [0.9, 0.33, 0.1], "irradiance": {"type": "rgb",
+                                                                                                 "value": 3.0}}}
+        for k, x in enumerate((-1.0, -0.5, 0.0, 0.5, 1.0)):
+            scene[f"ply_{k}"] = {"type": "cylinder", "p0": [x, -2, 0], "p1": [x, 2, 0], "radius": 0.25,
+                                 "bsdf": {"type": "fiber_bundle", "table": str(paths[name])}}
+        img = np.array(mi.render(mi.load_dict(scene)), np.float64)
+        assert np.all(np.isfinite(img))
+        return img.reshape(-1, 3).mean(0)
+
+    bsdf = mi.load_dict({"type": "fiber_bundle", "table": str(paths["graded"])})
+    si = local_si(mi, [0.0, 0.6, 0.8], 1)
+    q = np.array(bsdf.eval_attribute("single_share", si, True), np.float64).ravel()
+    assert q[2] > q[1] > q[0] and q[2] > 0.6 and q[0] < 0.4, q  # blue mostly single, red mostly not
+    entry, displaced = image("none", displaced_exit=False), image("none", exit_split="emitter")
+    gap = displaced - entry
+    assert np.all(gap > 0.1 * entry), (entry, displaced)
+    for split in ("emitter", "all"):
+        graded = image("graded", exit_split=split)
+        expected = q * entry + (1 - q) * displaced
+        assert np.all(np.abs(graded - expected) < 0.1 * gap), (split, graded, expected, q)
+    # and both limits, channel by channel
+    assert np.all(np.abs(image("all", exit_split="emitter") - entry) < 0.1 * gap)
+
+
 def test_passthrough_shadow_transmittance_is_unbiased(mi_plug, tables):
     """NEE through bundles (bundle_path) and BSDF sampling alone (path) agree on average."""
     mi = mi_plug

@@ -16,9 +16,12 @@ Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``exp
               explicit reference, mean radiance, time *at equal noise* (variance per
               sample x seconds per sample: Monte Carlo variance falls as 1/spp) and peak
               memory, at camera distances where a ply spans 1 .. 8 pixels. The bundle
-              is rendered a second time with ``displaced_exit`` off (all light leaves a
-              ply where it entered, as single scattering does): where the exit model
-              moves the colour (multiply scattered light is red in the dyed yarn).
+              is rendered with the config's exit model (``cloth.exit_split``) and again with
+              each other one of ``EXITS``: ``displaced_exit`` off (all light leaves a ply
+              where it entered, as single scattering does), the displaced exit for all of
+              it, the singly scattered share sent from where it entered in the shadow rays:
+              where the exit model moves the colour (multiply scattered light is red in the
+              dyed yarn), and at what noise.
 ``memory``    the whole model, counted: its plies' control points with the table (or
               the MLP) against every fiber of every ply as a curve.
 ``overlap``   two straight plies touching and interpenetrating, explicit fibers against
@@ -55,6 +58,11 @@ OVERLAPS = True         # the explicit part's bundle_path overlaps (both sides; 
 EXPLICIT_DEPTH = 256
 BUNDLE_SPP = (32, 8)        # (spp, seeds) of the bundle render ...
 EXPLICIT_SPP = (32, 32)     # ... and of the explicit reference: its noise measured
+# the exit models the bundle is rendered with besides the config's own (bundle_path's settings)
+EXITS = {"entry": {"displaced_exit": False, "exit_split": "none"},   # all light leaves where it entered
+         "none": {"displaced_exit": True, "exit_split": "none"},     # all of it from the displaced exit
+         "emitter": {"displaced_exit": True, "exit_split": "emitter"},  # the single share's shadow rays from entry
+         "all": {"displaced_exit": True, "exit_split": "all"}}  # ... and the paths' next rays
 
 
 def peak_mb() -> float:
@@ -152,8 +160,8 @@ def patch_scene(cfg, ply_px, out: Path):
 
 def child_explicit(config, root, which, ply_px, spp, seeds, out):
     """The patch rendered ``seeds`` times at ``spp`` each: ``which`` = ``bundle`` (the plies
-    with the bake's table), ``bundle_entry`` (the same, light leaving each ply where it
-    entered: ``bundle_path``'s ``displaced_exit`` off) or ``explicit`` (every fiber of every
+    with the bake's table and the config's exit model), ``bundle_<exit>`` (the same with
+    another exit model of ``EXITS``) or ``explicit`` (every fiber of every
     ply as its own curve with the single-fiber model); all carry the same flyaways; ``sky``:
     nothing but the sky (which pixels the cloth changes). Saves the means of the two halves
     of the seeds (their difference is the noise of the mean)."""
@@ -178,7 +186,7 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     geometry_points = 0
     # the curves' ends at the patch's cut tapered over a short tip: Mitsuba 3.9's
     # bsplinecurve crashes now and then on rays that hit a blunt open end (its PR #1928)
-    if which in ("bundle", "bundle_entry"):
+    if which.startswith("bundle"):
         with atomic_path(out / "patch_plies.txt") as tmp, open(tmp, "w") as fh:
             write_mitsuba_curves(fh, (tapered(C, g.radius) for C in g.curves))
         shapes["yarn"] = scenes.ply_shape(out / "patch_plies.txt", props, g.radius)
@@ -203,8 +211,8 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     scene = scenes.cloth_scene(mi, c, shapes, bbox, spp, view=view)
     scene["integrator"].update(overlaps=OVERLAPS,  # both sides alike (the patch's yarns interpenetrate)
                                max_depth=EXPLICIT_DEPTH)
-    if which == "bundle_entry":
-        scene["integrator"]["displaced_exit"] = False
+    if which.startswith("bundle_"):
+        scene["integrator"].update(EXITS[which.removeprefix("bundle_")])
     scene = mi.load_dict(scene)
     loaded = peak_mb()
 
@@ -452,13 +460,17 @@ def measure_speed(config, root, quick, tmp) -> list:
 def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
     from pipeline.stages.render import exposure_of, flip_and_psnr
 
+    from pipeline.config import load_config
+
+    own = load_config(config).cloth.exit_split
+    others = [k for k in EXITS if k != own]
+    renders = [("bundle", BUNDLE_SPP)] + [(f"bundle_{k}", BUNDLE_SPP) for k in others] + [("explicit", EXPLICIT_SPP)]
     explicit = []
     for px in ((4,) if quick else ply_px or PLY_PX):
-        row = {"ply_px": px}
+        row = {"ply_px": px, "exit_split": own}
         pair = {}
         try:
-            for which, (spp, seeds) in (("bundle", BUNDLE_SPP), ("bundle_entry", BUNDLE_SPP),
-                                        ("explicit", EXPLICIT_SPP)):
+            for which, (spp, seeds) in renders:
                 m = _child("explicit", config, root, which, px, spp // 4 if quick else spp, seeds, tmp)
                 data = np.load(Path(tmp) / f"{which}_{px}.npz")
                 pair[which] = (data["a"], data["b"])
@@ -500,11 +512,17 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
         row["memory_ratio"] = (row["explicit"]["peak_mb"] - row["explicit"]["base_mb"]) / max(
             1.0, row["bundle"]["peak_mb"] - row["bundle"]["base_mb"])
         row["geometry_ratio"] = row["explicit"]["control_points"] / row["bundle"]["control_points"]
-        # the exit model's share of the colour: the bundle with light leaving where it entered
-        entry = 0.5 * (pair["bundle_entry"][0] + pair["bundle_entry"][1])
-        row["entry_exit"] = {"flip": masked_flip(ref, entry, exposure, mask),
-                             "mean_ratio": float(entry[mask].mean() / ref[mask].mean()),
-                             "mean_ratio_rgb": (entry[mask].mean(0) / ref[mask].mean(0)).tolist()}
+        # the exit model's share of the colour, and its noise: the bundle with each other exit
+        row["exits"] = {}
+        for k in others:
+            a, b = pair[f"bundle_{k}"]
+            other = 0.5 * (a + b)
+            r = row[f"bundle_{k}"]
+            row["exits"][k] = {"flip": masked_flip(ref, other, exposure, mask),
+                               "mean_ratio": float(other[mask].mean() / ref[mask].mean()),
+                               "mean_ratio_rgb": (other[mask].mean(0) / ref[mask].mean(0)).tolist(),
+                               "time_ratio_equal_noise": cost["explicit"] / (r["variance_per_spp"] *
+                                                                             r["seconds_per_spp"])}
         explicit.append(row)
         np.save(Path(tmp) / f"pair_{px}.npy", np.stack([ref, test]))
         print(f"[explicit] {px} px: FLIP {row['flip']:.3f}, half the samples {row['flip_half_samples']:.3f}, "
@@ -512,9 +530,10 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
               f"bundle halves {row['flip_bundle_noise']:.3f}), mean x{row['mean_ratio']:.3f} (RGB "
               f"{np.round(row['mean_ratio_rgb'], 3).tolist()}), equal-noise time "
               f"x{row['time_ratio_equal_noise']:.1f}, memory x{row['memory_ratio']:.1f}, geometry "
-              f"x{row['geometry_ratio']:.0f}; light leaving where it entered: FLIP {row['entry_exit']['flip']:.3f}, "
-              f"mean x{row['entry_exit']['mean_ratio']:.3f} (RGB {np.round(row['entry_exit']['mean_ratio_rgb'], 3).tolist()})",
-              flush=True)
+              f"x{row['geometry_ratio']:.0f} (exit_split {own})", flush=True)
+        for k, x in row["exits"].items():
+            print(f"[explicit] {px} px, exit {k}: FLIP {x['flip']:.3f}, mean RGB {np.round(x['mean_ratio_rgb'], 3).tolist()}, "
+                  f"equal-noise time x{x['time_ratio_equal_noise']:.1f}", flush=True)
     return explicit
 
 
@@ -589,13 +608,19 @@ def plot_explicit(plt, explicit, tmp, path_explicit):
     from pipeline.stages.render import exposure_of, to_srgb
 
     e = [r for r in explicit if "failed" not in r]
-    fig, ax = plt.subplots(1, 1 + min(2, len(e)), figsize=(4 + 4 * min(2, len(e)), 3.8))
+    fig, ax = plt.subplots(1, 1 + min(2, len(e)), figsize=(4 + 4 * min(2, len(e)), 5.4))
     ax = np.atleast_1d(ax)
     ax[0].plot([r["ply_px"] for r in e], [r["flip"] for r in e], "o-", label="bundle vs explicit fibers")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_extrapolated"] for r in e], "o:", color="C0", alpha=0.6,
                label="bundle vs explicit, extrapolated to no noise")
-    ax[0].plot([r["ply_px"] for r in e if "entry_exit" in r], [r["entry_exit"]["flip"] for r in e if "entry_exit" in r],
-               "s-", color="C3", alpha=0.7, label="bundle, light leaving where it entered, vs explicit")
+    others = {"entry": ("all light leaving where it entered", "C3"), "none": ("all from the displaced exit", "C4"),
+              "emitter": ("the single share's shadow rays from entry", "C5"),
+              "all": ("the single share's rays from entry", "C6")}
+    for k, (label, colour) in others.items():
+        rows = [r for r in e if k in r.get("exits", {})]
+        if rows:
+            ax[0].plot([r["ply_px"] for r in rows], [r["exits"][k]["flip"] for r in rows], "s-", color=colour,
+                       alpha=0.7, label=f"bundle, {label}, vs explicit")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_explicit_noise"] for r in e], "x--",
                label="explicit: half vs half (its noise)")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_bundle_noise"] for r in e], "+:",
@@ -604,7 +629,7 @@ def plot_explicit(plt, explicit, tmp, path_explicit):
     ax[0].set(xscale="log", xlabel="ply width (pixels)", ylabel="mean FLIP over the cloth's pixels")
     ax[0].set_xticks([r["ply_px"] for r in e], [str(r["ply_px"]) for r in e])
     ax[0].minorticks_off()
-    ax[0].legend(fontsize=8)
+    ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.16))  # below: the curves fill the axes
     for a, r in zip(ax[1:], [e[len(e) // 2], e[-1]][: len(ax) - 1]):
         ref, test = np.load(Path(tmp) / f"pair_{r['ply_px']}.npy")
         x = exposure_of(ref)
@@ -612,7 +637,7 @@ def plot_explicit(plt, explicit, tmp, path_explicit):
         a.set_title(f"ply {r['ply_px']} px: explicit fibers | bundle", fontsize=9)
         a.axis("off")
     fig.tight_layout()
-    fig.savefig(path_explicit, dpi=110)
+    fig.savefig(path_explicit, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
