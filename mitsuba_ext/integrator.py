@@ -60,12 +60,12 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
       throughput (:func:`exit_probability`), else from the
       displaced exit, each wavelength weighted by ``q / P`` or ``(1 - q) / (1 - P)``
       (unbiased for either part): for the emitter sample's shadow ray only
-      (``"emitter"``) or for the path's next ray too (``"all"``). In a dyed yarn most
-      blue light that leaves a ply leaves after one fiber, near where it entered: on a
-      knitted patch ``"all"`` brings the bundle's blue from 18% to 9% short of explicit
-      fibers, but its weights, multiplied over a path's many bounces, give it about 11x
-      the variance; ``"emitter"`` (one weight per path vertex, never multiplied) about
-      half the correction for 1.3x (docs/BENCHMARKS.md, "Cloth").
+      (``"emitter"``) or for the path's next ray too (``"all"``: the exit model of
+      both sampling strategies, so that MIS weighs two estimates of one integral). In a
+      dyed yarn most blue light that leaves a ply leaves after one fiber, near where it
+      entered: the split moves a knitted patch's colour towards explicit fibers, about
+      half as far with ``"emitter"`` as with ``"all"``, for a little more variance
+      (the figures: docs/BENCHMARKS.md, "Cloth").
 
     On scenes without bundles it is ``path``, sample for sample.
 
