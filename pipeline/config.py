@@ -518,7 +518,8 @@ class ClothCfg(Strict):
     spp: int = Field(16, ge=1, le=1 << 16)
     max_depth: int = Field(16, ge=1, le=100_000)
     exit_split: Literal["none", "emitter", "all"] = Field(
-        "none", description="bundle_path's exit_split: where a ply's singly scattered light leaves it")
+        "all", description="bundle_path's exit_split: a ply's singly scattered light leaves where it entered "
+                           "(the plies' colour against explicit fibers: docs/BENCHMARKS.md, 'Cloth')")
     camera_azimuth_deg: float = Field(90.0, ge=-360.0, le=360.0, description="about the up axis, 0 = +z")
     camera_elevation_deg: float = Field(25.0, ge=-89.0, le=89.0)
     fov_deg: float = Field(30.0, gt=1.0, lt=170.0)

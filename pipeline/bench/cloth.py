@@ -458,9 +458,8 @@ def measure_speed(config, root, quick, tmp) -> list:
 
 
 def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
-    from pipeline.stages.render import exposure_of, flip_and_psnr
-
     from pipeline.config import load_config
+    from pipeline.stages.render import exposure_of, flip_and_psnr
 
     own = load_config(config).cloth.exit_split
     others = [k for k in EXITS if k != own]
@@ -610,7 +609,8 @@ def plot_explicit(plt, explicit, tmp, path_explicit):
     e = [r for r in explicit if "failed" not in r]
     fig, ax = plt.subplots(1, 1 + min(2, len(e)), figsize=(4 + 4 * min(2, len(e)), 5.4))
     ax = np.atleast_1d(ax)
-    ax[0].plot([r["ply_px"] for r in e], [r["flip"] for r in e], "o-", label="bundle vs explicit fibers")
+    ax[0].plot([r["ply_px"] for r in e], [r["flip"] for r in e], "o-",
+               label=f"bundle (exit_split {e[0].get('exit_split', 'none')}) vs explicit fibers")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_extrapolated"] for r in e], "o:", color="C0", alpha=0.6,
                label="bundle vs explicit, extrapolated to no noise")
     others = {"entry": ("all light leaving where it entered", "C3"), "none": ("all from the displaced exit", "C4"),

@@ -275,7 +275,8 @@ def run(cfg, out_root="artifacts") -> Path:
 
     # -- phase 4: renders, each in a process of its own (render_apart)
     mi.set_variant(c.variant)
-    summary = {"variant": c.variant, "size": [c.width, c.height], "spp": c.spp, "geometry": info,
+    summary = {"variant": c.variant, "size": [c.width, c.height], "spp": c.spp, "exit_split": c.exit_split,
+               "geometry": info,
                "model": model_size(cfg) if set(c.backends) - {"table"} else None, "backends": {}}
     if fly_shape:
         plies = {"yarn": scenes.ply_shape(out / "plies.txt", props["table"] if "table" in props

@@ -442,8 +442,9 @@ def cloth_section(root: Path, out: Path) -> str:
     rows = "".join(f"<tr><td>{b}</td><td>{e['seconds']:.1f}</td><td>{e.get('flip', float('nan')):.4f}</td></tr>"
                    for b, e in s["backends"].items())
     body += (f"<p>Mitsuba {html.escape(s['variant'])}, {s['size'][0]} x {s['size'][1]} pixels, {s['spp']} samples "
-             "per pixel, sun and sky (<code>sunsky</code>), <code>bundle_path</code>; times include the kernels' "
-             "compilation; FLIP against the table's image.</p><table><tr><th>backend</th><th>render s</th>"
+             f"per pixel, sun and sky (<code>sunsky</code>), <code>bundle_path</code> (<code>exit_split</code> "
+             f"{html.escape(s.get('exit_split', 'none'))}: where a ply's singly scattered light leaves it); "
+             "times include the kernels' compilation; FLIP against the table's image.</p><table><tr><th>backend</th><th>render s</th>"
              f"<th>FLIP</th></tr>{rows}</table>")
     body += "".join(img_tag(out, root / "cloth" / f"cloth_{b}.png", f"cloth, {b}") for b in s["backends"])
     return body
