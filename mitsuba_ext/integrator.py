@@ -53,19 +53,20 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
       ``cylinder`` and ``bsplinecurve``), else the BSDF's ``radius``, else a probe
       ray across the shape.
     * **light that scattered once leaves where it entered** (``exit_split``, off by
-      default): where the BSDF has a ``single_share`` (``fiber_bundle`` from a bake that
-      records it: the share ``q`` of the scattered light, per wavelength, that left the
-      ply after one fiber event), each bundle vertex leaves from its hit point with
-      probability ``P``, the mean of ``q`` over the path's wavelengths weighted by their
-      throughput (:func:`exit_probability`), else from the
-      displaced exit, each wavelength weighted by ``q / P`` or ``(1 - q) / (1 - P)``
-      (unbiased for either part): for the emitter sample's shadow ray only
-      (``"emitter"``) or for the path's next ray too (``"all"``: the exit model of
-      both sampling strategies, so that MIS weighs two estimates of one integral). In a
-      dyed yarn most blue light that leaves a ply leaves after one fiber, near where it
-      entered: the split moves a knitted patch's colour towards explicit fibers, about
-      half as far with ``"emitter"`` as with ``"all"``, for a little more variance
-      (the figures: docs/BENCHMARKS.md, "Cloth").
+      default here; the cloth stage's scenes use ``"all"``): where the BSDF has a
+      ``single_share`` (``fiber_bundle`` from a bake that records it: the share ``q``
+      of the scattered light, per wavelength, that left the ply after one fiber
+      event), each bundle vertex leaves from its hit point with probability ``P``,
+      the mean of ``q`` over the path's wavelengths weighted by their throughput
+      (:func:`exit_probability`), else from the displaced exit, each wavelength
+      weighted by ``q / P`` or ``(1 - q) / (1 - P)`` (unbiased for either part): for
+      the emitter sample's shadow ray only (``"emitter"``) or for the path's next ray
+      too (``"all"``: the exit model of both sampling strategies, so that MIS weighs
+      two estimates of one integral). In a dyed yarn most blue light that leaves a
+      ply leaves after one fiber, near where it entered: the split moves a knitted
+      patch's colour towards explicit fibers, about half as far with ``"emitter"`` as
+      with ``"all"``, for a little more variance (the figures: docs/BENCHMARKS.md,
+      "Cloth").
 
     On scenes without bundles it is ``path``, sample for sample.
 
