@@ -278,6 +278,28 @@ def test_white_furnace_matches_the_tables_energy_balance(mi_plug, tables):
     assert abs(expected.mean() - 1.0) > 0.05  # the check is not trivially "everything is white"
 
 
+def row_of_plies(mi, table_path, spp, **integrator) -> np.ndarray:
+    """Mean RGB of five touching plies in a row with the table at ``table_path``, lit from
+    the side by a directional light (from below their axis, so that the camera is on the
+    synthetic ridge's cone), under ``bundle_path`` with ``integrator``'s parameters: where
+    the exit matters (the displaced exit sends light across a ply and past its
+    neighbours' shadow)."""
+    to_world = (mi.ScalarTransform4f().look_at([0, 1.5, 4], [0, 0, 0], [0, 1, 0])
+                @ mi.ScalarTransform4f().scale([0.7, 0.7, 1]))
+    scene = {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": 8} | integrator,
+             "sensor": {"type": "orthographic", "to_world": to_world,
+                        "film": {"type": "hdrfilm", "width": 32, "height": 24, "rfilter": {"type": "box"}},
+                        "sampler": {"type": "independent", "sample_count": spp}},
+             "light": {"type": "directional", "direction": [0.9, 0.33, 0.1], "irradiance": {"type": "rgb",
+                                                                                             "value": 3.0}}}
+    for k, x in enumerate((-1.0, -0.5, 0.0, 0.5, 1.0)):
+        scene[f"ply_{k}"] = {"type": "cylinder", "p0": [x, -2, 0], "p1": [x, 2, 0], "radius": 0.25,
+                             "bsdf": {"type": "fiber_bundle", "table": str(table_path)}}
+    img = np.array(mi.render(mi.load_dict(scene)), np.float64)
+    assert np.all(np.isfinite(img))
+    return img.reshape(-1, 3).mean(0)
+
+
 def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_path):
     """``bundle_path``'s exit split against its two limits, which need no split: a row of
     touching plies lit from the side, where the exit matters (the displaced exit sends light
@@ -296,21 +318,7 @@ def test_light_that_scattered_once_leaves_where_it_entered(mi_plug, tables, tmp_
         table.save(paths[q])
 
     def mean(q, **integrator):
-        to_world = (mi.ScalarTransform4f().look_at([0, 1.5, 4], [0, 0, 0], [0, 1, 0])
-                    @ mi.ScalarTransform4f().scale([0.7, 0.7, 1]))
-        scene = {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": 8} | integrator,
-                 "sensor": {"type": "orthographic", "to_world": to_world,
-                            "film": {"type": "hdrfilm", "width": 32, "height": 24, "rfilter": {"type": "box"}},
-                            "sampler": {"type": "independent", "sample_count": 256}},
-                 # from below the plies' axis, so that the camera is on the synthetic ridge's cone
-                 "light": {"type": "directional", "direction": [0.9, 0.33, 0.1], "irradiance": {"type": "rgb",
-                                                                                                 "value": 3.0}}}
-        for k, x in enumerate((-1.0, -0.5, 0.0, 0.5, 1.0)):
-            scene[f"ply_{k}"] = {"type": "cylinder", "p0": [x, -2, 0], "p1": [x, 2, 0], "radius": 0.25,
-                                 "bsdf": {"type": "fiber_bundle", "table": str(paths[q])}}
-        img = np.array(mi.render(mi.load_dict(scene)))
-        assert np.all(np.isfinite(img))
-        return float(img.mean())
+        return float(row_of_plies(mi, paths[q], 256, **integrator).mean())
 
     entry, displaced = mean(0.0, displaced_exit=False), mean(0.0, exit_split="all")
     gap = displaced - entry
@@ -342,20 +350,7 @@ def test_each_wavelength_leaves_by_its_own_share(mi_plug, tables, tmp_path):
         table.save(paths[name])
 
     def image(name, **integrator):
-        to_world = (mi.ScalarTransform4f().look_at([0, 1.5, 4], [0, 0, 0], [0, 1, 0])
-                    @ mi.ScalarTransform4f().scale([0.7, 0.7, 1]))
-        scene = {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": 2} | integrator,
-                 "sensor": {"type": "orthographic", "to_world": to_world,
-                            "film": {"type": "hdrfilm", "width": 32, "height": 24, "rfilter": {"type": "box"}},
-                            "sampler": {"type": "independent", "sample_count": 512}},
-                 "light": {"type": "directional", "direction": [0.9, 0.33, 0.1], "irradiance": {"type": "rgb",
-                                                                                                 "value": 3.0}}}
-        for k, x in enumerate((-1.0, -0.5, 0.0, 0.5, 1.0)):
-            scene[f"ply_{k}"] = {"type": "cylinder", "p0": [x, -2, 0], "p1": [x, 2, 0], "radius": 0.25,
-                                 "bsdf": {"type": "fiber_bundle", "table": str(paths[name])}}
-        img = np.array(mi.render(mi.load_dict(scene)), np.float64)
-        assert np.all(np.isfinite(img))
-        return img.reshape(-1, 3).mean(0)
+        return row_of_plies(mi, paths[name], 512, **{"max_depth": 2, **integrator})
 
     bsdf = mi.load_dict({"type": "fiber_bundle", "table": str(paths["graded"])})
     si = local_si(mi, [0.0, 0.6, 0.8], 1)
