@@ -15,6 +15,7 @@ Every ``bcsdf`` stage command writes its stamp when it succeeds (also when DVC r
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from pathlib import Path
@@ -27,6 +28,19 @@ from .artifacts import config_dir
 ROOT = Path(__file__).resolve().parents[1]
 DVC_YAML = ROOT / "dvc.yaml"
 SKIP = ("__pycache__", ".stamps")
+
+
+def dvc_yaml() -> dict:
+    """``dvc.yaml``, parsed once per version of the file (a run reads a stage's spec a dozen
+    times: its fingerprint before and after, its stamp, the estimate)."""
+    stat = DVC_YAML.stat()
+    return _parse(DVC_YAML, stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=4)
+def _parse(path: Path, mtime_ns: int, size: int) -> dict:
+    # libyaml's loader where PyYAML has it: ten times faster on this file
+    return yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
 def template(stage: str, cfg) -> str:
@@ -42,7 +56,7 @@ def spec(stage: str, cfg, root="artifacts") -> dict:
     """``{"code": [...], "inputs": [...], "params": [...], "outs": [...]}`` of one stage for
     this config, paths resolved (code against the repository, artifacts under ``root``)."""
     try:
-        stages = yaml.safe_load(DVC_YAML.read_text())["stages"]
+        stages = dvc_yaml()["stages"]
         do = stages[template(stage, cfg)]["do"]
     except (OSError, KeyError, TypeError, yaml.YAMLError) as e:
         raise ValueError(f"{DVC_YAML}: no usable stage {template(stage, cfg)!r} ({e}); "
@@ -132,7 +146,7 @@ def dvc_stage(stage: str, cfg) -> str | None:
     ``dvc.yaml`` does not list the config for that stage."""
     name = template(stage, cfg)
     try:
-        entry = yaml.safe_load(DVC_YAML.read_text())
+        entry = dvc_yaml()
         items = entry["stages"][name]["foreach"]
         if isinstance(items, str):  # ${configs}: a list among the vars
             key = items.strip("${} ")

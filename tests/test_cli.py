@@ -157,6 +157,27 @@ def test_run_skips_what_is_up_to_date_and_force_reruns_it(tmp_path, monkeypatch,
     assert stamp["probe"] > 0 and stamp["seconds"] >= 0 and stamp["work"] > 0
 
 
+def test_the_stage_graph_follows_dvc_yaml_and_refuses_a_broken_one(tmp_path, monkeypatch):
+    """``dvc.yaml`` is parsed once per version of the file: an edit is seen at once, and a
+    file that is not YAML or lacks the stage is refused with what to do."""
+    from pipeline import graph
+    from pipeline.config import load_config
+
+    cfg = load_config(write_config(tmp_path / "tiny.yaml"))
+    dvc = tmp_path / "dvc.yaml"
+    dvc.write_text((ROOT / "dvc.yaml").read_text())
+    monkeypatch.setattr(graph, "DVC_YAML", dvc)
+    assert graph.spec("fiber", cfg)["params"] == graph.spec("fiber", cfg)["params"] != []
+    text = yaml.safe_load(dvc.read_text())
+    text["stages"]["fiber"]["do"]["params"] = [{"${item}.yaml": ["fiber"]}]
+    dvc.write_text(yaml.safe_dump(text))
+    assert graph.spec("fiber", cfg)["params"] == ["fiber"]
+    for broken in ("stages: [unclosed", "stages: {}"):
+        dvc.write_text(broken)
+        with pytest.raises(ValueError, match="restore dvc.yaml"):
+            graph.spec("fiber", cfg)
+
+
 def test_the_estimate_follows_the_machines_pace(tmp_path, monkeypatch):
     """A stage's rate is scaled by the pace now over the pace it was measured at: its last
     run's (a stamp's probe), or the reference machine's; a stamp without one, unscaled."""
