@@ -15,7 +15,9 @@ Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``exp
               other measure each side's own noise. FLIP of the bundle against the
               explicit reference, mean radiance, time *at equal noise* (variance per
               sample x seconds per sample: Monte Carlo variance falls as 1/spp) and peak
-              memory, at camera distances where a ply spans 1 .. 8 pixels. The bundle
+              memory, at camera distances where a ply spans 1 .. 8 pixels; FLIP again with
+              both images averaged over a ply's width (``ply_scale``: the ply's own
+              colour and shading, without the fibers inside it). The bundle
               is rendered with the config's exit model (``cloth.exit_split``) and again with
               each other one of ``EXITS``: ``displaced_exit`` off (all light leaves a ply
               where it entered, as single scattering does), the displaced exit for all of
@@ -399,6 +401,15 @@ def masked_flip(reference, test, exposure, mask) -> float:
     return float(np.mean(error_map[mask]))
 
 
+def ply_scale(image, ply_px: int):
+    """``image [h, w, 3]`` averaged over a ply's width (a ``ply_px`` square box): what a
+    far-field BSDF claims to draw, the ply's mean radiance, without the single fibers and
+    the twist's stripes inside a ply (and without most of the render noise)."""
+    from scipy.ndimage import uniform_filter
+
+    return uniform_filter(image, size=(ply_px, ply_px, 1), mode="nearest")
+
+
 def measure_scale(config, root, quick, tmp) -> list:
     from models.cloth.bcc import read_bcc
     from pipeline.config import load_config
@@ -499,6 +510,11 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
         halves = np.mean([masked_flip(e, b, exposure, mask) for e in pair["explicit"] for b in pair["bundle"]])
         row["flip_half_samples"] = float(halves)
         row["flip_extrapolated"] = float(np.sqrt(max(0.0, 2 * row["flip"] ** 2 - halves ** 2)))
+        # the same at the ply's scale: where the bundle and the explicit fibers differ at the
+        # scale of a ply (its colour, its shading) rather than inside it (fibers, stripes)
+        row["flip_ply_scale"] = masked_flip(ply_scale(ref, px), ply_scale(test, px), exposure, mask)
+        row["flip_ply_scale_explicit_noise"] = masked_flip(*(ply_scale(h, px) for h in pair["explicit"]), exposure,
+                                                           mask)
         row["yarn_pixels"] = int(mask.sum())
         # mean radiance over the cloth's pixels (the sky's pixels, equal in both, would dilute
         # it), and per channel: multiply scattered light in the dyed yarn is red
@@ -529,7 +545,8 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
               f"bundle halves {row['flip_bundle_noise']:.3f}), mean x{row['mean_ratio']:.3f} (RGB "
               f"{np.round(row['mean_ratio_rgb'], 3).tolist()}), equal-noise time "
               f"x{row['time_ratio_equal_noise']:.1f}, memory x{row['memory_ratio']:.1f}, geometry "
-              f"x{row['geometry_ratio']:.0f} (exit_split {own})", flush=True)
+              f"x{row['geometry_ratio']:.0f} (exit_split {own}); at the ply's scale FLIP {row['flip_ply_scale']:.3f} "
+              f"(explicit halves {row['flip_ply_scale_explicit_noise']:.3f})", flush=True)
         for k, x in row["exits"].items():
             print(f"[explicit] {px} px, exit {k}: FLIP {x['flip']:.3f}, mean RGB {np.round(x['mean_ratio_rgb'], 3).tolist()}, "
                   f"equal-noise time x{x['time_ratio_equal_noise']:.1f}", flush=True)
@@ -621,6 +638,10 @@ def plot_explicit(plt, explicit, tmp, path_explicit):
         if rows:
             ax[0].plot([r["ply_px"] for r in rows], [r["exits"][k]["flip"] for r in rows], "s-", color=colour,
                        alpha=0.7, label=f"bundle, {label}, vs explicit")
+    scaled = [r for r in e if "flip_ply_scale" in r]
+    if scaled:
+        ax[0].plot([r["ply_px"] for r in scaled], [r["flip_ply_scale"] for r in scaled], "D-", color="C7",
+                   label="bundle vs explicit, both averaged over a ply's width")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_explicit_noise"] for r in e], "x--",
                label="explicit: half vs half (its noise)")
     ax[0].plot([r["ply_px"] for r in e], [r["flip_bundle_noise"] for r in e], "+:",
