@@ -34,7 +34,7 @@ Writes ``docs/cloth.json`` and ``docs/images/cloth_scale.png``, ``cloth_explicit
 
     .venv/bin/python -m pipeline.bench.cloth [CONFIG]            # configs/glove.yaml
     .venv/bin/python -m pipeline.bench.cloth --quick             # fewer sizes and distances
-    .venv/bin/python -m pipeline.bench.cloth --parts explicit --ply-px 4   # one part, one distance
+    .venv/bin/python -m pipeline.bench.cloth --parts explicit --ply-px 4   # one part, one distance (the others kept)
 """
 
 from __future__ import annotations
@@ -521,6 +521,9 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
         row["mean_ratio"] = float(test[mask].mean() / ref[mask].mean())
         row["mean_ratio_rgb"] = (test[mask].mean(0) / ref[mask].mean(0)).tolist()
         row["mean_ratio_image"] = row["bundle"]["mean"] / row["explicit"]["mean"]
+        # what the colour bias alone costs in FLIP: the reference against itself scaled by the
+        # bundle's mean ratio per channel (no noise, no structure; FLIP is steep in colour)
+        row["flip_colour_only"] = masked_flip(ref, ref * np.asarray(row["mean_ratio_rgb"]), exposure, mask)
         # time to equal noise: variance per sample x seconds per sample (variance falls as 1/spp)
         cost = {w: row[w]["variance_per_spp"] * row[w]["seconds_per_spp"] for w in ("bundle", "explicit")}
         row["time_ratio_equal_noise"] = cost["explicit"] / cost["bundle"]
@@ -546,7 +549,8 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
               f"{np.round(row['mean_ratio_rgb'], 3).tolist()}), equal-noise time "
               f"x{row['time_ratio_equal_noise']:.1f}, memory x{row['memory_ratio']:.1f}, geometry "
               f"x{row['geometry_ratio']:.0f} (exit_split {own}); at the ply's scale FLIP {row['flip_ply_scale']:.3f} "
-              f"(explicit halves {row['flip_ply_scale_explicit_noise']:.3f})", flush=True)
+              f"(explicit halves {row['flip_ply_scale_explicit_noise']:.3f}); the colour bias alone "
+              f"{row['flip_colour_only']:.3f}", flush=True)
         for k, x in row["exits"].items():
             print(f"[explicit] {px} px, exit {k}: FLIP {x['flip']:.3f}, mean RGB {np.round(x['mean_ratio_rgb'], 3).tolist()}, "
                   f"equal-noise time x{x['time_ratio_equal_noise']:.1f}", flush=True)
@@ -602,7 +606,10 @@ def plot(result, tmp, path_scale, path_explicit):
     if result.get("scale"):
         plot_scale(plt, result["scale"], path_scale)
     if [r for r in result.get("explicit", []) if "failed" not in r]:
-        plot_explicit(plt, result["explicit"], tmp, path_explicit)
+        if {r["ply_px"] for r in result["explicit"]} >= set(PLY_PX):
+            plot_explicit(plt, result["explicit"], tmp, path_explicit)
+        else:  # its pictures are of this run's renders: a part of the distances keeps the last plot
+            print(f"[explicit] {path_explicit} not redrawn: it is drawn when every distance {PLY_PX} is measured")
 
 
 def plot_scale(plt, s, path_scale):
@@ -691,6 +698,9 @@ def main(argv=None) -> int:
         fresh = {part: parts[part](args.config, args.artifacts, args.quick, tmp) for part in args.parts}
         (DOCS / "images").mkdir(parents=True, exist_ok=True)
         plot(fresh, tmp, DOCS / "images" / "cloth_scale.png", DOCS / "images" / "cloth_explicit.png")
+    if args.ply_px and "explicit" in fresh:  # some distances measured: the others keep their rows
+        fresh["explicit"] = sorted([r for r in result.get("explicit", []) if r["ply_px"] not in args.ply_px]
+                                   + fresh["explicit"], key=lambda r: r["ply_px"])
     result.update(fresh)
     write_text(out, json.dumps(result, indent=1))
     print(f"wrote {out}")
