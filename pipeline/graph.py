@@ -31,16 +31,15 @@ SKIP = ("__pycache__", ".stamps")
 
 
 def dvc_yaml() -> dict:
-    """``dvc.yaml``, parsed once per version of the file (a run reads a stage's spec a dozen
-    times: its fingerprint before and after, its stamp, the estimate)."""
-    stat = DVC_YAML.stat()
-    return _parse(DVC_YAML, stat.st_mtime_ns, stat.st_size)
+    """``dvc.yaml``, parsed once per version of its text (a run reads a stage's spec a dozen
+    times: its fingerprint before and after, its stamp, the estimate). Read-only: shared."""
+    return _parse(DVC_YAML.read_text())
 
 
 @functools.lru_cache(maxsize=4)
-def _parse(path: Path, mtime_ns: int, size: int) -> dict:
+def _parse(text: str) -> dict:
     # libyaml's loader where PyYAML has it: ten times faster on this file
-    return yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+    return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
 def template(stage: str, cfg) -> str:

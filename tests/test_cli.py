@@ -158,7 +158,7 @@ def test_run_skips_what_is_up_to_date_and_force_reruns_it(tmp_path, monkeypatch,
 
 
 def test_the_stage_graph_follows_dvc_yaml_and_refuses_a_broken_one(tmp_path, monkeypatch):
-    """``dvc.yaml`` is parsed once per version of the file: an edit is seen at once, and a
+    """``dvc.yaml`` is parsed once per version of its text: an edit is seen at once, and a
     file that is not YAML or lacks the stage is refused with what to do."""
     from pipeline import graph
     from pipeline.config import load_config
