@@ -84,7 +84,7 @@ def spectral_image(f: np.ndarray, wavelength, path: Path, title: str,
     # tight_layout's measuring of their text was a third of this function's time
     fig = plt.figure(figsize=(12, 4.2), dpi=120)
     ax = axes_in(fig, left=0.72, bottom=0.56, right=1.12, top=0.36)
-    cax = axes_in(fig, left=12 - 1.07, bottom=0.56, right=0.93, top=0.36)
+    cax = axes_in(fig, left=fig.get_figwidth() - 1.07, bottom=0.56, right=0.93, top=0.36)  # 0.14 in wide
     ax.imshow(tone_map(rgb, scale), origin="lower", aspect="auto", interpolation="nearest", extent=extent)
     ax.set_xticks(np.arange(extent[0], extent[1] + 1, 30))
     ax.set(xlabel=xlabel, ylabel="theta_o [deg]", title=title)
