@@ -401,6 +401,14 @@ def masked_flip(reference, test, exposure, mask) -> float:
     return float(np.mean(error_map[mask]))
 
 
+def colour_ratio(test, reference, mask) -> dict:
+    """Mean radiance of ``test`` over ``reference`` on the cloth's pixels ``mask`` (the sky's,
+    equal in both, would dilute it), and per channel: multiply scattered light in the dyed
+    yarn is red."""
+    return {"mean_ratio": float(test[mask].mean() / reference[mask].mean()),
+            "mean_ratio_rgb": (test[mask].mean(0) / reference[mask].mean(0)).tolist()}
+
+
 def ply_scale(image, ply_px: int):
     """``image [h, w, 3]`` averaged over a ply's width (a ``ply_px`` square box): what a
     far-field BSDF claims to draw, the ply's mean radiance, without the single fibers and
@@ -516,10 +524,7 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
         row["flip_ply_scale_explicit_noise"] = masked_flip(*(ply_scale(h, px) for h in pair["explicit"]), exposure,
                                                            mask)
         row["yarn_pixels"] = int(mask.sum())
-        # mean radiance over the cloth's pixels (the sky's pixels, equal in both, would dilute
-        # it), and per channel: multiply scattered light in the dyed yarn is red
-        row["mean_ratio"] = float(test[mask].mean() / ref[mask].mean())
-        row["mean_ratio_rgb"] = (test[mask].mean(0) / ref[mask].mean(0)).tolist()
+        row.update(colour_ratio(test, ref, mask))
         row["mean_ratio_image"] = row["bundle"]["mean"] / row["explicit"]["mean"]
         # what the colour bias alone costs in FLIP: the reference against itself scaled by the
         # bundle's mean ratio per channel (no noise, no structure; FLIP is steep in colour)
@@ -536,9 +541,7 @@ def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
             a, b = pair[f"bundle_{k}"]
             other = 0.5 * (a + b)
             r = row[f"bundle_{k}"]
-            row["exits"][k] = {"flip": masked_flip(ref, other, exposure, mask),
-                               "mean_ratio": float(other[mask].mean() / ref[mask].mean()),
-                               "mean_ratio_rgb": (other[mask].mean(0) / ref[mask].mean(0)).tolist(),
+            row["exits"][k] = {"flip": masked_flip(ref, other, exposure, mask), **colour_ratio(other, ref, mask),
                                "time_ratio_equal_noise": cost["explicit"] / (r["variance_per_spp"] *
                                                                              r["seconds_per_spp"])}
         explicit.append(row)
