@@ -119,7 +119,7 @@ class _NeuralBackend:
         to = (theta_edges[:-1, None] + sub[None, :] * np.diff(theta_edges)[:, None]).ravel()
         PI, TI, PO, TO = np.meshgrid(phi_i, theta_i, po, to, indexing="ij")
         absolute_po = PO + (PI if self.relative else 0.0)
-        S = self.eval(*(self.Float(a.ravel().astype(np.float32)) for a in (PI, TI, absolute_po, TO)))
+        S = self.eval(*(to_drjit(self.Float, a.ravel()) for a in (PI, TI, absolute_po, TO)))
         dr.eval(*S)  # one kernel for all wavelengths (each alone would recompute the network)
         mean = np.mean([np.asarray(s) for s in S], 0).reshape(PI.shape)
         mean = mean.reshape(len(phi_i), n_theta_i, n_phi, 2, n_theta, 2).mean((3, 5))

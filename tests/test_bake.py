@@ -246,6 +246,32 @@ def test_bounce_rounds_and_compaction_change_nothing(iso_fiber, monkeypatch):
         assert np.array_equal(getattr(whole, name), getattr(rounds, name)), name
 
 
+def test_every_batch_and_chunk_runs_the_same_kernels(iso_fiber, monkeypatch):
+    """A value compiled into a kernel that changes between chunks or batches (a chunk's path
+    offset as a literal; a numpy array mapped at whatever alignment it has) makes a new kernel
+    where the last one would do: on a fresh machine an LLVM compilation each, a bake of the
+    default ply compiled one per 16,384 paths (docs/BENCHMARKS.md). Batches of other seeds, cut
+    into one chunk or into eight, launch the same set of kernels."""
+    import drjit as dr
+
+    dense = poisson((150.0, 150.0), 20.0, seed=2)
+    spec = BakeSpec(np.deg2rad([0.0, 30.0, 60.0]), np.deg2rad([0.0]), 12, 32, relative_phi=True, estimator="fast",
+                    max_bounces=300, exit="uniform")
+    baker = Baker(dense, iso_fiber, spec)
+    baker.trace(0, 2000, np.random.SeedSequence(0))  # the kernels compiled once
+    kernels = []
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for seed, chunk in ((1, 4096), (2, 256), (3, 256)):
+            monkeypatch.setattr(Baker, "CHUNK", chunk)
+            dr.kernel_history()  # emptied
+            baker.trace(0, 2000, np.random.SeedSequence(seed))
+            kernels.append({k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT})
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert kernels[1] == kernels[0] and kernels[2] == kernels[0], [len(k) for k in kernels]
+
+
 # ----------------------------------------------------------------------------------
 # Estimators agree
 # ----------------------------------------------------------------------------------

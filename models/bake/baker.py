@@ -112,6 +112,7 @@ class Baker:
 
     ROUND = 16         # fast: bounces per round of the bounce loop before compaction
     TAIL_LANES = 4096  # fast: with this few paths left, the last round runs to the end
+    CHUNK = 16384      # fast: paths per launch of the weights for every theta_i (their memory)
 
     def __init__(self, bundle: Bundle, fiber: FiberTable, spec: BakeSpec):
         self.bundle, self.fiber, self.spec = bundle, fiber, spec
@@ -208,20 +209,20 @@ class Baker:
         # paths are numpy (float64, in a fixed order: same seed, same table)
         # a sample whose mixture pdf rounds to zero carries no weight (never seen in tests)
         factor = dr.select(pdf_mix_d > 0, dr.cos(theta1_d) * n_ti / dr.maximum(pdf_mix_d, 1e-30), 0.0)
-        B = [dr.select(mi.UInt32(status) == STOPPED, 0.0, b) for b in final["B"]]  # roulette victims
+        B = [dr.select(to_drjit(mi.UInt32, status, np.uint32) == STOPPED, 0.0, b) for b in final["B"]]  # roulette victims
         esc = np.flatnonzero(escaped)
         order = np.concatenate([esc, np.flatnonzero(capped), np.flatnonzero(~(escaped | capped))])
         n_esc, n_cap = len(esc), int(capped.sum())
         esc_bins = bin_of[esc]
         esc_once = final["depth"][esc] == 1  # no fiber after the first: singly scattered
-        perm = mi.UInt32(order.astype(np.uint32))
+        perm = to_drjit(mi.UInt32, order, np.uint32)
         per_path = [dr.gather(mi.Float, x, perm) for x in [theta1_d, dphi1_d, factor] + B + final["R"]]
         lobe_path = tuple(dr.gather(type(x), x, perm) for x in lobe_state)
         dr.eval(per_path, lobe_path)  # once per path, so that the (path, theta_i) lanes below read in order
         L = self.n_lambda
         sums = np.zeros((spec.n_phi_o * spec.n_theta_o, n_ti * self.n_lambda))
         sums_sq = np.zeros_like(sums)
-        chunk = 16384
+        chunk = self.CHUNK
         for lo in range(0, n, chunk):
             hi = min(n, lo + chunk)
             W, A_R = self._path_weights(twin, *per_path[:3], per_path[3:3 + L], per_path[3 + L:], lo, hi - lo,
@@ -254,7 +255,7 @@ class Baker:
         """
         n_ti, L, P = len(self.spec.theta_i), self.n_lambda, twin.packet
         lane = dr.arange(mi.UInt32, m * n_ti)
-        path = lo + lane // n_ti
+        path = dr.opaque(mi.UInt32, lo) + lane // n_ti  # opaque: a literal would make a kernel per chunk
         theta_i = dr.gather(mi.Float, mi.Float(self.spec.theta_i.astype(np.float32)), lane % n_ti)
         if lobe_path:
             h, p = lobe_path

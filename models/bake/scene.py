@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 
 from ..bundle import Bundle
 from ..fiber import lobes
+from ..jit import to_drjit
 
 class BundleScene:
     """The bundle as a Mitsuba scene of cylinders along y; casts 2D rays."""
@@ -39,8 +40,9 @@ class BundleScene:
         n = len(phi)
         if n == 0:
             return np.zeros(0, bool), np.zeros(0, np.int64)
-        o = mi.Point3f(origin[:, 0].astype(np.float32), np.zeros(n, np.float32), origin[:, 1].astype(np.float32))
-        d = mi.Vector3f(np.cos(phi).astype(np.float32), np.zeros(n, np.float32), np.sin(phi).astype(np.float32))
+        Float, zero = mi.Float, dr.zeros(mi.Float, n)
+        o = mi.Point3f(to_drjit(Float, origin[:, 0]), zero, to_drjit(Float, origin[:, 1]))
+        d = mi.Vector3f(to_drjit(Float, np.cos(phi)), zero, to_drjit(Float, np.sin(phi)))
         pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=False)
         t = pi.t.numpy()
         index = pi.shape_index.numpy().astype(np.int64)
