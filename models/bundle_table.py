@@ -52,7 +52,10 @@ import numpy as np
 from .grid import TIE, Cells, bin_solid_angle, cell, linear
 from .io import atomic_path, check_axis
 
-FORMAT = "bcsdf.bundle_table/1"
+FORMAT = "bcsdf.bundle_table/2"  # /2: values and stderr stored in half precision (see BundleTable.save)
+READABLE = ("bcsdf.bundle_table/1", FORMAT)  # /1: float32, read as before
+HALF = ("values", "stderr")  # the arrays stored in half precision
+HALF_TOP = 2.0**15  # a stored array's largest value after its power-of-two scale (float16's largest: 65504)
 MAX_VALUE = 1e20   # 1/sr: far beyond any physical lobe, far below float32's 3.4e38
 REDUCTIONS = {"theta_i": (None, "mirror"), "phi_i": (None, "rotation", "mirror_xz", "half_turns"),
               "phi_o": ("relative", "absolute")}
@@ -126,13 +129,22 @@ class BundleTable:
 
     # -- storage -------------------------------------------------------------
     def save(self, path) -> None:
+        """Write the table; ``values`` and ``stderr`` in half precision.
+
+        Each of the two is stored as float16 times a power of two that puts its largest
+        value at :data:`HALF_TOP`: a relative rounding of at most 2^-11 (0.05%) down to
+        2^-24 of the largest value (then fewer digits, and 0 below 2^-39 of it), against a
+        bake's Monte Carlo error of a few percent per bin. It halves the file
+        (docs/BENCHMARKS.md, "The highlight"); :meth:`load` returns float32 arrays either way.
+        """
         arrays = {k: getattr(self, k) for k in ARRAYS}
-        arrays["values"] = arrays["values"].astype(np.float32)
-        arrays["stderr"] = arrays["stderr"].astype(np.float32)
+        scales = {}
+        for name in HALF:
+            arrays[name], scales[name] = to_half(arrays[name])
         for name in ("passthrough_theta", "single"):
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)
-        header = {"format": FORMAT, "meta": self.meta}
+        header = {"format": FORMAT, "meta": self.meta, "half_scale": scales}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, header=np.array(json.dumps(header)), **arrays)
@@ -143,9 +155,13 @@ class BundleTable:
         try:
             with np.load(path, allow_pickle=False) as z:
                 header = json.loads(str(z["header"]))
-                if header.get("format") != FORMAT:
-                    raise ValueError(f"format {header.get('format')!r}, expected {FORMAT!r}")
-                table = cls(**{k: z[k] for k in ARRAYS}, meta=header["meta"],
+                if header.get("format") not in READABLE:
+                    raise ValueError(f"format {header.get('format')!r}, expected one of {READABLE}")
+                arrays = {k: z[k] for k in ARRAYS}
+                if header["format"] != READABLE[0]:
+                    for name in HALF:
+                        arrays[name] = from_half(arrays[name], header["half_scale"][name])
+                table = cls(**arrays, meta=header["meta"],
                             **{k: z[k] if k in z.files else None for k in ("passthrough_theta", "single")})
             table.validate()
             if expand:  # expanded for a lookup
@@ -299,6 +315,22 @@ class BundleTable:
 #   azimuths phi_i blend linearly.
 #
 # ``nearest`` reads the bin value of the nearest node (no slopes), along the cone too.
+
+def to_half(a: np.ndarray) -> tuple[np.ndarray, float]:
+    """``(h, scale)``: ``a`` (finite, >= 0) as float16 ``h`` with ``a ~ h * scale``, ``scale`` the
+    power of two that puts ``a``'s largest value at :data:`HALF_TOP`."""
+    a = np.asarray(a, np.float64)
+    top = float(a.max()) if a.size else 0.0
+    scale = 2.0 ** int(np.ceil(np.log2(top / HALF_TOP))) if top > 0 else 1.0
+    return (a / scale).astype(np.float16), scale
+
+
+def from_half(h: np.ndarray, scale: float) -> np.ndarray:
+    """The float32 array that :func:`to_half` stored (a power-of-two scale: exact)."""
+    if h.dtype != np.float16:
+        raise ValueError(f"a half-precision array holds {h.dtype}")
+    return h.astype(np.float32) * np.float32(scale)
+
 
 def minmod(a, b):
     """The smaller of two slopes of one sign, else zero (the classic slope limiter)."""

@@ -290,7 +290,8 @@ class BakeCfg(Strict):
                                                           "neither this nor theta_i_deg is given)")
     theta_i_deg: Optional[list[float]] = Field(
         None, description="the incident longitudes 0..90 deg themselves, instead of theta_i_step_deg: "
-                          "graded nodes, e.g. finer near grazing (0 and 90 included, increasing)")
+                          "graded nodes, e.g. finer near grazing (from 0, increasing; a list that stops short "
+                          "of 90 holds its last node's light along its cone up to the pole)")
     phi_i_step_deg: float = Field(15.0, gt=0.0, le=90.0, description="ellipse only")
     n_theta_o: int = Field(36, ge=2, le=3600)
     n_phi_o: int = Field(72, ge=4, le=7200)
@@ -320,9 +321,9 @@ class BakeCfg(Strict):
         if v is None:
             return v
         t = np.asarray(v, float)
-        if len(t) < 2 or t[0] != 0.0 or t[-1] != 90.0 or np.any(np.diff(t) <= 0):
-            raise ValueError(f"must run from 0 to 90 deg, increasing, with at least two nodes (got {v}), "
-                             "e.g. [0, 15, 30, 45, 60, 70, 75, 80, 85, 90]")
+        if len(t) < 2 or t[0] != 0.0 or t[-1] > 90.0 or np.any(np.diff(t) <= 0):
+            raise ValueError(f"must run from 0 up to at most 90 deg, increasing, with at least two nodes (got {v}), "
+                             "e.g. [0, 15, 30, 45, 60, 65, 70, 75, 80, 85, 87.5]")
         return [float(x) for x in t]
 
     @model_validator(mode="after")

@@ -60,6 +60,44 @@ def test_a_consistent_table_still_loads(table_path):
     assert BundleTable.load(table_path).passthrough.max() <= 1
 
 
+def test_values_are_stored_in_half_precision_and_old_tables_read_as_before(table_path):
+    """``values`` and ``stderr`` are written as float16 times a power of two: within 2^-11
+    (float16's rounding) of what was saved over 24 binary orders of magnitude below the
+    largest value, at any scale; a table written before (format /1, float32) reads as it was."""
+    from models.bundle_table import READABLE
+
+    t = BundleTable.load(table_path)
+    rng = np.random.default_rng(1)
+    for top in (1e-6, 3.0, 5e7):  # below, inside and above float16's own range (6e-5 .. 65504)
+        t.values = (top * 10.0 ** rng.uniform(-7, 0, t.values.shape)).astype(np.float32)
+        t.stderr = 0.03 * t.values
+        t.save(table_path)
+        with np.load(table_path) as z:
+            assert z["values"].dtype == np.float16 and z["stderr"].dtype == np.float16
+        back = BundleTable.load(table_path)
+        assert back.values.dtype == np.float32
+        for name in ("values", "stderr"):
+            a, b = getattr(t, name).astype(np.float64), getattr(back, name).astype(np.float64)
+            normal = a >= a.max() * 2.0**-24
+            assert np.all(np.abs(b / a - 1)[normal] <= 2.0**-11), (top, name)
+            assert np.all(np.abs(b - a)[~normal] <= a.max() * 2.0**-25), (top, name)
+    # a float32 table of the first format
+    with np.load(table_path) as z:
+        arrays = {k: z[k] for k in z.files if k != "header"}
+        header = json.loads(str(z["header"]))
+    arrays["values"], arrays["stderr"] = t.values, t.stderr
+    header = {"format": READABLE[0], "meta": header["meta"]}
+    with open(table_path, "wb") as fh:
+        np.savez(fh, header=np.array(json.dumps(header)), **arrays)
+    assert np.array_equal(BundleTable.load(table_path).values, t.values)
+    # the second format without its scales: named, not misread
+    header["format"] = READABLE[1]
+    with open(table_path, "wb") as fh:
+        np.savez(fh, header=np.array(json.dumps(header)), **arrays)
+    with pytest.raises(ValueError, match="not a readable bundle table"):
+        BundleTable.load(table_path)
+
+
 def test_the_singly_scattered_part_is_checked_and_optional(table_path):
     """``single`` is optional (tables baked before it have none and load as before); where
     present it is a part of the scattered light and cannot exceed it."""

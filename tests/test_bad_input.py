@@ -91,7 +91,9 @@ CASES = {
         "theta_o_layout": "cone", "n_theta_o": 35, "theta_i_step_deg": 10, "cone_bin_deg": 12}))],
         ["cone_bin_deg", "narrower"]),
     "graded nodes not from 0 to 90": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
-        "theta_i_deg": [0, 30, 60, 85]}))], ["bake.theta_i_deg", "from 0 to 90"]),
+        "theta_i_deg": [5, 30, 60, 95]}))], ["bake.theta_i_deg", "from 0 up to at most 90"]),
+    "graded nodes not increasing": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
+        "theta_i_deg": [0, 60, 30, 85]}))], ["bake.theta_i_deg", "increasing"]),
     "graded nodes and a step": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={
         "theta_i_deg": [0, 45, 80, 90], "theta_i_step_deg": 10}))], ["theta_i_deg and theta_i_step_deg"]),
     "graded nodes, wrong cone bin count": (lambda tmp: ["bake", str(config(tmp, **BUNDLE, bake={

@@ -311,7 +311,7 @@ def misses_on_the_cone(mi, bundle, fiber_path, tables: dict, cases) -> dict:
             blended = near[:1] if np.isclose(t.theta_i[near[0]], np.deg2rad(ti)) else near
             rel = []
             for j in blended:  # the bin on (or, on an edge, below) the node's cone
-                k_t = int(np.searchsorted(t.theta_o_edges, -t.theta_i[j] - 1e-9) - 1)
+                k_t = max(0, int(np.searchsorted(t.theta_o_edges, -t.theta_i[j] - 1e-9) - 1))  # a pole: its cap
                 rel.append(t.stderr[0, j, k_p, k_t, lam] / t.values[0, j, k_p, k_t, lam])
             I_table = closure.predicted_intensity(1.0, bundle.bounding_radius * 1e-3, np.deg2rad(ti), S)
             misses[name].append((I_table / I - 1, np.hypot(max(rel), se / I)))
@@ -378,6 +378,38 @@ def test_graded_nodes_read_the_grazing_highlight_between_nodes(mono, tmp_path):
     graded, coarse = np.array(misses["graded"]), np.array(misses["every 10"])
     assert np.all(np.abs(graded[:, 0]) <= 0.05 + 3 * graded[:, 1]), graded
     assert np.sum(np.abs(coarse[:, 0]) > 0.05 + 3 * coarse[:, 1]) >= 6, coarse
+
+
+def test_the_last_node_held_along_its_cone_reads_the_pole_gap(mono, tmp_path):
+    """Between the last node and the pole the cone shrinks onto the fiber axis. A node at
+    90 deg has no cone, only a polar cap holding the whole lobe; blended into the gap it
+    reads the ridge far too bright (``make bench-highlight``: +30..+180% at 88.75 deg on the
+    default ply). A table whose nodes stop at 87.5 holds that node's light along its cone
+    instead. The 3-um Mie ply of the test above, theta_o exactly on the cone at theta_i 88.75
+    (between the nodes 87.5 and 90) and 86.25 (between 85 and 87.5), three azimuths each:
+    the held table within 5% + 3 standard errors everywhere, the one with a pole node
+    outside at most of 88.75's."""
+    import mitsuba as mi
+
+    from models.bundle import poisson
+    from models.fiber.mie import MieFiber
+    from models.grid import cone_edges
+    from tests.test_bake import bake
+
+    fiber = MieFiber(WL, 3.0, [1.56, 1.555, 1.55], [1e-3, 0.0, 0.0], 3.0).tabulate(NODES)
+    fiber.save(tmp_path / "fiber.npz")
+    bundle = poisson((24.0, 24.0), 3.0, packing=0.3, seed=2)
+    mi.set_variant("llvm_ad_rgb")  # the baker's own variant
+    held = (0, 15, 30, 45, 60, 70, 75, 80, 85, 87.5)
+    nodes = {"held": held, "pole node": held + (90,)}
+    edges = cone_edges(np.deg2rad(held), np.deg2rad(2))  # the poles' cones are in either layout
+    tables = {name: bake(bundle, fiber, paths=1_000_000, theta_i=t, n_phi_o=36, n_theta_o=len(edges) - 1,
+                         theta_o_edges=edges) for name, t in nodes.items()}
+    cases = [(ti, dp) for ti in (86.25, 88.75) for dp in (35.0, 95.0, 155.0)]
+    misses = misses_on_the_cone(mi, bundle, tmp_path / "fiber.npz", tables, cases)
+    held, pole = np.array(misses["held"]), np.array(misses["pole node"])
+    assert np.all(np.abs(held[:, 0]) <= 0.05 + 3 * held[:, 1]), held
+    assert np.sum(np.abs(pole[3:, 0]) > 0.05 + 3 * pole[3:, 1]) >= 2, pole
 
 
 # ----------------------------------------------------------------------------------

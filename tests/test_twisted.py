@@ -369,7 +369,9 @@ def test_a_zhao_yarn_gives_its_lean_and_the_spec_keeps_every_theta_i_but_the_pol
     from pipeline.build import build_ply, make_spec
     from pipeline.config import load_config
 
-    cfg = load_config("configs/default.yaml", ["bundle.twist={yarn: Cotton 1}", "bundle.radius_um=260"])
+    cfg = load_config("configs/default.yaml", ["bundle.twist={yarn: Cotton 1}", "bundle.radius_um=260",
+                                               "bake.theta_i_deg=[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]",
+                                               "bake.n_theta_o=35"])
     ply = build_ply(cfg)
     # Cotton 1: alpha = -0.369 cm on a ply of e_X = 0.026 cm: the rim leans atan(2 pi 260 / 3690) = 23.9 deg
     assert ply.pitch < 0 and np.isclose(abs(ply.pitch), 3690.0, rtol=1e-6)
@@ -377,7 +379,7 @@ def test_a_zhao_yarn_gives_its_lean_and_the_spec_keeps_every_theta_i_but_the_pol
     assert np.degrees(rim) == pytest.approx(23.9, abs=0.1) and ply.max_lean <= rim
     fiber = PatternFiber(WL, "isotropic").tabulate(NODES)
     spec, reductions = make_spec(cfg, ply, fiber)
-    # the default's graded nodes, mirrored, without the poles
+    # graded nodes with a pole, mirrored, without the poles
     assert np.allclose(np.rad2deg(spec.theta_i), [-80, -75, -70, -65, -60, -45, -30, -15, 0,
                                                   15, 30, 45, 60, 65, 70, 75, 80])
     assert reductions == {"theta_i": None, "phi_i": "rotation", "phi_o": "relative"}

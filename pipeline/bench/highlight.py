@@ -9,9 +9,11 @@ The config's ply (its fiber table from ``bcsdf run`` / ``bcsdf fiber``) is baked
 layout (``--layouts``) with the same paths and seed: ``uniform 36`` (36 equal 5 deg bins,
 the layout before the cone one), ``cone 35`` (a 2 deg bin on every node's cone, one bin
 between; theta_i nodes every 10 deg, as these two), ``graded cone 35`` (as many theta_i
-nodes, graded: 15 deg apart up to 60, 5 deg from 60 to 80; the same bytes: the default's;
-``--graded`` takes other nodes) and ``uniform 180`` (1 deg bins, five times the bytes: what
-finer bins alone buy). Every fiber of the ply is then rendered as its own cylinder with
+nodes, graded: 15 deg apart up to 60, 5 deg from 60 to 80, and 90: the default's of sessions
+22-27; ``--graded`` takes other nodes, the bins following them), ``held cone 43`` (the default's
+now: 85 and 87.5 instead of the pole node 90, the last node held along its cone up to the
+pole; its file, in half precision, smaller than the others') and ``uniform 180`` (1 deg bins,
+five times the bytes: what finer bins alone buy). Every fiber of the ply is then rendered as its own cylinder with
 ``fiber_table`` (16 turns of the arrangement) at directions exactly on the cone ``theta_o =
 -theta_i``: ``theta_i`` on bake nodes and between them (each table's errors are split by its
 own nodes), ``dphi`` at the middle of a phi_o bin and on its edge; then again with each turn
@@ -39,22 +41,38 @@ import json
 import time
 
 import numpy as np
+import yaml
 
 from models.io import write_text
 
 from ..artifacts import stage_dir
 from ..config import load_config
 
-GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # the default's theta_i nodes: as many as every 10 deg
+GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # as many theta_i nodes as every 10 deg (sessions 22-27)
+HELD = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 85, 87.5]"  # the default's now: no pole node
 EVERY_10 = ["bake.theta_i_deg=null", "bake.theta_i_step_deg=10"]    # theta_i nodes every 10 deg
+CONE = ["bake.theta_o_layout=cone", "bake.cone_bin_deg=2"]
 LAYOUTS = {"uniform 36": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=36"],
-           "cone 35": EVERY_10 + ["bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
-           "graded cone 35": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}",  # the default's
-                              "bake.theta_o_layout=cone", "bake.n_theta_o=35", "bake.cone_bin_deg=2"],
+           "cone 35": EVERY_10 + CONE + ["bake.n_theta_o=35"],
+           "graded cone 35": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}"] + CONE,
+           "held cone 43": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={HELD}"] + CONE,
            "uniform 180": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=180"]}
-# deg: nodes of a 10 deg bake and of the graded one, and between them (65, 72.5, 77.5, 85, 87.5 near
-# grazing: between the last node and the pole, whichever it is)
-THETA_I = (20.0, 30.0, 45.0, 60.0, 65.0, 72.5, 75.0, 77.5, 85.0, 87.5)
+# deg: nodes of the layouts, and between them (65, 72.5, 77.5, 82.5 near grazing; 85, 87.5 and
+# 88.75 between the last node and the pole, whichever they are)
+THETA_I = (20.0, 30.0, 45.0, 60.0, 65.0, 72.5, 75.0, 77.5, 82.5, 85.0, 87.5, 88.75)
+
+
+def layout_overrides(name: str, graded: str = GRADED) -> list:
+    """The ``--set`` overrides of a layout; a cone layout of listed nodes gets one bin between
+    every two cones (``graded``: the nodes of ``graded cone 35``)."""
+    from models.grid import cone_bin_counts
+
+    sets = [s.replace(GRADED, graded) for s in LAYOUTS[name]]
+    listed = [s for s in sets if s.startswith("bake.theta_i_deg=[")]
+    if listed and "bake.theta_o_layout=cone" in sets:
+        nodes = np.deg2rad(yaml.safe_load(listed[0].split("=", 1)[1]))
+        sets.append(f"bake.n_theta_o={cone_bin_counts(nodes)[0]}")
+    return sets
 DPHI = (32.5, 92.5, 152.5, 30.0, 90.0, 150.0)  # deg: phi_o bin middles, then edges (5 deg bins)
 LAM = 550.0
 
@@ -64,6 +82,7 @@ def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: 
     the graded layout's theta_i nodes, a YAML list in degrees)."""
     import mitsuba as mi
 
+    from models.bundle_table import from_half, to_half
     from models.fiber.base import FiberTable
 
     from ..build import build_bundle, make_spec
@@ -72,7 +91,7 @@ def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: 
     mi.set_variant("llvm_ad_rgb")
     tables, warm = {}, False
     for name in layouts:
-        cfg = load_config(config, [s.replace(GRADED, graded) for s in LAYOUTS[name]])
+        cfg = load_config(config, layout_overrides(name, graded))
         fiber = FiberTable.load(stage_dir(cfg, "fiber", artifacts) / "fiber_table.npz")
         bundle = build_bundle(cfg)
         spec, _ = make_spec(cfg, bundle, fiber)
@@ -80,10 +99,18 @@ def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: 
             bake_unreduced(bundle, fiber, spec, 20_000, seed=cfg.bake.seed)
             warm = True
         t0 = time.perf_counter()
-        tables[name] = (bake_unreduced(bundle, fiber, spec, paths, seed=cfg.bake.seed), time.perf_counter() - t0)
-        print(f"[highlight] {name}: {paths:.3g} paths in {tables[name][1]:.1f} s, "
-              f"{tables[name][0].values.nbytes / 2**20:.2f} MiB of values")
+        table = bake_unreduced(bundle, fiber, spec, paths, seed=cfg.bake.seed)
+        seconds = time.perf_counter() - t0
+        table.values = from_half(*to_half(table.values))  # what its file holds (BundleTable.save)
+        tables[name] = (table, seconds)
+        print(f"[highlight] {name}: {paths:.3g} paths in {seconds:.1f} s, "
+              f"{stored_bytes(table) / 2**20:.2f} MiB of values as stored")
     return tables
+
+
+def stored_bytes(table) -> int:
+    """The bytes of a table's values in its file (half precision: ``BundleTable.save``)."""
+    return 2 * table.values.size
 
 
 def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0, wavelength_nm: float | None = LAM,
@@ -133,7 +160,7 @@ def table_entries(mi, tables: dict, wavelength_nm: float | None = LAM) -> dict:
     def reader(t):
         w = closure.spectrum_weights(mi, t.wavelength, wavelength_nm)
         return lambda *angles: lookup(t, *angles) @ w
-    return {name: (reader(t), int(t.values.nbytes), seconds, t.theta_i) for name, (t, seconds) in tables.items()}
+    return {name: (reader(t), stored_bytes(t), seconds, t.theta_i) for name, (t, seconds) in tables.items()}
 
 
 def model_entries(mi, cfg, roots, wavelength_nm: float | None = LAM) -> dict:
