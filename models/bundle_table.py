@@ -317,10 +317,12 @@ class BundleTable:
 # ``nearest`` reads the bin value of the nearest node (no slopes), along the cone too.
 
 def to_half(a: np.ndarray) -> tuple[np.ndarray, float]:
-    """``(h, scale)``: ``a`` (finite, >= 0) as float16 ``h`` with ``a ~ h * scale``, ``scale`` the
-    power of two that puts ``a``'s largest value at :data:`HALF_TOP`."""
+    """``(h, scale)``: ``a`` (>= 0) as float16 ``h`` with ``a ~ h * scale``, ``scale`` the power
+    of two that puts ``a``'s largest finite value at :data:`HALF_TOP` (NaN and Inf stay what
+    they are, for the loader to refuse by name)."""
     a = np.asarray(a, np.float64)
-    top = float(a.max()) if a.size else 0.0
+    finite = a[np.isfinite(a)]
+    top = float(finite.max()) if finite.size else 0.0
     scale = 2.0 ** int(np.ceil(np.log2(top / HALF_TOP))) if top > 0 else 1.0
     return (a / scale).astype(np.float16), scale
 

@@ -42,6 +42,7 @@ CASES = {
                                 "meta.reductions.phi_o"),
     "values near float32's limit": (dict(values=lambda v: v * 0 + 3e38), "values reach"),
     "NaN in absorbed": (dict(absorbed=lambda a: a * np.nan), "absorbed holds NaN"),
+    "Inf in values": (dict(values=lambda v: np.where(v == v.max(), np.inf, v)), "values holds NaN or Inf"),
 }
 
 
