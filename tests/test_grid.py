@@ -31,6 +31,7 @@ def _awkward(rng, nodes, n=4000):
 
 
 GRADED = [0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 75.0, 80.0, 85.0, 90.0]  # theta_i nodes finer near grazing
+HELD = [0.0, 15.0, 30.0, 45.0, 60.0, 70.0, 75.0, 80.0, 85.0, 87.5]  # ... and without a pole node
 
 
 @pytest.mark.parametrize("periodic,graded", [(False, False), (True, False), (False, True)])
@@ -142,21 +143,20 @@ def test_cells_of_unequal_edges_on_both_backends(dr_float, edges):
     assert np.array_equal(cells.index(dr_float(below), tie=grid.TIE, xp=dr).numpy(), np.arange(1, len(e) - 1))
 
 
-@pytest.mark.parametrize("relative,cone,graded", [(True, False, False), (False, False, False), (True, True, False),
-                                                  (False, True, True)])
-def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, relative, cone, graded):
+@pytest.mark.parametrize("relative,cone,nodes", [(True, False, None), (False, False, None), (True, True, None),
+                                                 (False, True, GRADED), (True, True, HELD)])
+def test_table_lookups_agree_on_the_cone_edges_and_poles(dr_float, tmp_path, relative, cone, nodes):
     """numpy's ``lookup`` and the plugin's ``DrJitTable`` are one algorithm (``cone_lookup``):
     they agree to float32 rounding on random directions and on every direction where a
     backend's trigonometry decides the bin (the cone at a theta_i node lies on a theta_o
-    edge; dphi = 0 and pi lie on phi_o edges; the poles), with theta_i nodes 15 deg apart
-    or graded."""
+    edge; dphi = 0 and pi lie on phi_o edges; the poles), with theta_i nodes 15 deg apart,
+    graded, or stopping short of the pole (the last node held beyond it)."""
 
     from mitsuba_ext.table import DrJitTable
     from models.bundle_table import BundleTable
 
     cfg = make_config(tmp_path)
-    synthetic_table(cfg, tmp_path / "t.npz", relative=relative, cone=3.0 if cone else None,
-                    theta_i_deg=GRADED if graded else None)
+    synthetic_table(cfg, tmp_path / "t.npz", relative=relative, cone=2.0 if cone else None, theta_i_deg=nodes)
     table = BundleTable.load(tmp_path / "t.npz", expand=True)
     rng = np.random.default_rng(5)
     n = 3000
