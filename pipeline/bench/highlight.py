@@ -12,9 +12,9 @@ between; theta_i nodes every 10 deg, as these two), ``graded cone 35`` (as many 
 nodes, graded: 15 deg apart up to 60, 5 deg from 60 to 80, and 90: the default's of sessions
 22-27; ``--graded`` takes other nodes, the bins following them), ``held cone 43`` (the default's
 now: 85 and 87.5 instead of the pole node 90, the last node held along its cone up to the
-pole; its file, in half precision, smaller than the others') and ``uniform 180`` (1 deg bins,
-five times the bytes: what finer bins alone buy). Every fiber of the ply is then rendered as its own cylinder with
-``fiber_table`` (16 turns of the arrangement) at directions exactly on the cone ``theta_o =
+pole) and ``uniform 180`` (1 deg bins, five times the bytes: what finer bins alone buy);
+bytes are those of the values as a table file holds them (half precision). Every fiber of
+the ply is then rendered as its own cylinder with ``fiber_table`` (16 turns of the arrangement) at directions exactly on the cone ``theta_o =
 -theta_i``: ``theta_i`` on bake nodes and between them (each table's errors are split by its
 own nodes), ``dphi`` at the middle of a phi_o bin and on its edge; then again with each turn
 seen at its own azimuth across a phi_o bin's width (theta_o still exactly on the cone),
@@ -60,6 +60,8 @@ LAYOUTS = {"uniform 36": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_thet
 # deg: nodes of the layouts, and between them (65, 72.5, 77.5, 82.5 near grazing; 85, 87.5 and
 # 88.75 between the last node and the pole, whichever they are)
 THETA_I = (20.0, 30.0, 45.0, 60.0, 65.0, 72.5, 75.0, 77.5, 82.5, 85.0, 87.5, 88.75)
+DPHI = (32.5, 92.5, 152.5, 30.0, 90.0, 150.0)  # deg: phi_o bin middles, then edges (5 deg bins)
+LAM = 550.0
 
 
 def layout_overrides(name: str, graded: str = GRADED) -> list:
@@ -73,8 +75,6 @@ def layout_overrides(name: str, graded: str = GRADED) -> list:
         nodes = np.deg2rad(yaml.safe_load(listed[0].split("=", 1)[1]))
         sets.append(f"bake.n_theta_o={cone_bin_counts(nodes)[0]}")
     return sets
-DPHI = (32.5, 92.5, 152.5, 30.0, 90.0, 150.0)  # deg: phi_o bin middles, then edges (5 deg bins)
-LAM = 550.0
 
 
 def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: str = GRADED) -> dict:
