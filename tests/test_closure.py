@@ -400,9 +400,9 @@ def test_the_last_node_held_along_its_cone_reads_the_pole_gap(mono, tmp_path):
     fiber.save(tmp_path / "fiber.npz")
     bundle = poisson((24.0, 24.0), 3.0, packing=0.3, seed=2)
     mi.set_variant("llvm_ad_rgb")  # the baker's own variant
-    held = (0, 15, 30, 45, 60, 70, 75, 80, 85, 87.5)
-    nodes = {"held": held, "pole node": held + (90,)}
-    edges = cone_edges(np.deg2rad(held), np.deg2rad(2))  # the poles' cones are in either layout
+    held_nodes = (0, 15, 30, 45, 60, 70, 75, 80, 85, 87.5)
+    nodes = {"held": held_nodes, "pole node": held_nodes + (90,)}
+    edges = cone_edges(np.deg2rad(held_nodes), np.deg2rad(2))  # the poles' cones are in either layout
     tables = {name: bake(bundle, fiber, paths=1_000_000, theta_i=t, n_phi_o=36, n_theta_o=len(edges) - 1,
                          theta_o_edges=edges) for name, t in nodes.items()}
     cases = [(ti, dp) for ti in (86.25, 88.75) for dp in (35.0, 95.0, 155.0)]

@@ -51,11 +51,12 @@ from ..config import load_config
 GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # as many theta_i nodes as every 10 deg (sessions 22-27)
 HELD = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 85, 87.5]"  # the default's now: no pole node
 EVERY_10 = ["bake.theta_i_deg=null", "bake.theta_i_step_deg=10"]    # theta_i nodes every 10 deg
-CONE = ["bake.theta_o_layout=cone", "bake.cone_bin_deg=2"]
+CONE = ["bake.theta_o_layout=cone", "bake.cone_bin_deg=2"]  # one bin between two cones: n_theta_o 2 G - 1
 LAYOUTS = {"uniform 36": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=36"],
            "cone 35": EVERY_10 + CONE + ["bake.n_theta_o=35"],
-           "graded cone 35": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}"] + CONE,
-           "held cone 43": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={HELD}"] + CONE,
+           "graded cone 35": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={GRADED}"] + CONE
+                             + ["bake.n_theta_o=35"],
+           "held cone 43": ["bake.theta_i_step_deg=null", f"bake.theta_i_deg={HELD}"] + CONE + ["bake.n_theta_o=43"],
            "uniform 180": EVERY_10 + ["bake.theta_o_layout=uniform", "bake.n_theta_o=180"]}
 # deg: nodes of the layouts, and between them (65, 72.5, 77.5, 82.5 near grazing; 85, 87.5 and
 # 88.75 between the last node and the pole, whichever they are)
@@ -65,21 +66,21 @@ LAM = 550.0
 
 
 def layout_overrides(name: str, graded: str = GRADED) -> list:
-    """The ``--set`` overrides of a layout; a cone layout of listed nodes gets one bin between
-    every two cones (``graded``: the nodes of ``graded cone 35``)."""
+    """The ``--set`` overrides of a layout; ``graded``: the nodes of ``graded cone 35``, its
+    bins following them (one between every two cones)."""
     from models.grid import cone_bin_counts
 
     sets = [s.replace(GRADED, graded) for s in LAYOUTS[name]]
-    listed = [s for s in sets if s.startswith("bake.theta_i_deg=[")]
-    if listed and "bake.theta_o_layout=cone" in sets:
-        nodes = np.deg2rad(yaml.safe_load(listed[0].split("=", 1)[1]))
-        sets.append(f"bake.n_theta_o={cone_bin_counts(nodes)[0]}")
+    if name == "graded cone 35" and graded != GRADED:
+        n_theta_o = cone_bin_counts(np.deg2rad(yaml.safe_load(graded)))[0]
+        sets = [f"bake.n_theta_o={n_theta_o}" if s.startswith("bake.n_theta_o=") else s for s in sets]
     return sets
 
 
 def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: str = GRADED) -> dict:
-    """``{layout: (table, bake seconds)}``: the config's ply baked once per layout (``graded``:
-    the graded layout's theta_i nodes, a YAML list in degrees)."""
+    """``{layout: (table, bake seconds, bytes of its values as a file holds them)}``: the config's
+    ply baked once per layout (``graded``: the graded layout's theta_i nodes, a YAML list in
+    degrees), its values rounded as ``BundleTable.save`` stores them (half precision)."""
     import mitsuba as mi
 
     from models.bundle_table import from_half, to_half
@@ -101,16 +102,12 @@ def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: 
         t0 = time.perf_counter()
         table = bake_unreduced(bundle, fiber, spec, paths, seed=cfg.bake.seed)
         seconds = time.perf_counter() - t0
-        table.values = from_half(*to_half(table.values))  # what its file holds (BundleTable.save)
-        tables[name] = (table, seconds)
+        half, scale = to_half(table.values)
+        table.values = from_half(half, scale)  # what its file holds
+        tables[name] = (table, seconds, half.nbytes)
         print(f"[highlight] {name}: {paths:.3g} paths in {seconds:.1f} s, "
-              f"{stored_bytes(table) / 2**20:.2f} MiB of values as stored")
+              f"{half.nbytes / 2**20:.2f} MiB of values as stored")
     return tables
-
-
-def stored_bytes(table) -> int:
-    """The bytes of a table's values in its file (half precision: ``BundleTable.save``)."""
-    return 2 * table.values.size
 
 
 def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0, wavelength_nm: float | None = LAM,
@@ -160,7 +157,7 @@ def table_entries(mi, tables: dict, wavelength_nm: float | None = LAM) -> dict:
     def reader(t):
         w = closure.spectrum_weights(mi, t.wavelength, wavelength_nm)
         return lambda *angles: lookup(t, *angles) @ w
-    return {name: (reader(t), stored_bytes(t), seconds, t.theta_i) for name, (t, seconds) in tables.items()}
+    return {name: (reader(t), nbytes, seconds, t.theta_i) for name, (t, seconds, nbytes) in tables.items()}
 
 
 def model_entries(mi, cfg, roots, wavelength_nm: float | None = LAM) -> dict:
