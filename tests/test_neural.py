@@ -4,6 +4,8 @@ The table is synthetic (an analytic ridge along the specular cone with a 1e5:1
 dynamic range, 1% noise) so that these tests need no bake.
 """
 
+import json
+
 import numpy as np
 import pytest
 
@@ -82,8 +84,6 @@ def test_onnx_model_is_valid_with_dynamic_batch(trained):
 
 
 def test_training_is_deterministic_and_fits_a_stiff_table(trained, tmp_path):
-    import json
-
     import torch
 
     cfg, tmp = trained
@@ -270,7 +270,8 @@ def test_energy_calibration_keeps_every_rows_albedo(trained, tmp_path):
 
 def test_a_table_that_scatters_nothing_trains_without_nan(tmp_path):
     """A bundle that passes or absorbs everything: no row has an albedo to calibrate (a
-    relative error of 0 / 0 would be NaN); training must still give a finite model."""
+    relative error of 0 / 0 would be NaN); training must still give a finite model and finite
+    figures in its summary (JSON has no NaN)."""
     import torch
 
     cfg = make_config(tmp_path, models={"tiny": [8, 8]})
@@ -285,6 +286,10 @@ def test_a_table_that_scatters_nothing_trains_without_nan(tmp_path):
     _, run = reference(tmp_path, "tiny")
     S = run(query_set(1000))
     assert np.all(np.isfinite(S)) and np.all(S >= 0)
+
+    def refuse(constant):
+        raise AssertionError(f"{constant} in summary.json")
+    json.loads((tmp_path / "n" / "train" / "tiny" / "summary.json").read_text(), parse_constant=refuse)
 
 
 def test_a_model_not_worth_rendering_is_said(tmp_path, capsys):

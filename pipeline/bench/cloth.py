@@ -35,6 +35,7 @@ Writes ``docs/cloth.json`` and ``docs/images/cloth_scale.png``, ``cloth_explicit
     .venv/bin/python -m pipeline.bench.cloth [CONFIG]            # configs/glove.yaml
     .venv/bin/python -m pipeline.bench.cloth --quick             # fewer sizes and distances
     .venv/bin/python -m pipeline.bench.cloth --parts explicit --ply-px 4   # one part, one distance (the others kept)
+    .venv/bin/python -m pipeline.bench.cloth --parts explicit --ply-px 4 --samples 4   # 4x the samples, kept apart
 """
 
 from __future__ import annotations
@@ -476,13 +477,15 @@ def measure_speed(config, root, quick, tmp) -> list:
     return rows
 
 
-def measure_explicit(config, root, quick, tmp, ply_px=None) -> list:
+def measure_explicit(config, root, quick, tmp, ply_px=None, samples=1) -> list:
     from pipeline.config import load_config
     from pipeline.stages.render import exposure_of, flip_and_psnr
 
     own = load_config(config).cloth.exit_split
     others = [k for k in EXITS if k != own]
-    renders = [("bundle", BUNDLE_SPP)] + [(f"bundle_{k}", BUNDLE_SPP) for k in others] + [("explicit", EXPLICIT_SPP)]
+    # ``samples`` times the seeds on both sides: the same images' first seeds and more
+    bundle_spp, explicit_spp = ((spp, samples * seeds) for spp, seeds in (BUNDLE_SPP, EXPLICIT_SPP))
+    renders = [("bundle", bundle_spp)] + [(f"bundle_{k}", bundle_spp) for k in others] + [("explicit", explicit_spp)]
     explicit = []
     for px in ((4,) if quick else ply_px or PLY_PX):
         row = {"ply_px": px, "exit_split": own}
@@ -672,6 +675,39 @@ def plot_explicit(plt, explicit, tmp, path_explicit):
     plt.close(fig)
 
 
+def plot_pairs(explicit, tmp, path):
+    """Each distance's two images side by side and their difference in luminance, relative
+    to the cloth's mean: where the bundle and the explicit fibers differ (``--samples``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipeline.stages.render import exposure_of, to_srgb
+
+    e = [r for r in explicit if "failed" not in r]
+    if not e:
+        return
+    fig, ax = plt.subplots(len(e), 3, figsize=(12, 4.2 * len(e)), squeeze=False)
+    for a, r in zip(ax, e):
+        ref, test = np.load(Path(tmp) / f"pair_{r['ply_px']}.npy")
+        x = exposure_of(ref)
+        lum_ref, lum_test = ref.mean(-1), test.mean(-1)
+        cloth = lum_ref > 0.01 * lum_ref.max()
+        a[0].imshow(to_srgb(ref, x))
+        a[0].set_title(f"explicit fibers, {r['explicit']['spp']} spp", fontsize=9)
+        a[1].imshow(to_srgb(test, x))
+        a[1].set_title(f"bundle, {r['bundle']['spp']} spp; FLIP {r['flip']:.3f}", fontsize=9)
+        im = a[2].imshow((lum_test - lum_ref) / lum_ref[cloth].mean(), cmap="coolwarm", vmin=-1, vmax=1)
+        a[2].set_title(f"ply {r['ply_px']} px: (bundle - explicit) / the cloth's mean", fontsize=9)
+        fig.colorbar(im, ax=a[2], fraction=0.046)
+        for b in a:
+            b.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("config", nargs="?", default="configs/glove.yaml")
@@ -681,6 +717,10 @@ def main(argv=None) -> int:
                         help="what to measure (default: all); the others keep their figures in docs/cloth.json")
     parser.add_argument("--ply-px", type=int, nargs="+", default=None,
                         help=f"the explicit part's camera distances, a ply's width in pixels (default {PLY_PX})")
+    parser.add_argument("--samples", type=int, default=1,
+                        help="the explicit part with this many times the samples on both sides (how FLIP falls "
+                             "with the noise): its rows go to 'explicit_x<K>' in docs/cloth.json, its pictures to "
+                             "docs/images/cloth_explicit_x<K>.png; the others are kept")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -697,9 +737,16 @@ def main(argv=None) -> int:
     result = json.loads(out.read_text()) if out.exists() else {}
     result["config"] = str(args.config)
     with tempfile.TemporaryDirectory() as tmp:
-        parts = {**PARTS, "explicit": functools.partial(measure_explicit, ply_px=args.ply_px)}
+        parts = {**PARTS, "explicit": functools.partial(measure_explicit, ply_px=args.ply_px, samples=args.samples)}
         fresh = {part: parts[part](args.config, args.artifacts, args.quick, tmp) for part in args.parts}
         (DOCS / "images").mkdir(parents=True, exist_ok=True)
+        if args.samples != 1 and "explicit" in fresh:  # beside the standard rows, not instead of them
+            key = f"explicit_x{args.samples}"
+            rows = fresh.pop("explicit")
+            plot_pairs(rows, tmp, DOCS / "images" / f"cloth_{key}.png")
+            measured = {r["ply_px"] for r in rows}
+            result[key] = sorted([r for r in result.get(key, []) if r["ply_px"] not in measured] + rows,
+                                 key=lambda r: r["ply_px"])
         plot(fresh, tmp, DOCS / "images" / "cloth_scale.png", DOCS / "images" / "cloth_explicit.png")
     if args.ply_px and "explicit" in fresh:  # some distances measured: the others keep their rows
         fresh["explicit"] = sorted([r for r in result.get("explicit", []) if r["ply_px"] not in args.ply_px]
