@@ -483,7 +483,7 @@ def measure_explicit(config, root, quick, tmp, ply_px=None, samples=1) -> list:
 
     own = load_config(config).cloth.exit_split
     others = [k for k in EXITS if k != own]
-    # ``samples`` times the seeds on both sides: the same images' first seeds and more
+    # ``samples`` times the seeds on both sides (seeds 0, 1, ...: the standard run's and more)
     bundle_spp, explicit_spp = ((spp, samples * seeds) for spp, seeds in (BUNDLE_SPP, EXPLICIT_SPP))
     renders = [("bundle", bundle_spp)] + [(f"bundle_{k}", bundle_spp) for k in others] + [("explicit", explicit_spp)]
     explicit = []
