@@ -723,6 +723,8 @@ def main(argv=None) -> int:
                              "docs/images/cloth_explicit_x<K>.png; the others are kept")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.samples < 1:
+        parser.error(f"--samples {args.samples}: give a whole number of at least 1 (times the standard samples)")
     if args.child:
         kind, *rest = json.loads(args.child)
         children = {"scale": child_scale, "explicit": child_explicit, "memory": child_memory, "speed": child_speed,
