@@ -87,13 +87,13 @@ def profile_steps(cfg, problem, name, hidden, steps=30) -> dict:
     import torch
 
     from models.neural import make_torch_model
-    from pipeline.stages.train import BinFit
+    from pipeline.stages.train import BinFit, adam
 
     c = cfg.train
     spec = dataclasses.replace(problem.base, hidden=list(hidden))
     p = BinFit(spec, problem)
     model = make_torch_model(spec)
-    opt = torch.optim.Adam(model.parameters(), lr=c.lr, fused=True)  # as the stage
+    opt = adam(model, c.lr)
     gen = torch.Generator().manual_seed(0)
     T = dict.fromkeys(("data", "forward", "backward", "optimizer"), 0.0)
     for k in range(steps + 3):

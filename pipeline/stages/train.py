@@ -328,6 +328,13 @@ def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
     return model, history, best, time.perf_counter() - t0, calibration
 
 
+def adam(model, lr: float):
+    """Phase 1's optimizer (the training bench profiles its steps with it too)."""
+    import torch
+
+    return torch.optim.Adam(model.parameters(), lr=lr, fused=True)  # one kernel for all parameters
+
+
 def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
     """Phase 1: minibatch Adam on the bin averages, cosine learning rate, early stopping on
     the held-out loss. Leaves ``model`` at its best held-out state; returns the history
@@ -339,7 +346,7 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
     import torch
     from tqdm import tqdm
 
-    opt = torch.optim.Adam(model.parameters(), lr=c.lr, fused=True)  # one kernel for all parameters
+    opt = adam(model, c.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, c.epochs)
     gen = torch.Generator().manual_seed(c.seed)
     fixed = p.stratified(len(p.data.x), c.bin_strata, torch.Generator().manual_seed(c.seed + 1))
