@@ -281,6 +281,31 @@ def stable_expm1(lib, y):
     return where(y < 1e-2, series, lib.exp(y) - 1.0)
 
 
+def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int = 4096):
+    """``(S, err)``: the exported model at ``angles [n, 4]`` (exact, float64) and a bound on
+    how far an evaluation of it in floating point (unit roundoff ``u``, float32 by
+    default) can be from that, per query and wavelength.
+
+    The same encoding (:func:`features`) and output transform (:func:`stable_expm1`) the
+    backends run, evaluated in :mod:`models.rounding`'s bounded arithmetic, the layers
+    ``[(W, b), ...]`` with Higham's dot-product bound carried by the network's Jacobian
+    (:func:`models.rounding.relu_mlp`). Two float32 evaluations (PyTorch and
+    onnxruntime, say) differ by at most the sum of their bounds.
+    """
+    from . import rounding as rd
+
+    u = rd.U32 if u is None else u
+    angles = np.asarray(angles, np.float64).reshape(-1, 4)
+    S, err = [], []
+    for start in range(0, len(angles), chunk):
+        a = [rd.Bounded.exact(c, u) for c in angles[start:start + chunk].T]
+        y = rd.relu_mlp(rd.stack(features(rd.BOUNDED, spec, *a), u), layers)
+        out = spec.s0 * stable_expm1(rd.BOUNDED, rd.clip(y, 0.0, spec.y_max))
+        S.append(out.value)
+        err.append(out.err)
+    return np.concatenate(S), np.concatenate(err)
+
+
 def make_torch_model(spec: NeuralSpec):
     """The PyTorch module: encoded features -> log-space spectrum (no transform)."""
     import torch

@@ -62,3 +62,54 @@ def load_bundle_table(cfg, out_root="artifacts") -> tuple:
     if table.meta.get("config_hash") != cfg.hash(*BAKE_SECTIONS):
         raise ValueError(f"{path} was baked from different settings than this config; re-run `bcsdf bake`")
     return table, path
+
+
+# -- a stage that failed: its reason and partial results, kept apart --------------------
+class StageFailed(Exception):
+    """A stage that ran to its end and found something wrong: ``partial`` maps file names
+    to the text of its diagnosis (the stability stage's table), which is kept under
+    :func:`failure_dir` while the stage's own outputs stay as they were."""
+
+    def __init__(self, message: str, partial: dict | None = None):
+        super().__init__(message)
+        self.partial = partial or {}
+
+
+def failure_dir(cfg, stage: str, out_root="artifacts") -> Path:
+    """``<out_root>/<config name>/failed/<stage>/``: outside the stage's outputs (which a
+    failed stage leaves as they were), so no up-to-date check or DVC hash sees it."""
+    return config_dir(cfg, out_root) / "failed" / stage
+
+
+def record_failure(cfg, stage: str, out_root, error: BaseException) -> Path | None:
+    """Write why ``stage`` failed (``reason.txt``) and its partial results, outside the
+    stage's journal so that they outlive its rollback; best effort (a full disk may be why
+    it failed)."""
+    from models.io import atomic_path
+
+    folder = failure_dir(cfg, stage, out_root)
+    reason = "interrupted" if isinstance(error, KeyboardInterrupt) else f"{type(error).__name__}: {error}"
+    files = {"reason.txt": reason.strip() + "\n", **getattr(error, "partial", {})}
+    try:
+        for name, text in files.items():
+            with atomic_path(folder / name, journaled=False) as tmp:
+                Path(tmp).write_text(text)
+    except OSError:
+        return None
+    return folder
+
+
+def clear_failure(cfg, stage: str, out_root="artifacts") -> None:
+    """A stage that succeeded has no failure on record."""
+    import shutil
+
+    shutil.rmtree(failure_dir(cfg, stage, out_root), ignore_errors=True)
+
+
+def read_failure(cfg, stage: str, out_root="artifacts") -> str | None:
+    """The recorded reason ``stage`` last failed, or None."""
+    path = failure_dir(cfg, stage, out_root) / "reason.txt"
+    try:
+        return path.read_text().strip()
+    except OSError:
+        return None

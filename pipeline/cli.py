@@ -27,7 +27,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from .artifacts import config_dir
+from .artifacts import StageFailed, clear_failure, config_dir, failure_dir, record_failure
 
 EPILOG = """\
 The config's keys are documented in configs/default.yaml and pipeline/config.py.
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
             folder = writable_folder(config_dir(cfg, args.artifacts))  # before any long work, not after it
             hold.enter_context(exclusive(folder, f"bcsdf {args.command} {args.config}"))  # one writer per config
             _run(args, cfg)
-    except (ConfigError, ValueError, FileNotFoundError, FloatingPointError) as e:
+    except (ConfigError, ValueError, FileNotFoundError, FloatingPointError, StageFailed) as e:
         print(f"bcsdf {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -183,35 +183,85 @@ def _render_scene(args) -> int:
 
 
 def _run(args, cfg) -> None:
-    """The stages ``args.command`` asks for (``run``: each that is not up to date)."""
-    from models.io import journal
+    """The stages ``args.command`` asks for (``run``: each that is not up to date).
 
+    A stage that fails leaves its last good outputs, its reason and partial results under
+    ``failed/<stage>/``; ``bcsdf run`` then still writes the report (which says so), records
+    for DVC the stages that did finish, and raises the failure."""
     from . import estimate, graph
 
     stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
+    timings = {}
     if args.command == "run":
         todo = [s for s in stages if args.force or not graph.up_to_date(s, cfg, args.artifacts)[0]]
         if todo:
             print(estimate.plan(cfg, todo, args.artifacts), flush=True)
-    for stage in stages:
-        if args.command == "run":  # asked again: an earlier stage may have rewritten this one's inputs
-            fresh, why = graph.up_to_date(stage, cfg, args.artifacts)
-            if fresh and not args.force:
-                print(f"[run] {stage}: up to date, skipped")
-                continue
-            print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
-        t0 = time.perf_counter()
-        shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
+    finished, interrupted = [], False
+    try:
+        for stage in stages:
+            if args.command == "run":  # asked again: an earlier stage may have rewritten this one's inputs
+                fresh, why = graph.up_to_date(stage, cfg, args.artifacts)
+                if fresh and not args.force:
+                    print(f"[run] {stage}: up to date, skipped")
+                    finished.append(stage)
+                    continue
+                print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
+            timings[stage] = _run_stage(stage, args, cfg)
+            finished.append(stage)
+    except KeyboardInterrupt:
+        interrupted = True
+        raise
+    except Exception:
+        stage = stages[len(finished)]
+        print(f"[run] {stage} failed; its reason and partial results: "
+              f"{failure_dir(cfg, stage, args.artifacts)}", file=sys.stderr, flush=True)
+        if args.command == "run" and stage != "report" and "report" in stages:
+            try:  # the report says what failed, with what finished
+                _stage("report").run(cfg, args.artifacts)
+            except Exception as e:  # the failure that stopped the run is the one to tell
+                print(f"[run] the report could not be written either ({type(e).__name__}: {e})", file=sys.stderr)
+        raise
+    finally:
+        if not interrupted:
+            if args.command == "run" and timings:
+                print(estimate.against_measured(cfg, timings), flush=True)
+            _record_lock(args, cfg, finished)
+
+
+def _run_stage(stage, args, cfg) -> float:
+    """One stage, all or nothing; stamped when it succeeds, its failure kept apart when not."""
+    from models.io import journal
+
+    from . import estimate, graph
+
+    t0 = time.perf_counter()
+    shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
+    try:
         # all or nothing (the sweep keeps each member as it finishes, as a bake keeps its checkpoint)
         with contextlib.nullcontext() if stage == "sweep" else journal(config_dir(cfg, args.artifacts)):
             _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
-        graph.stamp(stage, cfg, args.artifacts, seconds=time.perf_counter() - t0, work=estimate.work(stage, cfg),
-                    probe=estimate.measured_probe())
+    except BaseException as e:
+        record_failure(cfg, stage, args.artifacts, e)
+        raise
+    seconds = time.perf_counter() - t0
+    graph.stamp(stage, cfg, args.artifacts, seconds=seconds, work=estimate.work(stage, cfg),
+                probe=estimate.measured_probe())
+    clear_failure(cfg, stage, args.artifacts)
+    return seconds
+
+
+def _record_lock(args, cfg, finished) -> None:
+    """Record the finished stages of a shipped config in DVC's lock (one notion of up to
+    date for both tools: what the lock would hold after ``dvc repro``)."""
+    from . import graph
+
     shipped = Path(args.config).resolve() == graph.ROOT / "configs" / f"{cfg.name}.yaml"
-    if args.command == "run" and shipped and not args.overrides \
+    if args.command == "run" and finished and shipped and not args.overrides \
             and Path(args.artifacts).resolve() == graph.ROOT / "artifacts":
-        # one notion of up to date for both tools: what DVC's lock would hold after `dvc repro`
-        print(f"[run] {graph.record_dvc_lock(stages, cfg)}")
+        try:
+            print(f"[run] {graph.record_dvc_lock(finished, cfg)}")
+        except Exception as e:  # the lock is a convenience: never the error a user sees
+            print(f"[run] dvc.lock not updated ({type(e).__name__}: {e})", file=sys.stderr)
 
 
 def _applies(stage: str, cfg) -> bool:

@@ -35,9 +35,11 @@ _PROBE: list = []  # this process's probe, measured once
 
 def probe() -> float:
     """Seconds of a fixed piece of work like the stages' (float32 matrix products on the
-    BLAS threads, array arithmetic, a Python loop), the mean of 30 repeats after one to warm
-    up: this machine's pace now. The whole probe (~0.3 s, once per process) spans several
-    periods of a CPU quota (0.1 s), so a throttled machine shows, as a busy one does."""
+    BLAS threads, array arithmetic, a Python loop), the median of 30 repeats after one to
+    warm up: this machine's pace now. The whole probe (~0.3 s, once per process) spans
+    several periods of a CPU quota (0.1 s), so a throttled machine shows, as a busy one
+    does; the median, not the mean, so that a few repeats that lost their core to another
+    process (BLAS threads waiting on each other) do not make the whole run look 30x slower."""
     if not _PROBE:
         import numpy as np
 
@@ -53,10 +55,12 @@ def probe() -> float:
             for k in range(10_000):
                 s += 0.5 * k
         once()
-        t0 = time.perf_counter()
+        times = []
         for _ in range(30):
+            t0 = time.perf_counter()
             once()
-        _PROBE.append((time.perf_counter() - t0) / 30)
+            times.append(time.perf_counter() - t0)
+        _PROBE.append(float(np.median(times)))
     return _PROBE[0]
 
 
@@ -166,12 +170,31 @@ def describe(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
+_PLANNED: dict = {}  # this process's estimates, for against_measured
+
+
 def plan(cfg, stages, root="artifacts") -> str:
     """One line per stage to run and the total, for ``bcsdf run`` to print first."""
     lines, total = [], 0.0
     for stage in stages:
         seconds, source = estimate(stage, cfg, root)
+        _PLANNED[stage] = seconds
         total += seconds
         lines.append(f"  {stage:<9} ~{describe(seconds):>7}   (rate from {source})")
     return "\n".join([f"[run] estimate for {cfg.name}: ~{describe(total)} in all (rough: a third either way)"] + lines)
 
+
+
+def against_measured(cfg, measured: dict) -> str:
+    """The estimate :func:`plan` printed beside the seconds each stage took, for ``bcsdf run``
+    to print last: how far to trust the next estimate on this machine."""
+    lines = [f"[run] {cfg.name}: stage times, estimated and measured",
+             f"  {'stage':<9} {'estimated':>10} {'measured':>10} {'ratio':>6}"]
+    for stage, seconds in measured.items():
+        guess = _PLANNED.get(stage)
+        ratio = f"{seconds / guess:6.2f}" if guess else "     -"
+        lines.append(f"  {stage:<9} {describe(guess) if guess else '-':>10} {describe(seconds):>10} {ratio}")
+    total, guess = sum(measured.values()), sum(_PLANNED.get(s, 0.0) for s in measured)
+    lines.append(f"  {'all':<9} {describe(guess) if guess else '-':>10} {describe(total):>10} "
+                 + (f"{total / guess:6.2f}" if guess else "     -"))
+    return "\n".join(lines)

@@ -157,6 +157,39 @@ def test_run_skips_what_is_up_to_date_and_force_reruns_it(tmp_path, monkeypatch,
     assert stamp["probe"] > 0 and stamp["seconds"] >= 0 and stamp["work"] > 0
 
 
+def test_a_failed_stage_keeps_its_diagnosis_and_the_report_says_so(tmp_path, monkeypatch, capsys):
+    """A stability check that fails: exit 2 with the failing rows printed; the table is kept
+    under failed/stability/ while the last good outputs stay; the report, still written by
+    `bcsdf run`, says 'stability failed', and a later success clears the record."""
+    from pipeline import cli
+    from pipeline.stages import stability
+
+    cfg = write_config(tmp_path / "tiny.yaml")
+    art = tmp_path / "art"
+    good = [stability.at_most("case", "x", "small", 0.5, 1.0, "a limit")]
+    monkeypatch.setattr(stability, "CASES", {"fine": lambda: good})
+    assert cli.main(["--artifacts", str(art), "stability", str(cfg)]) == 0
+    table = (art / "tiny" / "stability" / "stability.md").read_text()
+    assert "a limit" in table and "pass" in table
+
+    bad = [stability.at_most("case", "x", "small", 2.0, 1.0, "a limit")]
+    monkeypatch.setattr(stability, "CASES", {"fine": lambda: good, "broken": lambda: bad})
+    assert cli.main(["--artifacts", str(art), "run", str(cfg), "--force"]) == 2  # CASES changed, not its file
+    err = capsys.readouterr().err
+    assert "1 of 2 stability checks failed" in err and "FAIL case" in err
+    failed = art / "tiny" / "failed" / "stability"
+    assert "stability checks failed" in (failed / "reason.txt").read_text()
+    assert "**FAIL**" in (failed / "stability.md").read_text()
+    assert json.loads((failed / "stability.json").read_text())[1]["passed"] is False
+    assert (art / "tiny" / "stability" / "stability.md").read_text() == table  # the last good one
+    page = (art / "tiny" / "report" / "index.html").read_text()
+    assert "stability failed" in page and "FAIL" in page
+
+    monkeypatch.setattr(stability, "CASES", {"fine": lambda: good})
+    assert cli.main(["--artifacts", str(art), "stability", str(cfg)]) == 0
+    assert not failed.exists()
+
+
 def test_the_stage_graph_follows_dvc_yaml_and_refuses_a_broken_one(tmp_path, monkeypatch):
     """``dvc.yaml`` is parsed once per version of its text: an edit is seen at once, and a
     file that is not YAML or lacks the stage is refused with what to do."""

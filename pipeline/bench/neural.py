@@ -89,9 +89,11 @@ def main(argv=None):
     parser.add_argument("--artifacts", default="artifacts")
     parser.add_argument("--queries", type=int, default=1_000_000)
     parser.add_argument("--forms", action="store_true", help="literal weights against cooperative vectors")
+    parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
+                    help="change a config key, as `bcsdf run --set` (make run-sizes: the three model sizes)")
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
-    cfg = load_config(args.config)
+    cfg = load_config(args.config, args.overrides)
     if args.forms:
         forms(cfg, args.artifacts, args.queries)
     else:

@@ -58,8 +58,10 @@ def main(argv=None) -> int:
     p.add_argument("config", nargs="?", default="configs/default.yaml")
     p.add_argument("--artifacts", default="artifacts")
     p.add_argument("--spp", type=int, default=None)
+    p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
+                    help="change a config key, as `bcsdf run --set` (make run-sizes: the three model sizes)")
     args = p.parse_args(argv)
-    cfg = load_config(args.config)
+    cfg = load_config(args.config, args.overrides)
     result = measure(cfg, args.artifacts, args.spp)
     print(f"{result['variant']}, {result['size'][0]}x{result['size'][1]}, {result['spp']} spp (warm kernels)")
     print(f"{'scene':6} {'method':8} {'backend':8} {'seconds':>8} {'x table':>8} {'FLIP':>7} {'PSNR':>6} {'bytes':>10}")

@@ -166,6 +166,8 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=DOCS, help="folder for train_schedules.json and images/")
     parser.add_argument("--calibration", type=int, nargs="+", metavar="K",
                         help="instead: the calibration at K x K points per bin, side by side from one phase 1")
+    parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
+                    help="change a config key, as `bcsdf run --set` (make run-sizes: the three model sizes)")
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
 
@@ -175,7 +177,7 @@ def main(argv=None):
     from pipeline.config import load_config
     from pipeline.stages.train import prepare
 
-    cfg = load_config(args.config)
+    cfg = load_config(args.config, args.overrides)
     torch.set_num_threads(cfg.train.threads)
     table, table_path = load_bundle_table(cfg, args.artifacts)
     problem = prepare(cfg, table, table_path)

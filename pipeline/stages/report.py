@@ -134,6 +134,8 @@ def run(cfg, out_root="artifacts") -> Path:
                      f"<p>code {code_version()}, config hash {cfg.hash()}</p><table>{versions}</table>"
                      f"<pre>{html.escape(yaml.safe_dump(cfg.model_dump(mode='json'), sort_keys=False))}</pre>"))
 
+    sections = [(title, "".join(failure_note(root, st) for st in SECTION_STAGES.get(title, ())) + body)
+                for title, body in sections]
     sections.insert(0, ("Summary", summary_section(cfg, root, out_root)))
     page = html_page(cfg.name, sections)
     write_text(out / "index.html", page)
@@ -313,17 +315,40 @@ def exit_section(exit_model: str, out: Path) -> str:
 
 def stability_section(root: Path) -> str:
     path = root / "stability" / "stability.json"
+    partial = root / "failed" / "stability" / "stability.json"
+    if partial.exists():  # the last run failed: its table is the diagnosis
+        path = partial
     if not path.exists():
         return not_run("bcsdf stability")
     rows = json.loads(path.read_text())
     failed = sum(not r["passed"] for r in rows)
     body = (f"<p>{len(rows) - failed} of {len(rows)} checks pass (<code>bcsdf stability</code>; the cases are "
-            "listed in <code>pipeline/stages/stability.py</code>, each is also a test).</p>")
-    body += "<table><tr><th>case</th><th>quantity</th><th>invariant</th><th>value</th><th>limit</th><th></th></tr>"
+            "listed in <code>pipeline/stages/stability.py</code>, each is also a test; a limit that rounding "
+            "sets is derived from the arithmetic, as its last column says).</p>")
+    body += ("<table><tr><th>case</th><th>quantity</th><th>invariant</th><th>value</th><th>limit</th><th></th>"
+             "<th>where the limit comes from</th></tr>")
     body += "".join(f"<tr><td>{html.escape(r['case'])}</td><td>{html.escape(r['quantity'])}</td>"
                     f"<td>{html.escape(r['invariant'])}</td><td>{r['value']:.3e}</td><td>{r['limit']:.1e}</td>"
-                    f"<td>{'pass' if r['passed'] else '<b>FAIL</b>'}</td></tr>" for r in rows)
+                    f"<td>{'pass' if r['passed'] else '<b>FAIL</b>'}</td>"
+                    f"<td style='text-align:left'>{html.escape(r.get('derivation', ''))}</td></tr>" for r in rows)
     return body + "</table>"
+
+
+# the stages each section shows, for the note that one of them failed
+SECTION_STAGES = {"Single-fiber model": ("fiber",), "Bundle and baked table": ("bake",),
+                  "Neural compression": ("train", "export"), "Renders and FLIP maps": ("render",),
+                  "Cloth": ("cloth",), "Numerical stability": ("stability",), "Family (sweep)": ("sweep",)}
+
+
+def failure_note(root: Path, stage: str) -> str:
+    """A paragraph saying that ``stage``'s last run failed and why ('' if it did not)."""
+    try:
+        reason = (root / "failed" / stage / "reason.txt").read_text().strip()
+    except OSError:
+        return ""
+    return (f"<div class=missing><p><b>{html.escape(stage)} failed</b> (its last good outputs, if any, are shown; "
+            f"its partial results are in <code>failed/{html.escape(stage)}/</code>):</p>"
+            f"<pre>{html.escape(reason)}</pre></div>")
 
 
 def render_section(cfg, root: Path, out: Path) -> str:
