@@ -88,8 +88,7 @@ def record_failure(cfg, stage: str, out_root, error: BaseException) -> Path | No
     from models.io import atomic_path
 
     folder = failure_dir(cfg, stage, out_root)
-    reason = "interrupted" if isinstance(error, KeyboardInterrupt) else f"{type(error).__name__}: {error}"
-    files = {"reason.txt": reason.strip() + "\n", **getattr(error, "partial", {})}
+    files = {"reason.txt": str(error).strip() + "\n", **getattr(error, "partial", {})}
     try:
         for name, text in files.items():
             with atomic_path(folder / name, journaled=False) as tmp:

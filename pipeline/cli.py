@@ -240,7 +240,7 @@ def _run_stage(stage, args, cfg) -> float:
         # all or nothing (the sweep keeps each member as it finishes, as a bake keeps its checkpoint)
         with contextlib.nullcontext() if stage == "sweep" else journal(config_dir(cfg, args.artifacts)):
             _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
-    except BaseException as e:
+    except StageFailed as e:  # a stage that ran to its end and found something wrong: its diagnosis is kept
         record_failure(cfg, stage, args.artifacts, e)
         raise
     seconds = time.perf_counter() - t0

@@ -486,6 +486,6 @@ def test_readme_cloth_example_runs_as_written(tmp_path, monkeypatch):
     (tmp_path / "data").symlink_to(ROOT / "data")
     monkeypatch.chdir(tmp_path)
     exec(compile(code, "README.md", "exec"), {})
-    lines = (tmp_path / "plies.txt").read_text().split("\n\n")
+    lines = (tmp_path / "artifacts" / "plies.txt").read_text().split("\n\n")
     assert len(lines) == 210  # 70 loops x 3 plies, a blank line between curves
     assert len(lines[0].splitlines()[0].split()) == 4

@@ -109,9 +109,10 @@ def test_readme_render_example_runs_as_written(trained, tmp_path, monkeypatch):
     assert img.shape == (160, 320, 3) and np.all(np.isfinite(img))
     import time
     for _ in range(100):  # mi.util.write_bitmap writes in a thread of its own
-        if (tmp_path / "my_ply.png").exists() and (tmp_path / "my_ply.png").stat().st_size > 1000:
+        if (tmp_path / "artifacts" / "my_ply.png").exists() and \
+                (tmp_path / "artifacts" / "my_ply.png").stat().st_size > 1000:
             break
         time.sleep(0.1)
-    assert (tmp_path / "my_ply.png").stat().st_size > 1000
+    assert (tmp_path / "artifacts" / "my_ply.png").stat().st_size > 1000
     ply, sky = img[70:90, 100:220].mean(), img[:20].mean()
     assert abs(ply / sky - 1) > 0.5, (ply, sky)
