@@ -73,12 +73,19 @@ class CurveBSDF(mi.BSDF):
 
     def traverse(self, callback):
         """``mi.traverse`` exposes ``twist``, ``twist_rate`` (degrees, per scene unit of
-        length), ``up`` and ``radius``; the kernels are traced anew after a change."""
+        length), ``up`` and ``radius``; the kernels are traced anew after a change. The
+        radius is read-only: the ply's radius is the shape's, so an edit is refused."""
         for name, value in self.params.items():
             callback.put(name, value, mi.ParamFlags.NonDifferentiable)
 
     def parameters_changed(self, keys):
+        loaded = self.radius
         self._read_params()
+        if any(k.split(".")[-1] == "radius" for k in keys) and self.radius != loaded:
+            self.params["radius"] = mi.Float(loaded)
+            self.radius = loaded
+            raise ValueError(f"{self.plugin}: 'radius' cannot change after loading: the ply's radius is its "
+                             "shape's (a cylinder's 'radius', a curve's control points); edit the shape instead")
 
     def _spectrum(self, S, si):
         """Table spectrum (list over lambda) -> this variant's unpolarized Spectrum."""
@@ -175,7 +182,8 @@ class FiberBundleBSDF(CurveBSDF):
        * - radius
          - Optional: the bundle radius in scene units. ``bundle_path`` reads it from
            the shape (``|dp/du| = 2 pi r`` per hit on ``cylinder`` and
-           ``bsplinecurve``) and warns once if this one disagrees. Must be >= 0.
+           ``bsplinecurve``) and warns once if this one disagrees. Must be >= 0;
+           read-only in ``mi.traverse`` (edit the shape's radius instead).
        * - sampling_uniform
          - Fraction of direction samples drawn uniformly on the sphere, in [0, 1]
            (default 0.1).

@@ -603,6 +603,10 @@ def test_traverse_exposes_what_a_user_edits(mi_plug, tables):
     params["c.bsdf.radius"] = -1.0
     with pytest.raises(ValueError, match="radius"):
         params.update()
+    params = mi.traverse(scene)
+    params["c.bsdf.radius"] = 0.5  # the shape's radius rules: an edit would be silently ignored, so it is refused
+    with pytest.raises(ValueError, match="edit the shape"):
+        params.update()
 
 
 @pytest.mark.parametrize("bad,message", [({"twist_rate": float("nan")}, "'twist_rate' must be finite"),
