@@ -735,6 +735,11 @@ def main(argv=None) -> int:
 
     from models.io import write_text
 
+    from ..config import load_config
+    from ..graph import require
+
+    require(load_config(args.config), ("bake", "train", "export"), args.artifacts,
+            f".venv/bin/bcsdf run {args.config} (make cloth)")
     out = DOCS / "cloth.json"
     result = json.loads(out.read_text()) if out.exists() else {}
     result["config"] = str(args.config)

@@ -94,6 +94,9 @@ def main(argv=None):
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
     cfg = load_config(args.config, args.overrides)
+    from ..graph import require
+    require(cfg, ("bake", "train", "export"), args.artifacts,
+            " ".join([".venv/bin/bcsdf run", str(args.config), *(f"--set '{o}'" for o in args.overrides)]))
     if args.forms:
         forms(cfg, args.artifacts, args.queries)
     else:

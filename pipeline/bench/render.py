@@ -62,6 +62,9 @@ def main(argv=None) -> int:
                     help="change a config key, as `bcsdf run --set` (make run-sizes: the three model sizes)")
     args = p.parse_args(argv)
     cfg = load_config(args.config, args.overrides)
+    from ..graph import require
+    require(cfg, ("bake", "train", "export"), args.artifacts,
+            " ".join([".venv/bin/bcsdf run", str(args.config), *(f"--set '{o}'" for o in args.overrides)]))
     result = measure(cfg, args.artifacts, args.spp)
     print(f"{result['variant']}, {result['size'][0]}x{result['size'][1]}, {result['spp']} spp (warm kernels)")
     print(f"{'scene':6} {'method':8} {'backend':8} {'seconds':>8} {'x table':>8} {'FLIP':>7} {'PSNR':>6} {'bytes':>10}")
