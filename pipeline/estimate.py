@@ -181,7 +181,23 @@ def plan(cfg, stages, root="artifacts") -> str:
         _PLANNED[stage] = seconds
         total += seconds
         lines.append(f"  {stage:<9} ~{describe(seconds):>7}   (rate from {source})")
-    return "\n".join([f"[run] estimate for {cfg.name}: ~{describe(total)} in all (rough: a third either way)"] + lines)
+    head = f"[run] estimate for {cfg.name}: ~{describe(total)} in all (rough: a third either way)"
+    if "train" in stages:
+        head += "\n" + kernels_note()
+    return "\n".join([head] + lines)
+
+
+def kernels_note() -> str:
+    """Which CPU kernels torch chose (``ATEN_CPU_CAPABILITY`` overrides), and what that means
+    for training: the rates above were measured with vector kernels."""
+    import torch
+
+    capability = torch.backends.cpu.get_cpu_capability()
+    if capability.upper() in ("DEFAULT", "NO AVX"):
+        return (f"  torch runs its scalar kernels ({capability}: no AVX2 here, or ATEN_CPU_CAPABILITY=default): "
+                "training runs slower than this estimate (its rates come from vector kernels); the results are "
+                "checked against the same derived bounds")
+    return f"  torch's CPU kernels: {capability}"
 
 
 
