@@ -78,11 +78,6 @@ class Bounded:
         """The exact result of an operation on the operands, then one rounding."""
         return Bounded(value, err + self.u * (np.abs(value) + err), self.u)
 
-    @property
-    def magnitude(self):
-        """Largest |computed value| consistent with the bound."""
-        return np.abs(self.value) + self.err
-
     def __add__(self, other):
         o = self._lift(other)
         return self._rounded(self.value + o.value, self.err + o.err)
@@ -168,23 +163,13 @@ def maximum(x: Bounded, c: float) -> Bounded:
     return Bounded(np.maximum(x.value, c), x.err, x.u)
 
 
-def linear(x: Bounded, W, b) -> Bounded:
-    """``x W^T + b`` for ``x [n, k]``: the operand's error through |W|, plus Higham's
-    dot-product bound gamma_{k+1} (|W| |x| + |b|) for the rounding of this layer."""
-    W, b = np.asarray(W, np.float64), np.asarray(b, np.float64)
-    aW = np.abs(W)
-    value = x.value @ W.T + b
-    err = x.err @ aW.T + gamma(W.shape[1] + 1, x.u) * (x.magnitude @ aW.T + np.abs(b))
-    return Bounded(value, err, x.u)
-
-
 def relu_mlp(x: Bounded, layers) -> Bounded:
     """A ReLU network ``[(W, b), ...]`` (ReLU between layers, none after the last) on
     ``x [n, k]``, with an error bound propagated through the network's own Jacobian.
 
-    :func:`linear` layer after layer carries errors through ``|W|``, which ignores that
-    the network's weights cancel and so grows like the product of the layers' absolute
-    row sums: correct, but often 1000x the actual error. Here each error source (the
+    Carrying errors layer after layer through ``|W|`` ignores that the network's weights
+    cancel, and so grows like the product of the layers' absolute row sums: correct, but
+    often 1000x the actual error. Here each error source (the
     inputs' error, and every layer's own rounding ``gamma_{n+1} (|W| |x| + |b|)``) is
     carried to the output by the Jacobian of the rest of the network at the exact
     activations, as midpoint-radius intervals: a ReLU whose input lies within the crude

@@ -200,7 +200,6 @@ def kernels_note() -> str:
     return f"  torch's CPU kernels: {capability}"
 
 
-
 def against_measured(cfg, measured: dict) -> str:
     """The estimate :func:`plan` printed beside the seconds each stage took, for ``bcsdf run``
     to print last: how far to trust the next estimate on this machine."""

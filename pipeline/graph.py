@@ -178,15 +178,10 @@ def record_dvc_lock(stages, cfg) -> str:
     return f"dvc.lock: recorded {len(targets)} stages ({', '.join(targets)})"
 
 
-def missing_stages(cfg, stages, root="artifacts") -> list:
-    """Which of ``stages`` have never finished for this config (no stamp): what a bench that
-    reads their artifacts must have run first."""
-    return [s for s in stages if not stamp_path(s, cfg, root).exists()]
-
-
 def require(cfg, stages, root, command: str) -> None:
-    """Refuse, naming ``command`` (what builds them), when ``stages`` have not run."""
-    missing = missing_stages(cfg, stages, root)
+    """Refuse, naming ``command`` (what builds them), when ``stages`` have never finished for
+    this config (no stamp): what a bench that reads their artifacts must have run first."""
+    missing = [s for s in stages if not stamp_path(s, cfg, root).exists()]
     if missing:
         raise SystemExit(f"error: this benchmark reads the {', '.join(missing)} artifacts of "
                          f"{cfg.name!r} under {root}/, which do not exist yet; run `{command}` first")

@@ -23,7 +23,7 @@ from models.io import atomic_path, write_text
 from models.jit import to_drjit
 
 from ..plots import save_figure, spectral_image, theta_rows
-from ..artifacts import config_dir, stage_dir
+from ..artifacts import config_dir, failure_dir, read_failure, stage_dir
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
 
@@ -123,7 +123,7 @@ def run(cfg, out_root="artifacts") -> Path:
     sections.append(("Renders and FLIP maps", render_section(cfg, root, out)))
     if cfg.cloth is not None:
         sections.append(("Cloth", cloth_section(root, out)))
-    sections.append(("Numerical stability", stability_section(root)))
+    sections.append(("Numerical stability", stability_section(root, failure_dir(cfg, "stability", out_root))))
     if cfg.sweep:
         sections.append(("Family (sweep)", sweep_section(cfg, root)))
 
@@ -134,7 +134,7 @@ def run(cfg, out_root="artifacts") -> Path:
                      f"<p>code {code_version()}, config hash {cfg.hash()}</p><table>{versions}</table>"
                      f"<pre>{html.escape(yaml.safe_dump(cfg.model_dump(mode='json'), sort_keys=False))}</pre>"))
 
-    sections = [(title, "".join(failure_note(root, st) for st in SECTION_STAGES.get(title, ())) + body)
+    sections = [(title, "".join(failure_note(cfg, st, out_root) for st in SECTION_STAGES.get(title, ())) + body)
                 for title, body in sections]
     sections.insert(0, ("Summary", summary_section(cfg, root, out_root)))
     page = html_page(cfg.name, sections)
@@ -313,9 +313,9 @@ def exit_section(exit_model: str, out: Path) -> str:
                    "smooth limit as the proxy.</p>")
 
 
-def stability_section(root: Path) -> str:
+def stability_section(root: Path, failed: Path) -> str:
     path = root / "stability" / "stability.json"
-    partial = root / "failed" / "stability" / "stability.json"
+    partial = failed / "stability.json"
     if partial.exists():  # the last run failed: its table is the diagnosis
         path = partial
     if not path.exists():
@@ -340,11 +340,10 @@ SECTION_STAGES = {"Single-fiber model": ("fiber",), "Bundle and baked table": ("
                   "Cloth": ("cloth",), "Numerical stability": ("stability",), "Family (sweep)": ("sweep",)}
 
 
-def failure_note(root: Path, stage: str) -> str:
+def failure_note(cfg, stage: str, out_root) -> str:
     """A paragraph saying that ``stage``'s last run failed and why ('' if it did not)."""
-    try:
-        reason = (root / "failed" / stage / "reason.txt").read_text().strip()
-    except OSError:
+    reason = read_failure(cfg, stage, out_root)
+    if reason is None:
         return ""
     return (f"<div class=missing><p><b>{html.escape(stage)} failed</b> (its last good outputs, if any, are shown; "
             f"its partial results are in <code>failed/{html.escape(stage)}/</code>):</p>"

@@ -421,7 +421,6 @@ def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
     spec = NeuralSpec.from_dict(ckpt["spec"])
     mlp = make_torch_model(spec)
     mlp.load_state_dict(ckpt["state"])
-    layers = [(m.weight.detach().numpy(), m.bias.detach().numpy()) for m in mlp if isinstance(m, torch.nn.Linear)]
     module = make_export_module(spec, mlp).eval()
     with torch.no_grad():
         f32 = module(torch.from_numpy(q)).numpy().astype(np.float64)
@@ -434,9 +433,10 @@ def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
     checks = []
     for name, v in (("pytorch", f32), ("onnxruntime", onnx), ("Dr.Jit", jit)):
         checks += all_finite_nonneg(c, f"S ({name})", [v])
-    # each evaluation against the exact value of the same model: the bounds of models.rounding
-    _, b32 = rounding_bound(spec, layers, q)
-    _, b64 = rounding_bound(spec, layers, q, u=U64)
+    # each evaluation against the exact value of the same model (the exported weights, the
+    # checkpoint's float32 values): the bounds of models.rounding
+    _, b32 = rounding_bound(spec, dj.layers, q)
+    _, b64 = rounding_bound(spec, dj.layers, q, u=U64)
     how = ("Higham gamma_(n+1) (|W||x| + |b|) of every layer carried to the output by the network's Jacobian, "
            "elementary functions within 2 ulp, per query and wavelength (models/rounding.py)")
     checks.append(within_bound("neural: float32 against float64", "|f32 - f64| (PyTorch)", np.abs(f32 - f64),
