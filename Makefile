@@ -7,7 +7,7 @@ SIZES = --set name=default_sizes --set 'train.models={small: [32, 32], medium: [
         --set train.epochs=500 --set render.model=small
 
 
-.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-render bench-closure bench-cluster bench-exit bench-twisted bench-highlight bench-cloth cloth stability clean
+.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-render bench-closure bench-cluster bench-exit bench-hair bench-twisted bench-highlight bench-cloth cloth stability clean
 setup:
 	./scripts/setup.sh
 
@@ -47,6 +47,9 @@ bench-closure: run
 
 bench-exit: setup
 	.venv/bin/python -m pipeline.bench.exit
+
+bench-hair: setup
+	.venv/bin/python -m pipeline.bench.hair
 
 bench-highlight: run
 	.venv/bin/python -m pipeline.bench.highlight $(CONFIG)

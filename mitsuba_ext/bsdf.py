@@ -494,6 +494,11 @@ class FiberRayBSDF(CurveBSDF):
         if table.meta.get("model") != "ray":
             raise ValueError(f"fiber_ray: {props['filename']} holds a {table.meta.get('model')!r} fiber; "
                              "fiber_ray needs a ray fiber (use fiber_table for other models)")
+        if table.meta.get("transport", "light") != "light":
+            raise ValueError(f"fiber_ray: {props['filename']} holds a ray fiber of {table.meta['transport']} "
+                             "transport, the adjoint that Mitsuba's hair renders; fiber_ray resolves the model in "
+                             "light transport. Render Mitsuba's hair on curves (models.fiber.ray.mitsuba_hair) or "
+                             "this table with fiber_table (docs/DESIGN.md)")
         self.lobes = LobeSampler(table.meta, table.wavelength, mi.Float)
         self.n_paths = self.lobes.p_max + 1
         self._init_curve(props, table.wavelength)

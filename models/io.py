@@ -91,12 +91,12 @@ def atomic_path(path, journaled: bool = True):
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        if _JOURNAL and journaled:  # recorded before anything is written, its temporary included
+            _JOURNAL[-1].keep(path)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         os.close(fd)
         yield tmp
         os.chmod(tmp, _FILE_MODE)  # mkstemp's 0600 would make the artifact private
-        if _JOURNAL and journaled:
-            _JOURNAL[-1].keep(path)
         os.replace(tmp, path)
     except OSError as e:
         if e.errno in WRITE_ERRORS:  # name the artifact, not its temporary (a full disk, a read-only one)
@@ -124,50 +124,187 @@ def clear_torn(path) -> None:
         torn.unlink(missing_ok=True)
 
 
+class JournalError(ValueError):
+    """A stage's undo could not finish; its journal is kept, and the next command on the
+    config finishes it."""
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a folder's new entries (a rename, a link) survive a power cut."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+# a hard link cannot be made here (another filesystem, a filesystem without links): copy
+_NO_LINK = (errno.EXDEV, errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK)
+
+
 class _Journal:
-    """What a stage replaced or created: ``undo/`` holds the earlier files (hard links),
-    ``created`` lists the new ones, both on disk so that a killed stage can be undone."""
+    """What a stage replaced or created, on disk, so that a failed or killed stage can be
+    undone; the most careful code in the project, because everything else trusts it.
+
+    * **A record before the change.** Each file the stage will replace or create gets a
+      record (``NNNNNN.json``: what, where, its backup), written whole (a temporary,
+      synced, renamed) and synced before the file is touched: a record is complete or
+      absent, and a change without a record cannot happen.
+    * **Recorded before written.** :func:`atomic_path` records its file before it makes
+      the temporary it writes, so an undo also removes a temporary a kill left behind.
+    * **The earlier file beside itself.** A replaced file is kept as a hard link in its own
+      folder (``.name.NNNNNN.undo``): the same filesystem whatever is mounted where (a
+      copy where links cannot be made), so a stage folder on another disk is no obstacle.
+    * **Undo and commit can be interrupted and run again.** Undo renames each backup over
+      its file (a record whose backup is gone is done, or never began) and removes what
+      was created; commit first writes a ``committed`` mark, then removes the backups.
+      Whatever kills either, the next command finishes it; the journal folder goes last.
+      Ctrl-C is held back while either runs (it takes a moment), then delivered.
+    """
 
     def __init__(self, folder: Path):
         self.folder = folder
-        self.undo = folder / "undo"
-        self.created = folder / "created"
         self.seen: set = set()
+        self.n = 0
 
+    # -- records ---------------------------------------------------------------------
+    def _record(self, **entry) -> None:
+        import json
+
+        self.n += 1
+        rec = self.folder / f"{self.n:06d}.json"
+        tmp = self.folder / f".{self.n:06d}.json.tmp"
+        with open(tmp, "w") as fh:
+            fh.write(json.dumps(entry))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, rec)
+        _fsync_folder(self.folder)
+
+    def _records(self) -> list:
+        import json
+
+        out = []
+        for rec in sorted(self.folder.glob("[0-9]*.json")):
+            try:
+                entry = json.loads(rec.read_text())
+                if entry.get("kind") not in ("kept", "created") or not entry.get("target") or \
+                        (entry["kind"] == "kept" and not entry.get("backup")):
+                    raise ValueError("incomplete")
+            except (OSError, ValueError) as e:
+                raise JournalError(f"the stage journal record {rec} is unreadable ({e}); it was written whole, so "
+                                   f"something else changed it: look at the files it names, then remove "
+                                   f"{self.folder}") from None
+            out.append(entry)
+        return out
+
+    # -- while the stage runs ------------------------------------------------------------
     def keep(self, path: Path) -> None:
+        """Record ``path`` (and keep its earlier content) before the stage replaces it."""
         key = str(path.resolve())
         if key in self.seen:
             return
         self.seen.add(key)
-        if path.exists() and not path.is_symlink():
-            n = len(self.seen)
-            self.undo.mkdir(parents=True, exist_ok=True)
-            os.link(path, self.undo / f"{n:06d}")
-            with open(self.undo / f"{n:06d}.path", "w") as fh:
-                fh.write(key)
-        else:
-            with open(self.created, "a") as fh:
-                fh.write(key + "\n")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        if not (path.exists() and not path.is_symlink()):
+            self._record(kind="created", target=key)
+            return
+        backup = path.parent / f".{path.name}.{self.n + 1:06d}.undo"
+        self._record(kind="kept", target=key, backup=str(backup.resolve()))
+        backup.unlink(missing_ok=True)   # a stale one of an earlier journal that never got this far
+        try:
+            os.link(path, backup)
+        except OSError as e:
+            if e.errno not in _NO_LINK:
+                raise
+            tmp = backup.with_name(backup.name + ".tmp")
+            shutil.copy2(path, tmp)
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, backup)
+        _fsync_folder(path.parent)
 
+    # -- the end: undo or commit -----------------------------------------------------------
     def roll_back(self) -> None:
-        if self.created.exists():
-            for line in self.created.read_text().splitlines():
-                Path(line).unlink(missing_ok=True)
-        if self.undo.exists():
-            for rec in sorted(self.undo.glob("*.path")):
-                os.replace(rec.with_suffix(""), rec.read_text())
-        self.clear()
+        """Undo the stage (or, if it committed, finish the commit); idempotent."""
+        if not self.folder.exists():
+            return
+        with _signals_held():
+            try:
+                if (self.folder / "committed").exists():
+                    self._drop_backups()
+                    self._clear()
+                    return
+                else:
+                    for entry in self._records():
+                        target = Path(entry["target"])
+                        clear_torn(target)   # a temporary the killed stage was writing
+                        if entry["kind"] == "created":
+                            target.unlink(missing_ok=True)
+                        elif os.path.lexists(entry["backup"]):
+                            if target.exists() and os.path.samefile(entry["backup"], target):
+                                os.unlink(entry["backup"])   # never replaced (rename would keep both links)
+                            else:
+                                os.replace(entry["backup"], target)
+                            _fsync_folder(target.parent)
+                shutil.rmtree(self.folder)
+            except OSError as e:
+                raise JournalError(f"could not undo the unfinished stage ({e}); its journal {self.folder} keeps "
+                                   "what is needed: fix the cause and run any bcsdf command on this config again "
+                                   "to finish the undo") from None
 
-    def clear(self) -> None:
-        shutil.rmtree(self.folder, ignore_errors=True)
+    def commit(self) -> None:
+        """Keep the stage's files: mark the journal committed, then drop the backups."""
+        with _signals_held():
+            try:
+                mark = self.folder / "committed"
+                with open(mark, "w") as fh:
+                    os.fsync(fh.fileno())
+                _fsync_folder(self.folder)
+                self._drop_backups()
+                self._clear()
+            except OSError as e:
+                raise JournalError(f"the stage finished but its journal could not be closed ({e}); fix the "
+                                   f"cause and run any bcsdf command on this config again") from None
+
+    def _clear(self) -> None:
+        """Remove the journal: the records first, the ``committed`` mark last (a kill
+        between them must not turn a commit into an undo)."""
+        for rec in self.folder.iterdir():
+            if rec.name != "committed":
+                rec.unlink()
+        shutil.rmtree(self.folder)
+
+    def _drop_backups(self) -> None:
+        for entry in self._records():
+            if entry["kind"] == "kept":
+                Path(entry["backup"]).unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Hold back SIGINT and SIGTERM while the body runs (they arrive after it): an undo or a
+    commit takes a moment and is safer finished than interrupted. Main thread only."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 @contextlib.contextmanager
 def journal(folder):
     """Run a stage all or nothing: the files it writes under ``folder`` (``.journal`` there)
     are committed together when the body returns; if it raises, every file it replaced is
-    restored and every file it created removed. A journal left by a killed process is
-    rolled back first."""
+    restored and every file it created removed. A journal left by a killed process (or an
+    interrupted undo or commit) is finished first."""
     j = _Journal(Path(folder) / ".journal")
     j.roll_back()  # a stage killed mid-way left this: undo it before anything else
     j.folder.mkdir(parents=True, exist_ok=True)
@@ -180,7 +317,7 @@ def journal(folder):
         raise
     else:
         _JOURNAL.remove(j)
-        j.clear()
+        j.commit()
 
 
 def write_text(path, text: str) -> None:

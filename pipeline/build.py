@@ -85,9 +85,12 @@ def exit_model(name: str, fiber: FiberTable, estimator: str = "fast") -> str:
     """The exit model a bake uses: ``auto`` is the one that agrees with exact geometry where
     the fiber knows its paths (``lobe`` for ray fibers with the fast estimator, parallel or
     twisted), else ``uniform`` (measured on the ray model's smooth limit: docs/BENCHMARKS.md,
-    "Exit models")."""
+    "Exit models"); a ray fiber of camera transport (what Mitsuba renders of its ``hair``)
+    leaves as from Mitsuba's curves (``curve``)."""
     if name == "auto":
-        return "lobe" if fiber.meta.get("model") == "ray" and estimator == "fast" else "uniform"
+        if fiber.meta.get("model") != "ray" or estimator != "fast":
+            return "uniform"
+        return "curve" if fiber.meta.get("transport") == "camera" else "lobe"
     return name  # an impossible choice is refused by the config (and by BakeSpec and the ray sampler)
 
 

@@ -27,7 +27,8 @@ import os
 import sys
 import time
 from pathlib import Path
-from .artifacts import StageFailed, clear_failure, config_dir, failure_dir, record_failure
+from .artifacts import (StageFailed, check_claim, clear_failure, config_dir, failure_dir, record_claim,
+                        record_failure)
 
 EPILOG = """\
 The config's keys are documented in configs/default.yaml and pipeline/config.py.
@@ -60,8 +61,9 @@ def main(argv=None) -> int:
                        help="override a config key for this run (repeatable), e.g. "
                             "--set bake.paths_per_phi_i=20000 --set 'train.models={s: [16]}'")
         p.add_argument("--artifacts", default=argparse.SUPPRESS, help="output root (default: artifacts/)")
-        if name == "run":
-            p.add_argument("--force", action="store_true", help="rerun stages that are up to date")
+        p.add_argument("--force", action="store_true",
+                       help=("rerun stages that are up to date; " if name == "run" else "")
+                       + "take over the artifacts folder of another config file of the same name")
         if name in ("bake", "sweep", "run"):
             p.add_argument("--workers", type=int, default=None, metavar="N",
                            help="bake on a local Dask cluster of N single-threaded worker processes")
@@ -93,6 +95,7 @@ def main(argv=None) -> int:
             cfg = load_config(args.config, args.overrides)
             check_variants(cfg)  # a cuda_* variant on a machine without a GPU: before any work
             from models.io import confined, exclusive, writable_folder
+
             hold.enter_context(confined(args.artifacts))  # no write leaves the artifacts root
             folder = writable_folder(config_dir(cfg, args.artifacts))  # before any long work, not after it
             hold.enter_context(exclusive(folder, f"bcsdf {args.command} {args.config}"))  # one writer per config
@@ -191,6 +194,7 @@ def _run(args, cfg) -> None:
     from . import estimate, graph
 
     stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
+    check_claim(cfg, args.config, stages, args.artifacts, args.force)  # one config file per folder
     timings = {}
     if args.command == "run":
         todo = [s for s in stages if args.force or not graph.up_to_date(s, cfg, args.artifacts)[0]]
@@ -207,6 +211,7 @@ def _run(args, cfg) -> None:
                     continue
                 print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
             timings[stage] = _run_stage(stage, args, cfg)
+            record_claim(cfg, args.config, args.artifacts)
             finished.append(stage)
     except KeyboardInterrupt:
         interrupted = True

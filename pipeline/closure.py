@@ -76,21 +76,23 @@ def cylinder(R, bsdf: dict, center_xz=(0.0, 0.0), half_length=1.0) -> dict:
 
 
 def scene(mi, shapes: dict, w_i, w_o, half_size, *, irradiance=1.0, resolution=64, spp=16, seed=0,
-          max_depth=64, background=None) -> dict:
+          max_depth=64, background=None, integrator: str = "bundle_path") -> dict:
     """The closure scene: ``shapes`` lit from ``w_i``, seen along ``w_o`` (orthographic).
 
     The film is square, ``2 half_size`` wide, centred on the origin, with the projected
     fiber axis running up the film (so ``w_o`` must not be parallel to the axis).
     The cylinders' length must exceed the visible length (``half_length`` of
     :func:`cylinder`). ``background``: radiance of an optional emitting plane far
-    behind the bundle (the passthrough test); no environment otherwise.
+    behind the bundle (the passthrough test); no environment otherwise. ``integrator``:
+    ``bundle_path`` (the project's, which every fiber BSDF needs) or Mitsuba's own ``path``
+    (for Mitsuba's own BSDFs, e.g. ``hair`` on curves).
     """
     w_i, w_o = np.asarray(w_i, float), np.asarray(w_o, float)
     up, distance, to_world = _camera(mi, w_o, half_size)
     T = mi.ScalarTransform4f
     sc = {
         "type": "scene",
-        "integrator": {"type": "bundle_path", "max_depth": max_depth},
+        "integrator": {"type": integrator, "max_depth": max_depth},
         "sensor": {"type": "orthographic", "to_world": to_world, "near_clip": 1e-3 * half_size,
                    "far_clip": 1e4 * half_size,
                    "film": {"type": "hdrfilm", "width": resolution, "height": resolution,
@@ -159,10 +161,22 @@ def rendered_intensity(mi, scene, w_o, half_size) -> float:
 
 def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float | None) -> dict:
     """The BSDF of one explicit fiber that leaves as a bake with ``exit_model`` does:
-    ``fiber_ray`` (each path from its own exit) for the h-resolved ``lobe`` exit,
-    ``fiber_table`` (the displaced exit of ``bundle_path``, h uniform) otherwise. The
-    ``entry`` exit has no explicit counterpart yet; it is compared with ``fiber_table``.
-    ``wavelength_nm``: what a mono variant renders; ``None`` for a spectral variant."""
+    ``fiber_ray`` (each path from its own exit) for the h-resolved ``lobe`` exit, Mitsuba's
+    own ``hair`` for the ``curve`` exit of a ray fiber of camera transport (what ``hair`` on
+    curves renders; one wavelength), ``fiber_table`` (the displaced exit of ``bundle_path``,
+    h uniform) otherwise. The ``entry`` exit has no explicit counterpart yet; it is compared
+    with ``fiber_table``. ``wavelength_nm``: what a mono variant renders; ``None`` for a
+    spectral variant."""
+    if exit_model == "curve":
+        from models.fiber.base import FiberTable
+        from models.fiber.ray import mitsuba_hair
+
+        table = FiberTable.load(fiber_table)
+        if table.meta.get("model") == "ray" and table.meta.get("transport") == "camera":
+            if wavelength_nm is None:
+                raise ValueError("explicit_fiber: Mitsuba's hair takes one index of refraction; render the "
+                                 "explicit hair fibers in a mono variant at one wavelength")
+            return mitsuba_hair(table.meta, table.wavelength, float(wavelength_nm))
     plugin = "fiber_ray" if exit_model == "lobe" else "fiber_table"
     bsdf = {"type": plugin, "filename": str(fiber_table), "up": UP}
     return bsdf if wavelength_nm is None else {**bsdf, "wavelength": float(wavelength_nm)}
@@ -266,6 +280,19 @@ def helix_control_points(ply, half_length: float, unit: float = 1e-3, per_turn: 
             for k, r in enumerate(np.asarray(ply.bundle.radii, float))]
 
 
+def straight_control_points(bundle, half_length: float, unit: float = 1e-3, segments: int = 16) -> list:
+    """The fibers of a parallel :class:`~models.bundle.Bundle` as straight uniform cubic
+    B-splines (``bsplinecurve``) along ``+y`` from ``-half_length`` to ``+half_length``
+    (scene units), control points ``x y z r`` per fiber: evenly spaced collinear control
+    points make a straight line traversed at constant speed, the curve running from the
+    second control point to the last but one. ``segments``: how many spline segments (one
+    long segment would cost the curve intersector precision)."""
+    L = half_length
+    y = -L + 2 * L / segments * np.arange(-1, segments + 2)
+    return [np.stack([np.full_like(y, x * unit), y, np.full_like(y, z * unit), np.full_like(y, r * unit)], -1)
+            for (x, z), r in zip(np.asarray(bundle.centers, float), np.asarray(bundle.radii, float))]
+
+
 def write_curves(curves, path) -> None:
     """A scratch curve file that a render reads (not an artifact: written in place) in
     Mitsuba's format (``models.cloth.curves.write_mitsuba_curves``), at float32's precision."""
@@ -311,7 +338,7 @@ def view_placements(ply, n_views: int, unit: float, turns: bool = True) -> list[
 
 
 def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, resolution: int = 48,
-                       unit: float = 1e-3, turns: bool = True):
+                       unit: float = 1e-3, turns: bool = True, **options):
     """Intensity per unit length of the explicit fibers lit from ``w_i``, averaged over
     ``len(views)`` evenly spaced turns of the arrangement, turn ``k`` seen along
     ``views[k]`` (one direction, or directions spread over a table bin: the average is
@@ -319,16 +346,20 @@ def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, 
     ``turns=False`` keeps the arrangement as it is (an ellipse's bake is not rotated).
     ``bundle``: a :class:`~models.bundle.Bundle` (parallel cylinders) or a
     :class:`~models.bundle.TwistedBundle` (every fiber a ``bsplinecurve`` along its helix,
-    over many periods: :func:`helix_control_points`).
+    over many periods: :func:`helix_control_points`). ``options`` (keywords): ``curves``
+    (parallel fibers as straight ``bsplinecurve``s, not cylinders: a BSDF that, as Mitsuba's
+    ``hair``, counts on curves being invisible from inside) and ``integrator``
+    (:func:`scene`'s).
 
     Returns the mean and an error estimate: half the difference of the even and the odd
     turns' means, which holds the render noise and the rule's.
     """
-    return explicit_intensities(mi, bundle, fiber_bsdf, [(w_i, views)], spp, resolution, unit, turns)[0]
+    return explicit_intensities(mi, bundle, fiber_bsdf, [(w_i, views)], spp, resolution, unit, turns, **options)[0]
 
 
 def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, resolution: int = 48,
-                         unit: float = 1e-3, turns: bool = True) -> list:
+                         unit: float = 1e-3, turns: bool = True, curves: bool = False,
+                         integrator: str = "bundle_path") -> list:
     """:func:`explicit_intensity` for many ``(w_i, views)`` at once (every ``views`` as
     long): each turn of the arrangement is loaded once, and the sun and the camera are
     moved between requests (``mi.traverse``), as a fresh scene would place them; the
@@ -340,6 +371,8 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
 
     twisted = isinstance(bundle, TwistedBundle)
     section = bundle.bundle if twisted else bundle
+    if fiber_bsdf.get("type") == "hair":  # Mitsuba's hair counts on curves, invisible from inside
+        curves, integrator = True, "path"
     hs = 1.2 * section.bounding_radius * unit
     half_length = fiber_half_length(hs, [np.arcsin(np.clip(w_o[1], -1, 1)) for _, views in requests for w_o in views])
     n_views = len(requests[0][1])
@@ -353,11 +386,13 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
         if twisted:  # long enough for every shift: the view stays 40 hs from either end
             reach = max(shift for _, shift in placements)
             write_curves(helix_control_points(bundle, half_length + reach, unit), curve_file)
+        elif curves:
+            write_curves(straight_control_points(bundle, half_length, unit), curve_file)
         # one scene for every view, its fibers moved (TurnedFibers), the sun and camera too
-        shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, 0.0) if twisted
+        shapes = (explicit_twisted_shapes(curve_file, fiber_bsdf, 0.0) if twisted or curves
                   else explicit_shapes(bundle, fiber_bsdf, half_length, unit))
         loaded = mi.load_dict(scene(mi, shapes, requests[0][0], requests[0][1][0], hs, resolution=resolution,
-                                    spp=spp))
+                                    spp=spp, integrator=integrator))
         fibers = TurnedFibers(mi, loaded, AXIS)
         params = fibers.params
         for k, (turn, shift) in enumerate(placements):
@@ -495,11 +530,12 @@ def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, sp
 
 
 def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: float = 0.0, spp: int = 8,
-                  resolution: int = 32, unit: float = 1e-3) -> list:
+                  resolution: int = 32, unit: float = 1e-3, **options) -> list:
     """Explicit fibers against a bake, bin by bin: for each ``(theta_i index, phi bin,
     theta bin)`` of ``cases``, the explicit intensity over the bin (16 views; 16 turns
     for a circle) against ``E 2 R_b cos(theta_i) S_bin``, with 1-sigma errors of both.
-    Bins the bake found dark (below 1e-3 of the brightest bin of their row) are left out."""
+    Bins the bake found dark (below 1e-3 of the brightest bin of their row) are left out.
+    ``options``: :func:`explicit_intensities`' ``curves`` and ``integrator``."""
     rows = []
     a = int(np.argmin(np.abs(np.angle(np.exp(1j * (table.phi_i - phi_i))))))
     cases = [(j, k_phi, k_theta) for j, k_phi, k_theta in cases
@@ -510,7 +546,7 @@ def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: f
     measured = explicit_intensities(mi, bundle, fiber_bsdf,
                                     [(direction(phi_i, table.theta_i[j]), bin_views(table, phi_i, k_phi, k_theta))
                                      for j, k_phi, k_theta in cases],
-                                    spp=spp, resolution=resolution, unit=unit, turns=section.is_circle)
+                                    spp=spp, resolution=resolution, unit=unit, turns=section.is_circle, **options)
     for (j, k_phi, k_theta), (I, se) in zip(cases, measured):
         ti = table.theta_i[j]
         S, S_err = table.values[a, j, k_phi, k_theta, lam], table.stderr[a, j, k_phi, k_theta, lam]

@@ -110,6 +110,10 @@ class RayParams(Strict):
     n_h: int = Field(256, ge=8, le=8192)
     n_phi: int = Field(360, ge=36, le=65536)
     lobes: int = Field(3, ge=3, le=32, description="paths kept explicit before the residual (3: Chiang's R, TT, TRT)")
+    transport: Literal["light", "camera"] = Field(
+        "light", description="which side the model's incident quantities belong to: light (d'Eon/Chiang, conserves "
+                             "energy) or camera (what Mitsuba's path tracer renders of its hair BSDF; bake it with "
+                             "bake.exit: curve to compare with explicit hair fibers on curves; models/fiber/ray.py)")
 
 
 class TableParams(Strict):
@@ -301,9 +305,9 @@ class BakeCfg(Strict):
     cone_bin_deg: float = Field(2.0, gt=0.0, le=45.0, description="cone layout: the width of the bin on each cone")
     max_bounces: int = Field(1000, ge=1, le=1_000_000)
     rr_start: int = Field(8, ge=1)
-    exit: Literal["auto", "uniform", "entry", "lobe"] = Field(
-        "auto", description="where scattered light leaves a fiber (models/bake/baker.py); auto: lobe for ray fibers, "
-                            "else uniform")
+    exit: Literal["auto", "uniform", "entry", "lobe", "curve"] = Field(
+        "auto", description="where scattered light leaves a fiber (models/bake/baker.py); auto: lobe for ray fibers "
+                            "of light transport, curve for those of camera transport, else uniform")
     seed: int = Field(1, ge=0, le=2**32 - 1)
     variant: Literal[BAKE_VARIANTS] = "llvm_ad_mono"
     checkpoint_every_s: float = Field(20.0, gt=0.0)
@@ -637,7 +641,10 @@ class Config(Strict):
         if b.exit == "lobe" and self.fiber.model != "ray":
             raise ValueError(f"bake.exit: lobe needs fiber.model: ray (got {self.fiber.model!r}); use auto, "
                              "uniform or entry")
-        if b.exit in ("entry", "lobe") and b.estimator != "fast":
+        if b.exit == "lobe" and self.fiber.ray.transport == "camera":
+            raise ValueError("bake.exit: lobe resolves the paths of light transport; fiber.ray.transport: camera "
+                             "is tabulated h-averaged: use auto (curve), curve, uniform or entry")
+        if b.exit in ("entry", "lobe", "curve") and b.estimator != "fast":
             raise ValueError(f"bake.exit: {b.exit} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
         if self.bundle is not None and self.bundle.twist is not None and b.estimator != "fast":
             raise ValueError(f"bundle.twist: a twisted ply is baked with bake.estimator: fast (got {b.estimator!r})")

@@ -15,10 +15,11 @@ def mitsuba_hair_h_average(mi, eta, sigma_a, beta_m, beta_n, alpha, theta_i, the
     """
     import drjit as dr
 
-    bsdf = mi.load_dict({"type": "hair", "int_ior": eta, "ext_ior": 1.0,
-                         "sigma_a": {"type": "uniform", "value": sigma_a},
-                         "longitudinal_roughness": beta_m, "azimuthal_roughness": beta_n,
-                         "scale_tilt": alpha})
+    from models.fiber.ray import mitsuba_hair
+
+    # the mapping the closure against explicit hair fibers uses (docs/DESIGN.md)
+    meta = RayFiber([500.0, 600.0], eta, sigma_a, beta_m, beta_n, alpha).params
+    bsdf = mi.load_dict(mitsuba_hair({**meta, "eta": [eta] * 2, "sigma_a": [sigma_a] * 2}, [500.0, 600.0], 550.0))
     h, wh = h_quadrature(n_h)
     Q = len(theta_i)
     TI, TO, DP = (np.repeat(a, n_h) for a in (theta_i, theta_o, dphi))

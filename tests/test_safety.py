@@ -122,3 +122,24 @@ def test_a_checkpoint_does_not_resume_across_a_code_change(tmp_path, monkeypatch
     ta = BundleTable.load(tmp_path / "a" / "tiny" / "bake" / "bundle_table.npz")
     tb = BundleTable.load(tmp_path / "b" / "tiny" / "bake" / "bundle_table.npz")
     assert np.array_equal(ta.values, tb.values)  # nothing of the old code's batches in it
+
+
+def test_another_config_of_the_same_name_is_refused_until_forced(tmp_path, capsys):
+    """Two config files with one ``name:``: the second must not write over what the first
+    made (a bake can be hours); refused naming both files and ``--force``, which takes over."""
+    art = tmp_path / "art"
+    first = write_config(tmp_path)
+    (tmp_path / "other").mkdir()
+    second = tmp_path / "other" / "tiny.yaml"
+    second.write_text(yaml.safe_dump({**BASE, "fiber": {**BASE["fiber"], "radius_um": 4.0}}))
+    assert cli.main(["--artifacts", str(art), "fiber", str(first)]) == 0
+    before = snapshot(art / "tiny", skip=(".lock",))
+    capsys.readouterr()
+    assert cli.main(["--artifacts", str(art), "fiber", str(second)]) == 2
+    err = capsys.readouterr().err
+    assert "holds the artifacts of tiny.yaml" in err and str(second) in err and "--force" in err
+    assert "Traceback" not in err
+    assert snapshot(art / "tiny", skip=(".lock",)) == before
+    assert cli.main(["--artifacts", str(art), "fiber", str(first)]) == 0   # its own config runs on
+    assert cli.main(["--artifacts", str(art), "fiber", "--force", str(second)]) == 0
+    assert cli.main(["--artifacts", str(art), "fiber", str(second)]) == 0   # now its owner

@@ -39,6 +39,27 @@ from its own azimuth (stratified over the circle) and is binned at ``phi_o - phi
 so the table is the rotation average of the arrangement. A finite arrangement is not
 rotation invariant (four fibers: passthrough 0.25 to 0.37 with the azimuth), so a
 single azimuth would describe one orientation of the ply, not the ply.
+
+Exit models
+===========
+
+Where scattered light starts its next ray (``BakeSpec.exit``):
+
+``uniform``  anywhere on the outgoing side, ``h`` uniform (the thesis's);
+``entry``    where the light entered; a direction back into the fiber crosses it;
+``lobe``     where the sampled path (R, TT, TRT, ...) leaves, ``h``-resolved (ray fibers);
+``curve``    as Mitsuba's curves: a curve is invisible from inside, so a light ray lights
+             both ends of its chord through the fiber, and each end that faces the
+             outgoing direction sends light there, as the BSDF says at the offset of the
+             outgoing side's ray through it. The end is chosen in proportion to
+             ``a_k = max(0, n_k . d_out)`` and the value is ``w`` times the BSDF there,
+             ``w = sum_k a_k / sqrt(1 - h^2)`` (mean 1 over the offset ``h``): for a ray
+             fiber of camera transport the adjoint at that offset
+             (``LobeSampler.adjoint``: what Mitsuba's ``hair`` renders), for any other
+             fiber its far field. A fiber alone scatters its far field; a shadowed one
+             what the curve shows. Where that differs from the sampled fiber's own value
+             (and albedo) the difference is booked as absorption, so the balance stays
+             closed.
 """
 
 from __future__ import annotations
@@ -115,6 +136,7 @@ class Baker:
     CHUNK = 16384      # fast: paths per launch of the weights for every theta_i (their memory)
 
     def __init__(self, bundle: Bundle, fiber: FiberTable, spec: BakeSpec):
+        lobes.check_exit(fiber.meta, spec.exit)
         self.bundle, self.fiber, self.spec = bundle, fiber, spec
         self.geometry = BundleScene(bundle)
         self.sampler = FiberSampler(fiber)
@@ -192,8 +214,11 @@ class Baker:
         theta1, dphi1 = theta1_d.numpy().astype(np.float64), dphi1_d.numpy().astype(np.float64)
         phi_t_in = phi_t
         phi_t = phi_t + np.pi + dphi1
+        curve_state = ()
         if spec.exit == "uniform":
             origin = self.geometry.exit_point(fiber, phi_t, rng.uniform(-1, 1, n))
+        elif spec.exit == "curve":
+            origin, curve_state = self._leave_curve(h1, phi_t_in, fiber, phi_t, u[4])
         else:
             p1 = lobe_state[1].numpy() if lobe_state else None
             origin = self._leave(h1, phi_t_in, fiber, phi_t, theta1, p1, u[4])
@@ -218,7 +243,8 @@ class Baker:
         perm = to_drjit(mi.UInt32, order, np.uint32)
         per_path = [dr.gather(mi.Float, x, perm) for x in [theta1_d, dphi1_d, factor] + B + final["R"]]
         lobe_path = tuple(dr.gather(type(x), x, perm) for x in lobe_state)
-        dr.eval(per_path, lobe_path)  # once per path, so that the (path, theta_i) lanes below read in order
+        curve_path = tuple(dr.gather(mi.Float, to_drjit(mi.Float, x), perm) for x in curve_state)
+        dr.eval(per_path, lobe_path, curve_path)  # once per path, so that the (path, theta_i) lanes below read in order
         L = self.n_lambda
         sums = np.zeros((spec.n_phi_o * spec.n_theta_o, n_ti * self.n_lambda))
         sums_sq = np.zeros_like(sums)
@@ -226,7 +252,7 @@ class Baker:
         for lo in range(0, n, chunk):
             hi = min(n, lo + chunk)
             W, A_R = self._path_weights(twin, *per_path[:3], per_path[3:3 + L], per_path[3 + L:], lo, hi - lo,
-                                        lobe_path)
+                                        lobe_path, curve_path)
             tally.absorbed[phi_index] += A_R.sum(axis=0, dtype=np.float64)
             W = W.reshape(hi - lo, -1)
             k = max(0, min(hi, n_esc) - lo)  # escaped rows of this chunk
@@ -244,14 +270,16 @@ class Baker:
         tally.sum[phi_index] += sums.reshape(shape).transpose(2, 0, 1, 3)
         tally.sum_sq[phi_index] += sums_sq.reshape(shape).transpose(2, 0, 1, 3)
 
-    def _path_weights(self, twin, theta1, dphi1, factor, B, R, lo, m, lobe_path=()):
+    def _path_weights(self, twin, theta1, dphi1, factor, B, R, lo, m, lobe_path=(), curve_path=()):
         """``W = A B`` and ``A R`` of paths ``lo .. lo + m`` for every theta_i: two float32
         arrays [m, n_ti, n_lambda].
 
         ``A[theta_i, lambda] = f(theta_i, theta_1, dphi_1) cos(theta_1) / pdf_mix`` (``factor``
         holds the last two); one lane per (path, theta_i), spectra written as packets. With
         the h-resolved exit, ``lobe_path = (h, p)`` of each path's first event and ``f`` is
-        that path's lobe at that offset.
+        that path's lobe at that offset. With the ``curve`` exit, ``curve_path = (h_out, w)``
+        of each path's first exit, its value is :meth:`_curve_value` and the difference
+        from the sampled fiber's is booked as absorbed.
         """
         n_ti, L, P = len(self.spec.theta_i), self.n_lambda, twin.packet
         lane = dr.arange(mi.UInt32, m * n_ti)
@@ -263,11 +291,19 @@ class Baker:
                                                dr.gather(mi.Float, theta1, path), dr.gather(mi.Float, dphi1, path))
         else:
             f = twin.eval_spectrum(theta_i, dr.gather(mi.Float, theta1, path), dr.gather(mi.Float, dphi1, path))
-        A = [v * dr.gather(mi.Float, factor, path) for v in f]
+        fac = dr.gather(mi.Float, factor, path)
+        booked = [0.0] * L
+        if curve_path:
+            h_out, w = (dr.gather(mi.Float, x, path) for x in curve_path)
+            f_curve = self._curve_value(theta_i, dr.gather(mi.Float, theta1, path), dr.gather(mi.Float, dphi1, path),
+                                        h_out, w, f)
+            booked = [(a - b) * fac for a, b in zip(f, f_curve)]
+            f = f_curve
+        A = [v * fac for v in f]
         pad = [dr.zeros(mi.Float, m * n_ti)] * (P - L)
         out = []
-        for carried in (B, R):
-            values = [a * dr.gather(mi.Float, c, path) for a, c in zip(A, carried)]
+        for carried, extra in ((B, [0.0] * L), (R, booked)):
+            values = [a * dr.gather(mi.Float, c, path) + e for a, c, e in zip(A, carried, extra)]
             target = dr.zeros(mi.Float, m * n_ti * P)
             dr.scatter(target, twin.ArrayXf(values + pad) if P > 1 else values[0], lane)
             out.append(target)
@@ -358,6 +394,13 @@ class Baker:
         else:
             theta_out, dphi, pdf, f, alb = self._drjit_fiber().event(theta_in, u)
 
+        phi_n = p.phi + np.pi + dphi
+        phi_n = phi_n - 2 * np.pi * dr.floor(phi_n * (1 / (2 * np.pi)))
+        s_o, c_o = dr.sincos(phi_n)
+        if exit_model == "curve":  # the curve's value; its difference from f is booked as absorbed
+            nx, nz, h_out, w = lobes.curve_exit(h_in, cp, sp, c_o, s_o, x7, dr)
+            f, alb = self._curve_event(theta_in, theta_out, dphi, h_out, w, f, alb)
+
         # Phase 3: the weight (B carries f cos / pdf, R the expected absorption) and roulette
         p.B, p.R, kept, roulette = weights.scatter(p.B, p.R, f, alb, theta_out, pdf, go, p.depth, spec.rr_start, x6)
         p.status = dr.select(go & ~kept, STOPPED, p.status)
@@ -365,14 +408,13 @@ class Baker:
         h_u = dr.select(roulette, x7, x6)
 
         # Phase 4: where the scattered light leaves the fiber (the exit model)
-        phi_n = p.phi + np.pi + dphi
-        phi_n = phi_n - 2 * np.pi * dr.floor(phi_n * (1 / (2 * np.pi)))
-        s_o, c_o = dr.sincos(phi_n)
         if exit_model == "uniform":  # anywhere on the outgoing side, h uniform
             k = dr.gather(UInt, scene.shape_to_fiber, hit_info.shape_index, alive)
             cx, cz = dr.gather(Float, scene.centers_x, k, alive), dr.gather(Float, scene.centers_z, k, alive)
             new_x, new_z = lobes.leave_uniform(cx, cz, dr.gather(Float, scene.radii, k, alive), 2 * h_u - 1,
                                                c_o, s_o, dr)
+        elif exit_model == "curve":  # the end of the light's chord chosen above
+            new_x, new_z = cx + r * (1 + 1e-4) * nx, cz + r * (1 + 1e-4) * nz
         else:  # where the light entered, or where its path leaves
             nx, nz = lobes.entry_normal(h_in, cp, sp, dr)
             if exit_model == "lobe":
@@ -431,6 +473,29 @@ class Baker:
             residual = p == self._lobes().p_max
             out[residual] = self.geometry.exit_point(fiber[residual], phi_out[residual], 2 * h_u[residual] - 1)
         return out
+
+    def _leave_curve(self, h, phi_in, fiber, phi_out, u):
+        """Start points of the rays leaving the first fibers as from Mitsuba's curves (the
+        ``curve`` exit; numpy, as :meth:`_bounce` in Dr.Jit) and ``(h_out, w)`` per path."""
+        c, r = self.bundle.centers[fiber], self.bundle.radii[fiber]
+        nx, nz, h_out, w = lobes.curve_exit(h, np.cos(phi_in), np.sin(phi_in), np.cos(phi_out), np.sin(phi_out),
+                                            u, np)
+        return np.stack([c[:, 0] + r * (1 + 1e-4) * nx, c[:, 1] + r * (1 + 1e-4) * nz], -1), (h_out, w)
+
+    def _curve_value(self, theta_in, theta_out, dphi, h_out, w, f):
+        """The ``curve`` exit's value at every wavelength: ``w`` times the adjoint at the
+        outgoing ray's offset for a ray fiber of camera transport, ``w f`` otherwise."""
+        return weights.curve_value(self._curve_lobes(), theta_in, theta_out, dphi, h_out, w, f)
+
+    def _curve_event(self, theta_in, theta_out, dphi, h_out, w, f, alb):
+        """``(f, albedo)`` of an event with the ``curve`` exit: its value, and the sampled
+        fiber's albedo scaled alike (so that ``R`` books the difference as absorbed)."""
+        return weights.curve_event(self._curve_lobes(), theta_in, theta_out, dphi, h_out, w, f, alb)
+
+    def _curve_lobes(self):
+        if self.fiber.meta.get("model") == "ray" and self.fiber.meta.get("transport") == "camera":
+            return self._lobes()
+        return None
 
     def _drjit_fiber(self):
         if getattr(self, "_dj_fiber", None) is None:

@@ -13,8 +13,8 @@ import numpy as np
 
 from ..grid import Cells, bin_solid_angle, cell
 
-# exit models: where scattered light leaves a fiber
-EXITS = ("uniform", "entry", "lobe")
+# exit models: where scattered light leaves a fiber (models.bake.baker)
+EXITS = ("uniform", "entry", "lobe", "curve")
 
 
 @dataclass

@@ -133,11 +133,16 @@ class TwistedBaker:
     def __init__(self, ply: TwistedBundle, fiber: FiberTable, spec: BakeSpec):
         if spec.estimator != "fast":
             raise ValueError(f"a twisted ply is traced with the fast estimator (got {spec.estimator!r})")
+        lobes.check_exit(fiber.meta, spec.exit)
         self.ply, self.fiber, self.spec = ply, fiber, spec
         self.geometry = TwistedScene(ply)
         self.twin = DrJitFiber(fiber, FiberSampler(fiber), mi.Float)
         # the h-resolved ray fiber for the lobe exit (refuses any other fiber, with the reason)
         self.lobes = lobes.LobeSampler(fiber.meta, fiber.wavelength, mi.Float) if spec.exit == "lobe" else None
+        # the h-resolved adjoint for the curve exit of a ray fiber of camera transport
+        camera = fiber.meta.get("model") == "ray" and fiber.meta.get("transport") == "camera"
+        self.curve_lobes = (lobes.LobeSampler(fiber.meta, fiber.wavelength, mi.Float)
+                            if spec.exit == "curve" and camera else None)
         self.n_lambda = len(fiber.wavelength)
 
     # -- entry -----------------------------------------------------------------------
@@ -280,6 +285,11 @@ class TwistedBaker:
             f, alb = self.lobes.eval_spectrum(theta_in, h_in, path, theta_out, dphi)
         else:
             theta_out, dphi, pdf, f, alb = self.twin.event(theta_in, u)
+        phi_wo = phi_wi + dphi
+        s_o, c_o = dr.sincos(phi_wo)
+        if spec.exit == "curve":  # the curve's value; its difference from f is booked as absorbed
+            nx, nz, h_out, w = lobes.curve_exit(h_in, c_d, s_d, c_o, s_o, x7, dr)
+            f, alb = weights.curve_event(self.curve_lobes, theta_in, theta_out, dphi, h_out, w, f, alb)
 
         # Phase 4: the weight (B carries f cos / pdf, R the expected absorption) and roulette
         p.B, p.R, kept, roulette = weights.scatter(p.B, p.R, f, alb, theta_out, pdf, go, p.depth, spec.rr_start, x6)
@@ -288,11 +298,12 @@ class TwistedBaker:
         h_u = dr.select(roulette, x7, x6)
 
         # Phase 5: leave the fiber's surface (the exit model, in the plane normal to T): anywhere
-        # on the outgoing side, where the light entered, or where its path leaves
-        phi_wo = phi_wi + dphi
-        s_o, c_o = dr.sincos(phi_wo)
+        # on the outgoing side, where the light entered, where its path leaves, or (curve) at an
+        # end of its chord
         ex, ez = lobes.leave_uniform(0.0, 0.0, r, 2 * h_u - 1, c_o, s_o, dr)
-        if spec.exit != "uniform":
+        if spec.exit == "curve":  # the end of the light's chord chosen above
+            ex, ez = r * (1 + 1e-4) * nx, r * (1 + 1e-4) * nz
+        elif spec.exit != "uniform":
             nx, nz = lobes.entry_normal(h_in, c_d, s_d, dr)
             if self.lobes is not None:
                 nx, nz = self.lobes.exit_normal(nx, nz, path, h_in, theta_in, dr)

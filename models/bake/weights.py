@@ -29,3 +29,19 @@ def scatter(B: list, R: list, f: list, albedo: list, theta_out, pdf, go, depth, 
     survive = ~roulette | (u_rr < q)
     B = [dr.select(go & roulette, B[l] / dr.maximum(q, 1e-30), B[l]) for l in range(L)]
     return B, R, valid & survive, roulette
+
+
+def curve_value(lob, theta_in, theta_out, dphi, h_out, w, f):
+    """The ``curve`` exit's value (both bakers): ``w`` times the adjoint of the h-resolved
+    ray fiber ``lob`` at ``h_out`` (``None``: the far field ``f``)."""
+    value = f if lob is None else lob.adjoint(theta_in, h_out, theta_out, dphi)
+    return [v * w for v in value]
+
+
+def curve_event(lob, theta_in, theta_out, dphi, h_out, w, f, alb):
+    """``(f, albedo)`` of an event with the ``curve`` exit: its value, and the albedo scaled
+    as the value is scaled from the sampled ``f`` (so that ``weights.scatter`` books the
+    difference as absorbed and the balance stays closed)."""
+    value = curve_value(lob, theta_in, theta_out, dphi, h_out, w, f)
+    ratio = [dr.select(a > 0, v / dr.maximum(a, 1e-30), 0.0) for v, a in zip(value, f)]
+    return value, [a * q for a, q in zip(alb, ratio)]

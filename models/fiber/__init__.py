@@ -35,7 +35,7 @@ def build(fiber, wavelength) -> FiberModel:
         # absorption coefficient 4 pi k / lambda, per fiber radius as the model expects
         sigma_a = 4 * np.pi * k / (wl * 1e-3) * fiber.radius_um
         return RayFiber(wl, n, sigma_a, p.longitudinal_roughness, p.azimuthal_roughness,
-                        p.scale_tilt_deg, p.n_h, p.n_phi, p.lobes)
+                        p.scale_tilt_deg, p.n_h, p.n_phi, p.lobes, p.transport)
     if fiber.model == "table":
         from .table import TableFiber, load_npz, load_xia2023
         t = fiber.table

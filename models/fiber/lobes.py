@@ -135,6 +135,14 @@ def sample_logistic(u, s: float, xp):
 # The h-resolved scattering event, for the baker's Dr.Jit loop
 # ------------------------------------------------------------------------------
 
+def check_exit(meta: dict, exit_model: str) -> None:
+    """Refuse the h-resolved ``lobe`` exit for a ray fiber of camera transport: its table is
+    the adjoint, while the lobes the exit samples are the model in light transport."""
+    if exit_model == "lobe" and meta.get("transport", "light") != "light":
+        raise ValueError(f"the lobe exit resolves the paths of light transport; this ray fiber is of "
+                         f"{meta['transport']} transport (what Mitsuba's hair renders): bake it with the curve exit")
+
+
 class LobeSampler:
     """Samples a path ``p``, its outgoing direction and its exit point, at a known ``h``.
 
@@ -269,6 +277,25 @@ class LobeSampler:
             kept.append(sum((A[q][l] for q in range(1, self.p_max + 1)), A[0][l]))
         return f, kept
 
+    def adjoint(self, theta_in, h_out, theta_out, dphi):
+        """What Mitsuba's path tracer makes of its ``hair`` at one offset: the adjoint
+        ``f(w_o -> w_i) cos(theta_o) / cos(theta_i)`` summed over every path, the model
+        evaluated with the outgoing (camera) side as incident at ``h_out``, the offset of
+        the camera's ray (``dphi = phi_o - phi_i``; every wavelength; no cosine of
+        ``theta_out`` beyond the adjoint's own)."""
+        dr = self.dr
+        UInt = dr.uint32_array_t(self.Float)
+        cos_cam = self.cos_in(theta_out)
+        A = self.attenuations(cos_cam, h_out)
+        scale = dr.cos(theta_out) / self.cos_in(theta_in)
+        f = [dr.zeros(self.Float, dr.width(h_out)) for _ in range(self.L)]
+        for p in range(self.p_max + 1):
+            M = self.M[p](theta_out, theta_in, xp=dr) * scale
+            pv = dr.zeros(UInt, dr.width(h_out)) + p
+            for l in range(self.L):
+                f[l] = f[l] + M * A[p][l] * self._azimuthal(pv, h_out, cos_cam, -dphi, l)
+        return f
+
     def exit_normal(self, nx, nz, p, h, theta, xp):
         """The outward normal where path ``p`` leaves, from the entry normal ``(nx, nz)``,
         for light of longitude ``theta`` entering at offset ``h`` (the middle wavelength's
@@ -297,6 +324,36 @@ def entry_normal(h, ux, uz, xp):
     """Outward normal where a ray travelling along ``u`` enters at offset ``h``."""
     along = xp.sqrt(xp.maximum(0.0, 1 - h * h))
     return -along * ux - h * uz, -along * uz + h * ux
+
+
+def chord_end_normal(h, ux, uz, far, xp):
+    """Outward normal at the end of the chord of a ray along ``u`` at offset ``h``: where it
+    enters, or (``far``) where it would leave the fiber going straight on."""
+    nx, nz = entry_normal(h, ux, uz, xp)
+    along = 2 * xp.sqrt(xp.maximum(0.0, 1 - h * h))     # -2 (n . u) at the entry
+    where = select(xp)
+    return where(far, nx + along * ux, nx), where(far, nz + along * uz, nz)
+
+
+def curve_exit(h, ux, uz, dx, dz, u, xp):
+    """The ``curve`` exit (``models.bake.baker``) of light along ``u`` entering at offset
+    ``h`` and leaving along ``d``: one end of the light's chord, chosen with the uniform
+    ``u`` in proportion to ``a_k = max(0, n_k . d)`` (the width it shows the outgoing
+    direction). Returns its outward normal ``(nx, nz)``, the offset ``h_out`` of the
+    outgoing side's ray through it, and the weight ``w = (a_entry + a_far) / sqrt(1 - h^2)``
+    (its mean over ``h`` uniform is 1 for every ``d``)."""
+    n1x, n1z = chord_end_normal(h, ux, uz, False, xp)
+    n2x, n2z = chord_end_normal(h, ux, uz, True, xp)
+    a1 = xp.maximum(0.0, n1x * dx + n1z * dz)
+    a2 = xp.maximum(0.0, n2x * dx + n2z * dz)
+    far = u * (a1 + a2) >= a1
+    where = select(xp)
+    nx, nz = where(far, n2x, n1x), where(far, n2z, n1z)
+    # float32 rounds h to +-1 about once in 1e7 rays, where 1 / sqrt(1 - h^2) would be
+    # unbounded; the floor leaves out the |h| > 1 - 5e-7 that carry 0.1% of the weight
+    w = (a1 + a2) / xp.maximum(xp.sqrt(xp.maximum(0.0, 1 - h * h)), 1e-3)
+    # entry_offset of the ray along -d through the end: (c - x) x (-d) / r, x = c + r n
+    return nx, nz, xp.clip(nx * dz - nz * dx, -1.0, 1.0), w
 
 
 def leave_uniform(cx, cz, r, h, dx, dz, xp):

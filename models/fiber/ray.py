@@ -18,6 +18,16 @@ refraction and attenuation use the incident longitude ``theta_i``; the cuticle t
 shifts the lobes by ``-2 alpha, alpha, 4 alpha`` for R, TT, TRT; roughness maps to
 ``v_p`` and the logistic scale ``s`` by Chiang's fits; absorption ``sigma_a`` is per
 fiber radius. The relative index is ``eta = n(lambda)`` (exterior index 1).
+
+The model is not reciprocal (docs/DESIGN.md): ``M_p`` is symmetric in its two longitudes
+but lacks the ``cos`` that reciprocity asks for, and ``A_p``, ``Phi_p`` and ``h`` belong to
+the side called incident. ``transport`` says which side that is. ``light`` (the default):
+the side the light comes from, as d'Eon and Chiang write it; a lossless fiber then scatters
+exactly the light it intercepts. ``camera``: what Mitsuba's path tracer makes of its
+``hair`` BSDF, which it evaluates with the camera side as incident (``si.wi``): the adjoint
+``f(w_o -> w_i) cos(theta_o) / cos(theta_i)``. A ply baked with it is what explicit
+``hair`` fibers on curves render; it does not conserve energy under light off the
+specular cone (``python -m pipeline.bench.hair`` measures both).
 """
 
 from __future__ import annotations
@@ -46,6 +56,8 @@ def Ap(cos_theta_i, eta, h, sigma_a, p_max: int = P_MAX):
 
 
 Phi = lobes.Phi
+
+TRANSPORTS = ("light", "camera")   # which side the model's incident quantities belong to
 
 
 def Np(dphi, p, s, gamma_i, gamma_t):
@@ -77,6 +89,19 @@ def h_quadrature(n_h: int):
     return h, w / 2
 
 
+def mitsuba_hair(meta: dict, wavelength, wavelength_nm: float) -> dict:
+    """Mitsuba's ``hair`` BSDF with the parameters of a ray fiber (its table's ``meta`` and
+    ``wavelength``) at one wavelength: the mapping of docs/DESIGN.md, "The ray fiber and
+    Mitsuba's hair". Both sides name the same quantities: ``eta`` (the exterior index is 1),
+    ``sigma_a`` per fiber radius, Chiang's roughnesses and the tilt in degrees."""
+    wl = np.asarray(wavelength, np.float64)
+    return {"type": "hair", "int_ior": float(np.interp(wavelength_nm, wl, meta["eta"])), "ext_ior": 1.0,
+            "sigma_a": {"type": "uniform", "value": float(np.interp(wavelength_nm, wl, meta["sigma_a"]))},
+            "longitudinal_roughness": float(meta["longitudinal_roughness"]),
+            "azimuthal_roughness": float(meta["azimuthal_roughness"]),
+            "scale_tilt": float(meta["scale_tilt_deg"])}
+
+
 # --------------------------------------------------------------------------
 # The fiber model
 # --------------------------------------------------------------------------
@@ -93,7 +118,8 @@ class RayFiber(FiberModel):
     name = "ray"
 
     def __init__(self, wavelength, eta, sigma_a, longitudinal_roughness=0.3,
-                 azimuthal_roughness=0.3, scale_tilt_deg=2.0, n_h=256, n_phi=360, lobes=P_MAX):
+                 azimuthal_roughness=0.3, scale_tilt_deg=2.0, n_h=256, n_phi=360, lobes=P_MAX,
+                 transport="light"):
         super().__init__(wavelength)
         self.eta = np.broadcast_to(np.asarray(eta, dtype=np.float64), self.wavelength.shape)
         self.sigma_a = np.broadcast_to(np.asarray(sigma_a, dtype=np.float64), self.wavelength.shape)
@@ -104,9 +130,12 @@ class RayFiber(FiberModel):
         self.s = logistic_scale(azimuthal_roughness)
         self.shifts = tilt_shifts(scale_tilt_deg, self.p_max)
         self.n_h, self.n_phi = int(n_h), int(n_phi)
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport {transport!r}: use one of {', '.join(TRANSPORTS)}")
+        self.transport = transport
         self.params = dict(longitudinal_roughness=longitudinal_roughness,
                            azimuthal_roughness=azimuthal_roughness, scale_tilt_deg=scale_tilt_deg,
-                           n_h=n_h, n_phi=n_phi, lobes=self.p_max)
+                           n_h=n_h, n_phi=n_phi, lobes=self.p_max, transport=transport)
 
     def lobes(self):
         return [Longitudinal("deon", v=float(self.v[p]), shift=float(self.shifts[p])) for p in range(self.p_max + 1)]
@@ -134,6 +163,8 @@ class RayFiber(FiberModel):
         return np.stack([n @ wh for n in N])
 
     def tabulate(self, theta_i):
+        if self.transport == "camera":
+            return self._tabulate_camera(np.asarray(theta_i, dtype=np.float64))
         from tqdm import tqdm
 
         theta_i = np.asarray(theta_i, dtype=np.float64)
@@ -151,8 +182,43 @@ class RayFiber(FiberModel):
                 "mirror_symmetric": self.params["scale_tilt_deg"] == 0}
         return FiberTable(theta_i, np.zeros(1), phi, self.wavelength.copy(), lobes, meta)
 
+    def _tabulate_camera(self, theta_i):
+        """The adjoint ``f(w_o -> w_i) cos(theta_o) / cos(theta_i)`` as one dense lobe on a
+        1-degree ``theta_o`` grid (it is not a sum of separable lobes): ``N_p`` at the
+        camera's longitude ``theta_o`` and azimuth ``-dphi``, ``M_p`` with the tilt on
+        ``theta_o``. The adjoint grows as ``1 / cos(theta_i)`` towards grazing light; light
+        arrives at a fiber with the weight ``cos(theta_i)``, and a node at 90 deg holds 4 times
+        the value at the node before it, which makes the product's integral over that last
+        cell, linear in ``theta_i`` as tables interpolate, the adjoint's to first order."""
+        from tqdm import tqdm
+
+        theta_o = np.deg2rad(np.linspace(-90.0, 90.0, 181))
+        to_safe = np.clip(theta_o, -np.deg2rad(89.99), np.deg2rad(89.99))
+        ti_safe = np.minimum(theta_i, np.deg2rad(89.99))
+        phi = -np.pi + 2 * np.pi * np.arange(self.n_phi) / self.n_phi
+        M = np.stack([m(to_safe[None, :], ti_safe[:, None]) for m in self.lobes()])     # [p, theta_i, theta_o]
+        cos_i = np.cos(ti_safe)
+        grazing = (theta_i >= np.deg2rad(89.99)) & (np.arange(len(theta_i)) > 0)
+        cos_i[grazing] = np.cos(theta_i[np.flatnonzero(grazing) - 1]) / 4
+        cosines = np.cos(to_safe)[None, :] / cos_i[:, None]
+        values = np.empty((len(theta_i), len(theta_o), self.n_phi, len(self.wavelength)), np.float32)
+        for k in tqdm(range(len(self.wavelength)), desc="ray (camera)", unit="lambda", leave=False):
+            N = self.azimuthal(to_safe[:, None], -phi[None, :], self.eta[k], self.sigma_a[k],
+                               cell=2 * np.pi / self.n_phi)                            # [p, theta_o, phi]
+            values[..., k] = np.einsum("pio,pof->iof", M, N) * cosines[..., None]
+        meta = {"model": self.name, **self.params, "eta": self.eta.tolist(), "sigma_a": self.sigma_a.tolist(),
+                "mirror_symmetric": self.params["scale_tilt_deg"] == 0}
+        return FiberTable(theta_i, theta_o, phi, self.wavelength.copy(),
+                          [Lobe("adjoint", Longitudinal("none"), values)], meta)
+
     def eval(self, *, phi_i, theta_i, phi_o, theta_o, wavelength):
-        """Direct evaluation, h-averaged by quadrature (no table)."""
+        """Direct evaluation, h-averaged by quadrature (no table), in this fiber's transport."""
+        if self.transport == "camera":
+            to = np.asarray(theta_o, np.float64)
+            light = RayFiber(self.wavelength, self.eta, self.sigma_a, **{**self.params, "transport": "light"})
+            return (light.eval(phi_i=phi_o, theta_i=theta_o, phi_o=phi_i, theta_o=theta_i, wavelength=wavelength)
+                    * np.cos(np.minimum(np.abs(to), np.deg2rad(89.99)))
+                    / np.cos(np.minimum(np.abs(np.asarray(theta_i, np.float64)), np.deg2rad(89.99))))
         ti, pi_, to, po, wl = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
                                                    for a in (theta_i, phi_i, theta_o, phi_o, wavelength)))
         check_theta(ti, "theta_i")

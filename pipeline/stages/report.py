@@ -279,8 +279,10 @@ def schedule_section(out: Path) -> str:
 
 EXIT_MODELS = Path(__file__).resolve().parents[2] / "docs" / "exit_models.json"
 EXIT_WORDS = {"uniform": "light leaves a fiber anywhere on its outgoing side (h uniform), whatever its path",
-              "entry": "every path leaves where the light entered (as Mitsuba's hair on curves)",
-              "lobe": "each path of the ray model leaves from its own exit point, at the ray's real offset h"}
+              "entry": "every path leaves where the light entered",
+              "lobe": "each path of the ray model leaves from its own exit point, at the ray's real offset h",
+              "curve": "as from Mitsuba's curves: light lights both ends of its chord, each shows the BSDF at its "
+                       "own offset (what Mitsuba's hair on curves renders; docs/DESIGN.md)"}
 
 
 def exit_section(exit_model: str, out: Path) -> str:
