@@ -157,36 +157,70 @@ class FiberBundleBSDF(CurveBSDF):
        :header-rows: 1
 
        * - Parameter
+         - Type
+         - Default
+         - Unit
          - Description
        * - backend
-         - ``table`` (default), ``mlp`` (jitted Dr.Jit MLP) or ``onnx`` (onnxruntime).
+         - string
+         - ``table``
+         - 
+         - ``table``, ``mlp`` (the jitted Dr.Jit MLP) or ``onnx`` (onnxruntime).
        * - table
-         - ``bundle_table.npz`` (backend ``table``).
+         - filename
+         - 
+         - 
+         - ``bundle_table.npz`` from ``bcsdf bake`` (backend ``table``).
        * - model
+         - filename
+         - 
+         - 
          - ``weights.npz`` (``mlp``) or ``model.onnx`` (``onnx``) from ``bcsdf export``.
        * - lookup
-         - ``linear`` (default: each bin its value plus limited slopes, so that it
-           averages to its value; theta_i nodes read along their own specular cone
-           and blended) or ``nearest`` (the nearest node's bin value).
+         - string
+         - ``linear``
+         - 
+         - ``linear``: each bin its value plus limited slopes, so that it averages to
+           its value; theta_i nodes read along their own specular cone and blended.
+           ``nearest``: the nearest node's bin value.
        * - passthrough
-         - Let rays cross the bundle with the baked probability (default ``true``).
-       * - twist, twist_rate
-         - Orientation of an elliptical cross-section about the tangent, in degrees,
-           and its change in degrees per scene unit of length along the shape
-           (default 0, 0; the length is ``v |dp/dv|``, exact on cylinders and on
-           curves with evenly spaced control points).
+         - boolean
+         - ``true``
+         - 
+         - Let rays cross the bundle with the baked probability.
+       * - twist
+         - float
+         - 0
+         - degrees
+         - Orientation of an elliptical cross-section about the tangent.
+       * - twist_rate
+         - float
+         - 0
+         - degrees per scene unit
+         - Its change along the shape (the length is ``v |dp/dv|``, exact on
+           cylinders and on curves with evenly spaced control points).
        * - up
-         - Reference vector for the cross-section's major axis (default ``[0, 0, 1]``).
+         - vector
+         - ``[0, 0, 1]``
+         - 
+         - Reference vector for the cross-section's major axis.
        * - wavelength
-         - Mono variants: the wavelength (nm) to render; default CIE luminance.
+         - float
+         - CIE luminance
+         - nm
+         - Mono variants: the wavelength to render.
        * - radius
-         - Optional: the bundle radius in scene units. ``bundle_path`` reads it from
-           the shape (``|dp/du| = 2 pi r`` per hit on ``cylinder`` and
-           ``bsplinecurve``) and warns once if this one disagrees. Must be >= 0;
-           read-only in ``mi.traverse`` (edit the shape's radius instead).
+         - float
+         - the shape's
+         - scene units
+         - Optional, >= 0. ``bundle_path`` reads the radius from the shape
+           (``|dp/du| = 2 pi r`` per hit on ``cylinder`` and ``bsplinecurve``) and warns
+           once if this one disagrees; read-only in ``mi.traverse`` (edit the shape's).
        * - sampling_uniform
-         - Fraction of direction samples drawn uniformly on the sphere, in [0, 1]
-           (default 0.1).
+         - float
+         - 0.1
+         - fraction
+         - Share of direction samples drawn uniformly on the sphere, in [0, 1].
 
     File parameters (``table``, ``model``) resolve like Mitsuba's own ``filename``:
     relative to the XML scene's folder, else to the current one. Every parameter
@@ -236,7 +270,21 @@ class FiberBundleBSDF(CurveBSDF):
         import mitsuba_ext
         mitsuba_ext.register()
         bsdf = mi.load_dict({"type": "fiber_bundle", "backend": "mlp",
-                             "model": "artifacts/default/export/medium/weights.npz"})
+                             "model": "artifacts/default/export/small/weights.npz"})
+
+    In a scene (``bcsdf render-scene``; ``scenes/ply.xml`` is a whole one):
+
+    .. code-block:: xml
+
+        <shape type="cylinder">
+            <point name="p0" value="-3, 0, 0"/>
+            <point name="p1" value="3, 0, 0"/>
+            <float name="radius" value="0.2"/>
+            <bsdf type="fiber_bundle">
+                <string name="backend" value="table"/>
+                <string name="table" value="artifacts/default/bake/bundle_table.npz"/>
+            </bsdf>
+        </shape>
     """
 
     plugin = "fiber_bundle"
@@ -350,18 +398,42 @@ class FiberTableBSDF(CurveBSDF):
        :header-rows: 1
 
        * - Parameter
+         - Type
+         - Default
+         - Unit
          - Description
        * - filename
-         - ``fiber_table.npz`` written by ``bcsdf fiber`` (resolved like Mitsuba's own
-           ``filename``: relative to the XML scene's folder).
+         - filename
+         - 
+         - 
+         - ``fiber_table.npz`` written by ``bcsdf fiber``.
        * - radius
-         - Optional fiber radius in scene units (>= 0); ``bundle_path`` reads it from
-           the shape and warns once if this one disagrees.
-       * - up, twist, twist_rate
-         - As ``fiber_bundle`` (a fiber table is rotation invariant: they only set
-           the frame's azimuth origin).
+         - float
+         - the shape's
+         - scene units
+         - Optional, >= 0: the fiber radius; ``bundle_path`` reads it from the
+           shape and warns once if this one disagrees.
+       * - up
+         - vector
+         - ``[0, 0, 1]``
+         - 
+         - As ``fiber_bundle`` (a fiber is rotation invariant: it only sets the
+           frame's azimuth origin).
+       * - twist
+         - float
+         - 0
+         - degrees
+         - As ``fiber_bundle``.
+       * - twist_rate
+         - float
+         - 0
+         - degrees per scene unit
+         - As ``fiber_bundle``.
        * - wavelength
-         - Mono variants: the wavelength (nm) to render; default CIE luminance.
+         - float
+         - CIE luminance
+         - nm
+         - Mono variants: the wavelength to render.
 
     Defined on ``cylinder`` and ``bsplinecurve`` shapes, like ``fiber_bundle``, and under
     ``bundle_path`` on ``linearcurve`` (cheaper to intersect: the cloth's flyaways), whose
@@ -373,6 +445,17 @@ class FiberTableBSDF(CurveBSDF):
         fiber = {"type": "fiber_table", "filename": "artifacts/default/fiber/fiber_table.npz"}
         scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
                             "bsdf": fiber}
+
+    .. code-block:: xml
+
+        <shape type="cylinder">
+            <point name="p0" value="-1, 0, 0"/>
+            <point name="p1" value="1, 0, 0"/>
+            <float name="radius" value="0.02"/>
+            <bsdf type="fiber_table">
+                <string name="filename" value="artifacts/default/fiber/fiber_table.npz"/>
+            </bsdf>
+        </shape>
     """
 
     plugin = "fiber_table"
@@ -470,12 +553,42 @@ class FiberRayBSDF(CurveBSDF):
        :header-rows: 1
 
        * - Parameter
+         - Type
+         - Default
+         - Unit
          - Description
        * - filename
-         - ``fiber_table.npz`` of a ray fiber (``bcsdf fiber`` with ``fiber.model: ray``):
-           its parameters (index and absorption per wavelength, roughness, tilt, paths).
-       * - radius, up, twist, twist_rate, wavelength
+         - filename
+         - 
+         - 
+         - ``fiber_table.npz`` of a ray fiber of light transport (``bcsdf fiber``
+           with ``fiber.model: ray``): its parameters (index and absorption per
+           wavelength, roughness, tilt, paths).
+       * - radius
+         - float
+         - the shape's
+         - scene units
          - As ``fiber_table``.
+       * - up
+         - vector
+         - ``[0, 0, 1]``
+         - 
+         - As ``fiber_table``.
+       * - twist
+         - float
+         - 0
+         - degrees
+         - As ``fiber_table``.
+       * - twist_rate
+         - float
+         - 0
+         - degrees per scene unit
+         - As ``fiber_table``.
+       * - wavelength
+         - float
+         - CIE luminance
+         - nm
+         - Mono variants: the wavelength to render.
 
     ``mi.traverse`` exposes ``twist``, ``twist_rate``, ``up`` and ``radius``.
 
@@ -484,6 +597,17 @@ class FiberRayBSDF(CurveBSDF):
         fiber = {"type": "fiber_ray", "filename": "artifacts/ray_ply/fiber/fiber_table.npz"}
         scene["fiber_0"] = {"type": "cylinder", "p0": [-1, 0, 0], "p1": [1, 0, 0], "radius": 0.02,
                             "bsdf": fiber}
+
+    .. code-block:: xml
+
+        <shape type="cylinder">
+            <point name="p0" value="-1, 0, 0"/>
+            <point name="p1" value="1, 0, 0"/>
+            <float name="radius" value="0.02"/>
+            <bsdf type="fiber_ray">
+                <string name="filename" value="artifacts/ray_ply/fiber/fiber_table.npz"/>
+            </bsdf>
+        </shape>
     """
 
     plugin = "fiber_ray"

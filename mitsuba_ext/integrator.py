@@ -74,33 +74,55 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
        :header-rows: 1
 
        * - Parameter
+         - Type
+         - Default
+         - Unit
          - Description
        * - max_depth
-         - Longest path (bounces; passthrough events excluded). Default -1: no limit.
-           A bundle hit is one bounce for a whole ply; explicit fibers count one per
-           fiber, and light in a dyed ply meets dozens: compare explicit fibers at 64 or
-           more (16 lost 11% of a red yarn's red, docs/BENCHMARKS.md "Cloth").
+         - integer
+         - -1
+         - bounces
+         - Longest path (passthrough events excluded); -1: no limit. A bundle hit is
+           one bounce for a whole ply; explicit fibers count one per fiber, and light
+           in a dyed ply meets dozens: compare explicit fibers at 64 or more.
        * - rr_depth
-         - Depth at which Russian roulette starts (default 5).
+         - integer
+         - 5
+         - bounces
+         - Depth at which Russian roulette starts.
        * - displaced_exit
-         - Leave bundles from the displaced exit point (default ``true``).
+         - boolean
+         - ``true``
+         - 
+         - Leave bundles from the displaced exit point.
        * - exit_split
-         - Send the ``single_share`` of a bundle's light from where it entered: ``"none"``
-           (default), ``"emitter"`` (the shadow rays of next-event estimation) or
-           ``"all"`` (the path's next rays too). Without a share, or with
-           ``displaced_exit`` off, it does nothing.
+         - string
+         - ``none``
+         - 
+         - Send the ``single_share`` of a bundle's light from where it entered:
+           ``none``, ``emitter`` (the shadow rays of next-event estimation) or ``all``
+           (the path's next rays too). Without a share, or with ``displaced_exit`` off,
+           it does nothing.
        * - max_passes
-         - Most bundle crossings of one path or shadow ray (default 64).
+         - integer
+         - 64
+         - crossings
+         - Most bundle crossings of one path or shadow ray.
        * - shadow_rr
-         - Shadow-ray transmittance below which each further crossing is survived
-           with probability ``T / shadow_rr`` (Russian roulette, unbiased; default
-           0.1; 0 traces every crossing).
+         - float
+         - 0.1
+         - transmittance
+         - Below it each further crossing of a shadow ray is survived with
+           probability ``T / shadow_rr`` (Russian roulette, unbiased); 0 traces every
+           crossing.
        * - overlaps
+         - boolean
+         - ``false``
+         - 
          - Light that leaves a bundle inside another (interpenetrating yarns) enters
            that other one at the near wall of its chord, for paths and shadow rays
-           alike (:meth:`_backed`: up to two probe rays per ray that leaves a bundle).
-           Default ``false``: such light crosses the other bundle unseen (a curve
-           reports no hit from inside). docs/BENCHMARKS.md measures both on cloth.
+           alike (up to two probe rays per ray that leaves a bundle); ``false``: such
+           light crosses the other bundle unseen (a curve reports no hit from inside).
 
     Not supported: ``hide_emitters`` (refused at load). Bundles belong on
     ``cylinder`` and ``bsplinecurve`` shapes; the first render of a scene warns
@@ -111,6 +133,13 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
 
         mi.set_variant("llvm_ad_rgb"); mitsuba_ext.register()
         scene = mi.load_dict({..., "integrator": {"type": "bundle_path", "max_depth": 32}})
+
+    .. code-block:: xml
+
+        <integrator type="bundle_path">
+            <integer name="max_depth" value="32"/>
+            <string name="exit_split" value="emitter"/>
+        </integrator>
     """
 
     def __init__(self, props):

@@ -88,6 +88,32 @@ def test_plugin_reference_pages_match_the_docstrings(mi_llvm):
     assert plugin_docs.main(["--check"]) == 0, "run `python -m pipeline.plugin_docs`"
 
 
+def test_plugin_pages_xml_examples_load(mono, tmp_path):
+    """Every plugin page's XML example, as printed, loads in a scene (its artifact paths
+    pointed at small stand-ins), and every parameter in it is one the table documents."""
+    import inspect
+    import re
+
+    import mitsuba_ext
+    from models.fiber.ray import RayFiber
+    from tests.synthetic import make_config, synthetic_table
+
+    synthetic_table(make_config(tmp_path), tmp_path / "bundle_table.npz")
+    RayFiber(np.array([450.0, 550.0, 650.0]), 1.55, 0.1, 0.3, 0.3, 2.0, n_h=32).tabulate(
+        np.deg2rad(np.arange(0, 91, 5.0))).save(tmp_path / "fiber_table.npz")
+    classes = {}
+    for module in mitsuba_ext.plugin_modules():
+        classes.update(module.PLUGINS)
+    for name, cls in classes.items():
+        doc = inspect.cleandoc(cls.__doc__)
+        xml = re.search(r"\.\. code-block:: xml\n\n((?:    .*\n|\n)+)", doc + "\n").group(1)
+        xml = re.sub(r'value="artifacts/[^"]*/(\w+\.npz)"', lambda m: f'value="{tmp_path / m.group(1)}"', xml)
+        documented = set(re.findall(r"\* - (\w+)", doc))
+        assert set(re.findall(r'name="(\w+)"', xml)) - {"p0", "p1", "radius"} <= documented, name
+        body = xml if "<integrator" in xml else xml.replace("<shape", '<shape id="s"', 1)
+        mono.load_string(f'<scene version="3.0.0">{body}</scene>')
+
+
 def test_readme_render_example_runs_as_written(trained, tmp_path, monkeypatch):
     """The README's own-scene snippet, literally, in a folder laid out as a clone after
     ``make run`` (its weights a trained test model): it renders, and the ply stands out of
