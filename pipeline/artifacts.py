@@ -17,59 +17,6 @@ def config_dir(cfg, out_root="artifacts") -> Path:
     return Path(out_root) / cfg.name
 
 
-def _owner(config_file, root) -> str:
-    """A config file as the artifacts folder records it: relative to the folder that holds
-    the artifacts root (a project moved or cloned elsewhere keeps its owners)."""
-    import os
-
-    return os.path.relpath(Path(config_file).resolve(), Path(root).resolve().parent)
-
-
-def check_claim(cfg, config_file, stages, root="artifacts", force: bool = False) -> None:
-    """Refuse to let ``config_file`` run ``stages`` where another config file of the same
-    ``name:`` made artifacts from other settings (an hours-long bake among them): it would
-    write over them. The owner is recorded in ``<root>/<name>/.config`` (:func:`record_claim`);
-    ``force`` takes the folder over."""
-    import json
-
-    from . import graph
-
-    try:
-        owner = (config_dir(cfg, root) / ".config").read_text().strip()
-    except (OSError, UnicodeDecodeError):
-        return
-    mine = _owner(config_file, root)
-    if not owner or owner == mine or force:
-        return
-    clash = []
-    for stage in stages:
-        try:
-            made = json.loads(graph.stamp_path(stage, cfg, root).read_text()).get("fingerprint")
-        except (OSError, ValueError):
-            continue
-        if made != graph.fingerprint(stage, cfg, root):
-            clash.append(stage)
-    if clash:
-        raise ValueError(f"{config_dir(cfg, root)} holds the artifacts of {owner} (its {', '.join(clash)} from "
-                         f"other settings); {config_file} has the same name: and would write over them. Give it "
-                         f"another name: (or run with --set name=...), or add --force to take the folder over")
-
-
-def record_claim(cfg, config_file, root="artifacts") -> None:
-    """Record ``config_file`` as the owner of its artifacts folder (after a stage of it
-    finished there)."""
-    from models.io import write_text
-
-    record = config_dir(cfg, root) / ".config"
-    mine = _owner(config_file, root)
-    try:
-        if record.read_text().strip() == mine:
-            return
-    except (OSError, UnicodeDecodeError):
-        pass
-    write_text(record, mine + "\n")
-
-
 def stage_dir(cfg, stage: str, out_root="artifacts") -> Path:
     """``<out_root>/<config name>/<stage>/``: one stage's outputs (or a bench's, by its name)."""
     return config_dir(cfg, out_root) / stage

@@ -27,8 +27,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from .artifacts import (StageFailed, check_claim, clear_failure, config_dir, failure_dir, record_claim,
-                        record_failure)
+from .artifacts import StageFailed, clear_failure, config_dir, failure_dir, record_failure
 
 EPILOG = """\
 The config's keys are documented in configs/default.yaml and pipeline/config.py.
@@ -194,7 +193,7 @@ def _run(args, cfg) -> None:
     from . import estimate, graph
 
     stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
-    check_claim(cfg, args.config, stages, args.artifacts, args.force)  # one config file per folder
+    graph.check_claim(cfg, args.config, stages, args.artifacts, args.force)  # one config file per folder
     timings = {}
     if args.command == "run":
         todo = [s for s in stages if args.force or not graph.up_to_date(s, cfg, args.artifacts)[0]]
@@ -211,7 +210,7 @@ def _run(args, cfg) -> None:
                     continue
                 print(f"[run] {stage}: {'forced' if fresh else why}", flush=True)
             timings[stage] = _run_stage(stage, args, cfg)
-            record_claim(cfg, args.config, args.artifacts)
+            graph.record_claim(cfg, args.config, args.artifacts)
             finished.append(stage)
     except KeyboardInterrupt:
         interrupted = True

@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import yaml
@@ -185,3 +186,48 @@ def require(cfg, stages, root, command: str) -> None:
     if missing:
         raise SystemExit(f"error: this benchmark reads the {', '.join(missing)} artifacts of "
                          f"{cfg.name!r} under {root}/, which do not exist yet; run `{command}` first")
+
+
+def _owner(config_file, root) -> str:
+    """A config file as the artifacts folder records it: relative to the folder that holds
+    the artifacts root (a project moved or cloned elsewhere keeps its owners)."""
+    return os.path.relpath(Path(config_file).resolve(), Path(root).resolve().parent)
+
+
+def check_claim(cfg, config_file, stages, root="artifacts", force: bool = False) -> None:
+    """Refuse to let ``config_file`` run ``stages`` where another config file of the same
+    ``name:`` made artifacts from other settings (an hours-long bake among them): it would
+    write over them. The owner is recorded in ``<root>/<name>/.config`` (:func:`record_claim`);
+    ``force`` takes the folder over."""
+    try:
+        owner = (config_dir(cfg, root) / ".config").read_text().strip()
+    except (OSError, UnicodeDecodeError):
+        return
+    mine = _owner(config_file, root)
+    if not owner or owner == mine or force:
+        return
+    clash = []
+    for stage in stages:
+        try:
+            made = json.loads(stamp_path(stage, cfg, root).read_text()).get("fingerprint")
+        except (OSError, ValueError):
+            continue
+        if made != fingerprint(stage, cfg, root):
+            clash.append(stage)
+    if clash:
+        raise ValueError(f"{config_dir(cfg, root)} holds the artifacts of {owner} (its {', '.join(clash)} from "
+                         f"other settings); {config_file} has the same name: and would write over them. Give it "
+                         f"another name: (or run with --set name=...), or add --force to take the folder over")
+
+
+def record_claim(cfg, config_file, root="artifacts") -> None:
+    """Record ``config_file`` as the owner of its artifacts folder (after a stage of it
+    finished there)."""
+    record = config_dir(cfg, root) / ".config"
+    mine = _owner(config_file, root)
+    try:
+        if record.read_text().strip() == mine:
+            return
+    except (OSError, UnicodeDecodeError):
+        pass
+    write_text(record, mine + "\n")

@@ -114,7 +114,10 @@ def test_fiber_stage_end_to_end_and_failure_keeps_artifacts(tmp_path):
     c["name"] = "tiny"
     c["fiber"] = {"model": "table", "table": {"path": str(bad), "format": "npz"}}
     cfg2.write_text(yaml.safe_dump(c))
+    # another config file of the same name is refused first (tests/test_safety.py); --force gets past that
     r = bcsdf("--artifacts", str(out), "fiber", str(cfg2), cwd=ROOT)
+    assert r.returncode == 2 and "holds the artifacts of tiny.yaml" in r.stderr
+    r = bcsdf("--artifacts", str(out), "fiber", "--force", str(cfg2), cwd=ROOT)
     assert r.returncode == 2 and "corrupt.npz" in r.stderr
     assert (d / "fiber_table.npz").read_bytes() == before
     assert not list(d.glob(".*.tmp"))

@@ -110,8 +110,10 @@ def tmpfs(tmp_path):
 
     def mount(path: Path, size: str, inodes: int = 64) -> Path:
         path.mkdir(parents=True, exist_ok=True)
-        subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},nr_inodes={inodes}", "tmpfs", str(path)],
-                       check=True)
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},nr_inodes={inodes}", "tmpfs", str(path)],
+                              capture_output=True, text=True)
+        if done.returncode != 0:   # a container without CAP_SYS_ADMIN: said, not hidden
+            pytest.skip(f"this machine refuses to mount a tmpfs ({done.stderr.strip()})")
         mounted.append(path)
         return path
 
