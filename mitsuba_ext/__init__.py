@@ -25,6 +25,7 @@ again after switching variants. The modules:
 """
 
 import importlib
+
 import mitsuba as mi
 
 

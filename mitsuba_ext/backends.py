@@ -20,10 +20,13 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
 import drjit as dr
+import numpy as np
 
+from mitsuba_ext.neural import DrJitMLP, OnnxMLP
 from mitsuba_ext.sampling import DirectionGrid
+from mitsuba_ext.table import DrJitTable
+from models.bundle_table import BundleTable
 from models.grid import bin_solid_angle, linear
 from models.jit import to_drjit
 
@@ -62,9 +65,6 @@ class TableBackend:
     name = "table"
 
     def __init__(self, table_path, Float, lookup: str = "linear"):
-        from mitsuba_ext.table import DrJitTable
-        from models.bundle_table import BundleTable
-
         if lookup not in ("linear", "nearest"):
             raise ValueError(f"fiber_bundle: lookup {lookup!r}; use 'linear' (default) or 'nearest'")
         self.Float = Float
@@ -134,8 +134,6 @@ class MLPBackend(_NeuralBackend):
     name = "mlp"
 
     def __init__(self, weights_path, Float):
-        from mitsuba_ext.neural import DrJitMLP
-
         self.mlp = DrJitMLP(weights_path)
         self._init_spec(self.mlp.spec, Float)
         self.nbytes = self.mlp.nbytes
@@ -155,8 +153,6 @@ class OnnxBackend(_NeuralBackend):
     name = "onnx"
 
     def __init__(self, onnx_path, Float, threads: int = 0):
-        from mitsuba_ext.neural import OnnxMLP
-
         self.model = OnnxMLP(onnx_path, threads=threads)
         self._init_spec(self.model.spec, Float)
         self.nbytes = os.path.getsize(onnx_path)

@@ -15,7 +15,6 @@ import numpy as np
 from mitsuba_ext.frame import SINGLE_FIBERS, fiber_on_linear_curve
 
 
-
 # -- small pure functions ----------------------------------------------------------
 def mis_weight(pdf_a, pdf_b):
     """Power heuristic, as Mitsuba's ``path`` (zero where undefined)."""

@@ -18,12 +18,14 @@ from __future__ import annotations
 import json
 import zipfile
 
-import numpy as np
 import drjit as dr
+import drjit.llvm
+import drjit.nn as nn
 import mitsuba as mi
+import numpy as np
 
-from models.neural import NeuralSpec, features, stable_expm1
 from models.jit import to_drjit
+from models.neural import NeuralSpec, features, stable_expm1
 
 
 def load_weights(path):
@@ -93,7 +95,6 @@ def _default_float():
     """The active Mitsuba variant's ``Float``, else Dr.Jit's LLVM ``Float``."""
     if mi.variant() is not None:
         return mi.Float
-    import drjit.llvm
 
     return drjit.llvm.Float
 
@@ -176,8 +177,6 @@ class DrJitMLP:
         return x
 
     def _matvec(self, Float, x):
-        import drjit.nn as nn
-
         Tensor = dr.tensor_t(Float)
         if Tensor not in self._packed:
             self._packed[Tensor] = nn.pack(*(Tensor(np.ascontiguousarray(a)) for layer in self.layers for a in layer))

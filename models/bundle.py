@@ -23,7 +23,12 @@ import csv
 from dataclasses import InitVar, dataclass
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.collections import EllipseCollection
+from matplotlib.patches import Circle, Ellipse
+from scipy.spatial import cKDTree
+from scipy.stats import qmc
 
 from .io import atomic_path
 
@@ -75,7 +80,6 @@ class Bundle:
         if np.any(self.radii > min(a, b)):
             raise ValueError(f"bundle {self.name}: a fiber (r = {self.radii.max()} um) is larger than the "
                              f"bundle (semi-axes {a}, {b} um)")
-        from scipy.spatial import cKDTree
 
         pairs = cKDTree(self.centers).query_pairs(2 * self.radii.max() + tol, output_type="ndarray")
         if len(pairs):
@@ -94,11 +98,6 @@ class Bundle:
 
     # -- pictures ----------------------------------------------------------
     def plot(self, path) -> None:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        from matplotlib.collections import EllipseCollection
-        from matplotlib.patches import Circle, Ellipse
 
         a, b = self.semi_axes
         fig, ax = plt.subplots(figsize=(6, 6 * max(b / a, 0.35)), dpi=120)
@@ -128,7 +127,6 @@ def distance_inside_ellipse(points: np.ndarray, a: float, b: float, n: int = 819
     points = np.asarray(points, dtype=np.float64)
     if a == b:
         return a - np.linalg.norm(points, axis=1)
-    from scipy.spatial import cKDTree
 
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     boundary = np.stack([a * np.cos(t), b * np.sin(t)], -1)
@@ -143,7 +141,6 @@ def distance_inside_ellipse(points: np.ndarray, a: float, b: float, n: int = 819
 
 def poisson(semi_axes, r, gap=0.0, packing=None, seed=0, name="poisson") -> Bundle:
     """Poisson-disk fibers of radius ``r`` inside an ellipse (or circle)."""
-    from scipy.stats import qmc
 
     a, b = float(semi_axes[0]), float(semi_axes[1])
     if r >= min(a, b):
@@ -217,7 +214,6 @@ def zhao2016(yarn: str, r: float, seed=0, max_tries=200_000, name=None) -> Bundl
 
     centers = []
     tries = 0
-    from scipy.spatial import cKDTree
 
     while len(centers) < m and tries < max_tries:
         batch = 4096
@@ -403,7 +399,6 @@ class TwistedBundle:
         if self.migration is not None:  # fibers move towards the axis by up to (1 - r_min) rho
             reach += (1.0 - self.migration.r_min) * 2 * b.bounding_radius
         reach *= self._axes.max() / self._axes.min()  # an ellipse brings fibers closer by up to b / a
-        from scipy.spatial import cKDTree
 
         pairs = cKDTree(c).query_pairs(reach, output_type="ndarray")
         if len(pairs) == 0:

@@ -23,6 +23,7 @@ baker tallies random directions with ``tie=0``.
 
 from __future__ import annotations
 
+import drjit as dr
 import numpy as np
 
 # lookups: cells widths below an edge that still count as on it (float32 rounding of the
@@ -222,7 +223,6 @@ class Cells:
 
     def upload(self, Float):
         """The edges and the lookup grid as Dr.Jit arrays of ``Float``'s backend (once)."""
-        import drjit as dr
 
         key = Float.__name__ + Float.__module__
         if key not in self._uploads:

@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -169,8 +171,6 @@ class _Journal:
 
     # -- records ---------------------------------------------------------------------
     def _record(self, **entry) -> None:
-        import json
-
         self.n += 1
         rec = self.folder / f"{self.n:06d}.json"
         tmp = self.folder / f".{self.n:06d}.json.tmp"
@@ -182,8 +182,6 @@ class _Journal:
         _fsync_folder(self.folder)
 
     def _records(self) -> list:
-        import json
-
         out = []
         for rec in sorted(self.folder.glob("[0-9]*.json")):
             try:
@@ -350,7 +348,6 @@ def exclusive(folder, what: str):
     interleave checkpoints. The lock is the kernel's (``flock``): it goes with the process,
     so a killed run leaves none behind."""
     import fcntl
-    import time
 
     path = check_inside(Path(folder) / ".lock")
     try:  # never through a link: a planted link must not truncate the file it points at

@@ -6,7 +6,7 @@ data starts on a 64-byte boundary, ``align 1`` elsewhere. numpy's data is 16-byt
 aligned (glibc's allocator), so whether an input is 64-byte aligned is chance, and
 kernels that read k numpy arrays compile in up to 2^k variants, one per pattern met: the
 large MLP's literal-weight kernel takes about a minute to compile each time on a cold
-cache (the export's measurement took 466 s instead of 76 s). :func:`to_drjit` copies into
+cache, so the variants multiply the export's measurement time several times over. :func:`to_drjit` copies into
 a 64-byte aligned buffer first, so one kernel serves every call.
 """
 

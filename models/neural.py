@@ -12,9 +12,9 @@ angles wrap, theta is clamped to [-pi/2, pi/2]), ``c = cone_scale``:
 * longitude ``[sin theta_i, cos theta_i, c (theta_o + theta_i)]``. ``theta_o +
   theta_i`` is the angular distance from the specular cone: parallel fibers keep all
   light near ``theta_o = -theta_i``, so the table is a narrow ridge along it, of about
-  constant angular width. Given that coordinate directly, a 3 x 64 model's held-out
-  error fell from 21% to 11% and its worst albedo error from 20% to 6% (the sine form
-  ``sin theta_o + sin theta_i`` narrows the ridge like ``cos theta`` at grazing angles).
+  constant angular width. Given that coordinate directly, a model learns the ridge with
+  far fewer parameters than from the raw angles (the sine form ``sin theta_o + sin
+  theta_i`` narrows the ridge like ``cos theta`` at grazing angles).
 * azimuth, rotation-invariant bundle (``phi_o`` relative in the table):
   ``[cos dphi, sin dphi]`` with ``dphi = phi_o - phi_i``; otherwise
   ``[cos phi_i, sin phi_i, cos phi_o, sin phi_o]``.
@@ -47,6 +47,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from . import rounding as rd
 
 FORMAT = "bcsdf.neural/2"
 FOLDS = ("theta", "dphi", "xz")
@@ -210,8 +214,6 @@ def bin_average(predict, cell, k: int = 4) -> np.ndarray:
 
 def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     """Group the bins of an expanded table by their (folded) features and average each group."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
 
     n_l = len(table.wavelength)
     PI, TI, PO, TO = np.meshgrid(table.phi_i, table.theta_i, table.phi_o, table.theta_o, indexing="ij")
@@ -292,7 +294,6 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
     (:func:`models.rounding.relu_mlp`). Two float32 evaluations (PyTorch and
     onnxruntime, say) differ by at most the sum of their bounds.
     """
-    from . import rounding as rd
 
     u = rd.U32 if u is None else u
     angles = np.asarray(angles, np.float64).reshape(-1, 4)

@@ -7,7 +7,10 @@ run.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
+
+from models.io import atomic_path
 
 from .config import BAKE_SECTIONS, FIBER_SECTIONS
 
@@ -85,8 +88,6 @@ def record_failure(cfg, stage: str, out_root, error: BaseException) -> Path | No
     """Write why ``stage`` failed (``reason.txt``) and its partial results, outside the
     stage's journal so that they outlive its rollback; best effort (a full disk may be why
     it failed)."""
-    from models.io import atomic_path
-
     folder = failure_dir(cfg, stage, out_root)
     files = {"reason.txt": str(error).strip() + "\n", **getattr(error, "partial", {})}
     try:
@@ -100,8 +101,6 @@ def record_failure(cfg, stage: str, out_root, error: BaseException) -> Path | No
 
 def clear_failure(cfg, stage: str, out_root="artifacts") -> None:
     """A stage that succeeded has no failure on record."""
-    import shutil
-
     shutil.rmtree(failure_dir(cfg, stage, out_root), ignore_errors=True)
 
 
@@ -112,3 +111,12 @@ def read_failure(cfg, stage: str, out_root="artifacts") -> str | None:
         return path.read_text().strip()
     except OSError:
         return None
+
+
+def model_size(cfg) -> str:
+    """The trained size the renders use: ``render.model``, or the widest of ``train.models``."""
+    sizes = list(cfg.train.models)
+    size = cfg.render.model or max(sizes, key=lambda s: sum(cfg.train.models[s]))
+    if size not in cfg.train.models:
+        raise ValueError(f"render.model: {size!r} is not one of the trained sizes {sizes}")
+    return size

@@ -7,6 +7,7 @@ render stage and the benchmarks build the same objects from the same config.
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -127,7 +128,6 @@ def batch_seed(cfg, a: int, k: int) -> np.random.SeedSequence:
 
 
 def code_version() -> str:
-    import subprocess
     try:
         return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                               cwd=Path(__file__).resolve().parent, timeout=5).stdout.strip() or "unknown"

@@ -27,7 +27,14 @@ import os
 import sys
 import time
 from pathlib import Path
+
+import matplotlib
+
+from models.io import OBSTACLES, WRITE_ERRORS, confined, exclusive, journal, writable_folder
+
+from . import estimate, graph
 from .artifacts import StageFailed, clear_failure, config_dir, failure_dir, record_failure
+from .config import ConfigError, check_variants, load_config
 
 EPILOG = """\
 The config's keys are documented in configs/default.yaml and pipeline/config.py.
@@ -40,6 +47,7 @@ STAGES = ("fiber", "bake", "train", "export", "render", "cloth", "stability", "s
 
 
 def main(argv=None) -> int:
+    matplotlib.use("Agg")  # every picture is a file: no window, no display needed
     parser = argparse.ArgumentParser(prog="bcsdf", description=__doc__.split("\n\n")[0])
     parser.add_argument("--artifacts", default="artifacts", help="output root (default: artifacts/)")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -86,14 +94,11 @@ def main(argv=None) -> int:
         os.environ.setdefault("TQDM_MININTERVAL", "30")
         os.environ.setdefault("TQDM_MAXINTERVAL", "60")
 
-    from .config import ConfigError, check_variants, load_config
-
     try:
         with contextlib.ExitStack() as hold:
             _check_environment()
             cfg = load_config(args.config, args.overrides)
             check_variants(cfg)  # a cuda_* variant on a machine without a GPU: before any work
-            from models.io import confined, exclusive, writable_folder
 
             hold.enter_context(confined(args.artifacts))  # no write leaves the artifacts root
             folder = writable_folder(config_dir(cfg, args.artifacts))  # before any long work, not after it
@@ -118,7 +123,6 @@ def main(argv=None) -> int:
               "and a bake resumes from its last checkpoint", file=sys.stderr)
         return 2
     except OSError as e:
-        from models.io import OBSTACLES, WRITE_ERRORS
         if e.errno in OBSTACLES:
             print(f"bcsdf {args.command}: error: cannot write {e.filename} ({e.strerror}): something in the "
                   "artifacts folder is in the way (a folder where a file belongs, a file where a folder belongs, "
@@ -136,7 +140,6 @@ def main(argv=None) -> int:
 def _write_error_in(e: Exception) -> str | None:
     """The OS's words for a write error (a full disk, a quota, a read-only disk, a file-size
     limit) if ``e``'s message holds them: how torch and Mitsuba report ENOSPC."""
-    from models.io import WRITE_ERRORS
 
     text = str(e)
     return next((os.strerror(code) for code in WRITE_ERRORS if os.strerror(code) in text), None)
@@ -158,7 +161,6 @@ ENVIRONMENT = {  # variables bcsdf reads, and what each must hold
 
 def _check_environment() -> None:
     """Environment variables with garbage in them are named, not a traceback later."""
-    from .config import ConfigError
 
     for name, (what, parse) in ENVIRONMENT.items():
         value = os.environ.get(name)
@@ -171,7 +173,7 @@ def _check_environment() -> None:
 
 
 def _render_scene(args) -> int:
-    from .render_scene import render_scene
+    from .render_scene import render_scene  # loaded for this command alone: the stages' deps stay their own
 
     if args.spp is not None and args.spp < 1:
         print(f"bcsdf render-scene: error: --spp must be at least 1 (got {args.spp})", file=sys.stderr)
@@ -190,7 +192,6 @@ def _run(args, cfg) -> None:
     A stage that fails leaves its last good outputs, its reason and partial results under
     ``failed/<stage>/``; ``bcsdf run`` then still writes the report (which says so), records
     for DVC the stages that did finish, and raises the failure."""
-    from . import estimate, graph
 
     stages = [s for s in STAGES if _applies(s, cfg)] if args.command == "run" else (args.command,)
     graph.check_claim(cfg, args.config, stages, args.artifacts, args.force)  # one config file per folder
@@ -221,7 +222,7 @@ def _run(args, cfg) -> None:
               f"{failure_dir(cfg, stage, args.artifacts)}", file=sys.stderr, flush=True)
         if args.command == "run" and stage != "report" and "report" in stages:
             try:  # the report says what failed, with what finished
-                _stage("report").run(cfg, args.artifacts)
+                graph.run_stage("report", cfg, args.artifacts)
             except Exception as e:  # the failure that stopped the run is the one to tell
                 print(f"[run] the report could not be written either ({type(e).__name__}: {e})", file=sys.stderr)
         raise
@@ -234,16 +235,13 @@ def _run(args, cfg) -> None:
 
 def _run_stage(stage, args, cfg) -> float:
     """One stage, all or nothing; stamped when it succeeds, its failure kept apart when not."""
-    from models.io import journal
-
-    from . import estimate, graph
 
     t0 = time.perf_counter()
     shard = {k: getattr(args, k, None) for k in ("workers", "scheduler")} if stage in ("bake", "sweep") else {}
     try:
         # all or nothing (the sweep keeps each member as it finishes, as a bake keeps its checkpoint)
         with contextlib.nullcontext() if stage == "sweep" else journal(config_dir(cfg, args.artifacts)):
-            _stage(stage).run(cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
+            graph.run_stage(stage, cfg, args.artifacts, **{k: v for k, v in shard.items() if v})
     except StageFailed as e:  # a stage that ran to its end and found something wrong: its diagnosis is kept
         record_failure(cfg, stage, args.artifacts, e)
         raise
@@ -257,7 +255,6 @@ def _run_stage(stage, args, cfg) -> float:
 def _record_lock(args, cfg, finished) -> None:
     """Record the finished stages of a shipped config in DVC's lock (one notion of up to
     date for both tools: what the lock would hold after ``dvc repro``)."""
-    from . import graph
 
     shipped = Path(args.config).resolve() == graph.ROOT / "configs" / f"{cfg.name}.yaml"
     if args.command == "run" and finished and shipped and not args.overrides \
@@ -286,10 +283,6 @@ def _interrupted(exc) -> bool:
         exc = exc.__cause__ or exc.__context__
     return False
 
-
-def _stage(name):
-    import importlib
-    return importlib.import_module(f"pipeline.stages.{name}")
 
 
 if __name__ == "__main__":

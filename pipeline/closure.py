@@ -32,11 +32,25 @@ Example::
 
 from __future__ import annotations
 
+import tempfile
 import textwrap
+from pathlib import Path
 
+import drjit as dr
+import matplotlib.pyplot as plt
+import mitsuba as mi
 import numpy as np
 
+from mitsuba_ext.frame import spectral_weights
+from mitsuba_ext.neural import DrJitMLP, OnnxMLP
+from models.bundle import TwistedBundle
+from models.bundle_table import BundleTable, lookup
+from models.cloth.curves import interpolate_bspline, write_mitsuba_curves
+from models.fiber.base import FiberTable
+from models.fiber.ray import mitsuba_hair
 from models.grid import TIE, Cells
+from models.io import atomic_path
+from models.spectrum import hat_basis
 
 AXIS = np.array([0.0, 1.0, 0.0])   # the fibers' direction (bundle frame +y)
 UP = [1.0, 0.0, 0.0]               # the BSDFs' ``up``: bundle frame x = world x
@@ -63,8 +77,7 @@ def fiber_half_length(half_size, theta_o) -> float:
     (radians, any shape): 40 film half sizes, or twice the half :func:`visible_length` of
     the most grazing view. A film along a nearly axial ``w_o`` sees ``2 half_size /
     cos(theta_o)`` of the axis, more than 80 half sizes beyond 88.57 deg: with shorter fibers
-    it would see past their ends and read the intensity low (the default ply at 88.75 deg:
-    23%; one fiber at 88.8 deg: 34%)."""
+    it would see past their ends and read the intensity low by a large fraction."""
     return float(half_size * max(40.0, visible_length(1.0, np.max(np.abs(np.asarray(theta_o, float))))))
 
 
@@ -168,9 +181,6 @@ def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float | None) ->
     with ``fiber_table``. ``wavelength_nm``: what a mono variant renders; ``None`` for a
     spectral variant."""
     if exit_model == "curve":
-        from models.fiber.base import FiberTable
-        from models.fiber.ray import mitsuba_hair
-
         table = FiberTable.load(fiber_table)
         if table.meta.get("model") == "ray" and table.meta.get("transport") == "camera":
             if wavelength_nm is None:
@@ -191,7 +201,6 @@ def luminance_weights(mi, wavelength_nm) -> np.ndarray:
     its own CIE 1931 ``y`` (an analytic fit, ``mi.cie1931_y``, not the tabulated
     observer) over its sampling range, normalized so that a flat spectrum of 1 reads 1.
     """
-    from models.spectrum import hat_basis
 
     fine = np.linspace(360.0, 830.0, 4701)      # Mitsuba's CIE range, 0.1 nm
     y_bar = np.asarray(mi.cie1931_y(mi.Float(fine)), np.float64)
@@ -202,7 +211,6 @@ def spectrum_weights(mi, wavelength, wavelength_nm: float | None) -> np.ndarray:
     """Weights over a table's ``wavelength`` samples for the value asked for: a mono
     variant's at ``wavelength_nm`` (the plugins' own, ``mitsuba_ext.frame.spectral_weights``:
     linear between samples), or (``None``) the luminance a spectral render records."""
-    from mitsuba_ext.frame import spectral_weights
 
     wl = np.asarray(wavelength, np.float64)
     if wavelength_nm is None:
@@ -268,7 +276,6 @@ def helix_control_points(ply, half_length: float, unit: float = 1e-3, per_turn: 
     the spline). The interpolation runs six knots past each end, where its natural end
     conditions have died out (by ``(2 - sqrt 3)^6``), and those knots are cut off.
     """
-    from models.cloth.curves import interpolate_bspline
 
     L, extra = half_length / unit, 6
     n = int(np.ceil(2 * L / ply.turn_length * per_turn))    # knot intervals over [-L, L]
@@ -296,7 +303,6 @@ def straight_control_points(bundle, half_length: float, unit: float = 1e-3, segm
 def write_curves(curves, path) -> None:
     """A scratch curve file that a render reads (not an artifact: written in place) in
     Mitsuba's format (``models.cloth.curves.write_mitsuba_curves``), at float32's precision."""
-    from models.cloth.curves import write_mitsuba_curves
 
     with open(path, "w") as f:
         write_mitsuba_curves(f, curves, fmt="%.9g")
@@ -307,7 +313,6 @@ def explicit_twisted_shapes(curve_file, fiber_bsdf: dict, turn: float, shift: fl
     ``bsplinecurve``, turned by ``turn`` (radians) about the axis and moved by ``shift``
     (scene units) along it. Without migration a turn is a shift along the axis, so evenly
     spaced turns average over the period; with it, turns and shifts together."""
-    import mitsuba as mi
 
     T = mi.ScalarTransform4f()
     return {"ply": {"type": "bsplinecurve", "filename": str(curve_file), "bsdf": fiber_bsdf,
@@ -324,7 +329,6 @@ def view_placements(ply, n_views: int, unit: float, turns: bool = True) -> list[
     a turn is a shift); an ellipse, whose bake keeps its azimuth, the shifts alone (none if
     parallel); a migrating circle both, as a rank-1 lattice over (turn, height) whose every
     projection, and the shift a turn amounts to, are stratified."""
-    from models.bundle import TwistedBundle
 
     twisted = isinstance(ply, TwistedBundle)
     P = ply.period * unit if twisted else 0.0
@@ -364,10 +368,6 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     long): each turn of the arrangement is loaded once, and the sun and the camera are
     moved between requests (``mi.traverse``), as a fresh scene would place them; the
     scenes' loads and kernels, not their pixels, are what explicit fibers cost here."""
-    import tempfile
-    from pathlib import Path
-
-    from models.bundle import TwistedBundle
 
     twisted = isinstance(bundle, TwistedBundle)
     section = bundle.bundle if twisted else bundle
@@ -432,20 +432,15 @@ def evaluator(mi, kind: str, path, wavelength_nm: float | None):
     (``model.onnx``, onnxruntime).
     """
     if kind == "fiber":
-        from models.fiber.base import FiberTable
-
         if wavelength_nm is None:
             raise ValueError("evaluator: a fiber table is evaluated at one wavelength")
         fiber = FiberTable.load(path)
         return _on_arrays(lambda pi_, ti, po, to: fiber.eval(phi_i=pi_, theta_i=ti, phi_o=po, theta_o=to,
                                                               wavelength=wavelength_nm))
     if kind == "table":
-        from models.bundle_table import BundleTable, lookup
-
         t = BundleTable.load(path, expand=True)
         w = spectrum_weights(mi, t.wavelength, wavelength_nm)
         return _on_arrays(lambda pi_, ti, po, to: lookup(t, pi_, ti, po, to) @ w)
-    from mitsuba_ext.neural import DrJitMLP, OnnxMLP
 
     if kind == "mlp":
         mlp = DrJitMLP(path)
@@ -499,7 +494,6 @@ def far_field_ratios(mi, bsdf: dict, R, S_of, pairs, evaluated: bool = False, sp
     ``fiber_ray``, needs enough of them to integrate over it); ``shape(R, bsdf, half_length)``:
     the shape dict along ``+y`` (default :func:`cylinder`; the cloth tests give a curve).
     Pairs where ``S`` is not :func:`continuous` are left out."""
-    import drjit as dr
 
     flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
     saved = [dr.flag(f) for f in flags]
@@ -616,12 +610,7 @@ def plot(far_field: dict, explicit: dict, path, title="", note: str = "") -> Non
     """Left: rendered / predicted - 1 per direction pair and backend; right: explicit
     fibers / bake - 1 per bin with 1-sigma error bars, per (fiber, ply), or ``note`` where
     there are none."""
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from models.io import atomic_path
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.2))
     for k, (name, rows) in enumerate(far_field.items()):

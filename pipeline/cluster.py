@@ -21,9 +21,13 @@ single-core workers, run the client with ``drjit.set_thread_count(1)`` too, as
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 
-from .config import FIBER_SECTIONS
+import numpy as np
+
+from . import graph
+from .config import FIBER_SECTIONS, Config
 
 _BAKERS: dict = {}  # per worker process: the Bakers of the last few (config, fiber table)
 BAKERS_KEPT = 4  # a sweep's tasks interleave members a little: keep a few scenes built
@@ -33,8 +37,6 @@ MAX_BATCHES_PER_TASK = 8
 
 def code_digest(cfg) -> str:
     """The digest of the code a bake runs (the bake stage's code deps in dvc.yaml)."""
-    from . import graph
-
     return graph.digest(graph.spec("bake", cfg)["code"], graph.ROOT)[:16]
 
 
@@ -47,12 +49,12 @@ def trace_batches(cfg_json: str, fiber, items, code: str, threads: int = 0) -> l
 def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, threads: int = 0):
     """One batch on a worker: ``Baker.trace`` with the serial bake's seed, on ``threads``
     Dr.Jit threads (the client's). Returns the tally, packed."""
-    import json
-
+    # imported here, on the worker's executor thread, not when the task is unpickled on its
+    # event loop: these imports run Dr.Jit's @dr.syntax, i.e. ast.parse, which CPython 3.11
+    # cannot run in two threads at once (gh-106905: "AST constructor recursion depth mismatch")
     import mitsuba as mi
 
     from .build import batch_seed, build_ply, make_spec, tracer
-    from .config import Config
 
     cfg = Config.model_validate(json.loads(cfg_json))
     if code != _worker_code(cfg):
@@ -83,8 +85,6 @@ def pack(tally) -> dict:
     the bins; the zeros it leaves out add exactly nothing, so the unpacked tally adds to
     the same bits.
     """
-    import numpy as np
-
     a = tally.arrays()
     nz = np.flatnonzero((a["sum"] != 0) | (a["sum_sq"] != 0))
     return {"shape": a["sum"].shape, "index": nz.astype(np.int64), "sum": a["sum"].ravel()[nz],
@@ -92,9 +92,7 @@ def pack(tally) -> dict:
 
 
 def unpack(packed: dict):
-    import numpy as np
-
-    from models.bake import Tally
+    from models.bake import Tally  # on the client's thread too: see trace_batch
 
     dense = {}
     for k in ("sum", "sum_sq"):
@@ -147,7 +145,7 @@ def client(workers: int | None = None, scheduler: str | None = None):
 
 def ordered_tallies(c, bakes):
     """Yield ``(j, index, tally)`` for the remaining batches of every bake in ``bakes``
-    (:class:`pipeline.stages.bake.Bake`), traced on the cluster; each bake's batches in order.
+    (:class:`pipeline.baking.Bake`), traced on the cluster; each bake's batches in order.
 
     All remaining batches are submitted at once, bake after bake (Dask runs tasks
     roughly in the order they were submitted, so a worker seldom switches scenes), several
@@ -157,9 +155,8 @@ def ordered_tallies(c, bakes):
     finish together); a result is held until every earlier batch of its bake is in, so the caller
     adds them in the serial order.
     """
-    from distributed import as_completed
-
     import drjit as dr
+    from distributed import as_completed
 
     threads, code = dr.thread_count(), code_digest(bakes[0].cfg)  # one code for every bake
     n_workers = max(1, len(c.scheduler_info().get("workers", {})))

@@ -10,8 +10,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import typing
 import os
+import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
@@ -20,7 +20,6 @@ import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from models.grid import cone_bin_counts, cone_edges, cone_nodes
-
 
 # Which config sections each stage's artifact depends on (its provenance hash)
 FIBER_SECTIONS = ("wavelengths", "fiber", "tabulate")
@@ -404,7 +403,7 @@ class BakeCfg(Strict):
 
 
 class TrainCfg(Strict):
-    """Neural compression of the bundle table (see pipeline/stages/train.py)."""
+    """Neural compression of the bundle table (see models/fit.py)."""
 
     models: dict[str, list[int]] = Field(default_factory=lambda: {
         "small": [32, 32], "medium": [64, 64, 64], "large": [128, 128, 128]})

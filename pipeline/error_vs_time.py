@@ -30,12 +30,23 @@ from __future__ import annotations
 import json
 import time
 
+import drjit as dr
+import matplotlib.pyplot as plt
+import mitsuba as mi
 import numpy as np
+import torch
 
+from mitsuba_ext.neural import DrJitMLP, OnnxMLP, check_compatible
+from mitsuba_ext.table import DrJitTable
+from models.bundle_table import lookup
 from models.errors import albedo_error, log_mae, relative_l1
-from models.jit import to_drjit
+from models.fit import file_hash, held_out_bins, load_checkpoint
 from models.io import write_text
-from .artifacts import checkpoint_path, stage_dir
+from models.jit import to_drjit
+from models.neural import NeuralSpec, bin_average, make_export_module, make_torch_model, table_cells
+
+from .artifacts import checkpoint_path, load_bundle_table, stage_dir
+from .plots import save_figure
 
 
 def _best_of(fn, repeat=3):
@@ -49,16 +60,6 @@ def _best_of(fn, repeat=3):
 
 def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     """Run the whole comparison; print it, write the PNG and JSON, return the rows."""
-    import drjit as dr
-    import mitsuba as mi
-    import torch
-
-    from mitsuba_ext.neural import DrJitMLP, OnnxMLP, check_compatible
-    from mitsuba_ext.table import DrJitTable
-    from models.bundle_table import lookup
-    from models.neural import NeuralSpec, bin_average, make_export_module, make_torch_model, table_cells
-    from .artifacts import load_bundle_table
-    from .stages.train import file_hash, held_out_bins, load_checkpoint
 
     mi.set_variant(cfg.bake.variant)
     torch.set_num_threads(2)
@@ -69,7 +70,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     truth = table.values.reshape(-1, n_l).astype(np.float64)
     first = next(iter(cfg.train.models))
     first_spec = NeuralSpec.from_dict(load_checkpoint(checkpoint_path(cfg, first, artifacts))["spec"])
-    val = held_out_bins(table, first_spec, cfg)  # every model of a config shares the split
+    val = held_out_bins(table, first_spec, cfg.train)  # every model of a config shares the split
     omega = np.broadcast_to(table.solid_angle[None, None, :, :], table.values.shape[:4]).ravel()
     scattered = table.scattered  # [phi_i, theta_i, lambda]
     s0 = float(np.mean(table.values[table.values > 0]))
@@ -84,7 +85,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     def errors(predict):
         """predict(list of 4 arrays) -> [n, n_lambda]; every bin's average over 4 x 4 points,
         as the table's bins are averages (at the centres alone a model may peak unseen
-        between them: a model 1.8% off in albedo at the centres was 7% off in its worst row)."""
+        between them, and its albedo at the centres says little of its worst row's)."""
         pred = bin_average(lambda *q: predict([a.astype(np.float32) for a in q]), cells).astype(np.float64)
         p, t = pred[val], truth[val]
         albedo = (pred * omega[:, None]).reshape(table.values.shape[:2] + (-1, n_l)).sum(axis=2)
@@ -191,11 +192,6 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
 
 def plot(rows, noise_l1, path, queries):
     """Two panels against the cost per query: held-out relative L1 and worst albedo error."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .plots import save_figure
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 5), dpi=110)
     markers = {"numpy": "s", "drjit": "o", "pytorch": "^", "onnxruntime": "D"}

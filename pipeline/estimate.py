@@ -5,10 +5,10 @@ size the config implies: paths times the chord of the bundle in fibers, epochs t
 times the model's width, pixels times samples ...) times **seconds per unit of work**.
 That rate comes from the last run of the same stage on this machine when there is one
 (its stamp records work and seconds), else from the default config measured on the
-reference 2-core machine (``REFERENCE`` below; figures in docs/BENCHMARKS.md).
+reference 2-core machine (``REFERENCE`` below).
 
-The same machine runs the same stages 1.5x faster on one day than on another (shared
-hosts). So the rate is scaled by the machine's **pace**: a fixed 0.3-s :func:`probe` (matrix
+The same machine runs the same stages markedly faster on one day than on another (shared
+hosts). So the rate is scaled by the machine's **pace**: a fixed short :func:`probe` (matrix
 products on two threads, array arithmetic, a Python loop) timed now, over the same probe
 when the rate was measured (``PROBE_REFERENCE``, or the one a stamp recorded). Good to
 about a third: enough to decide between waiting and coming back tomorrow, not a benchmark.
@@ -19,12 +19,15 @@ from __future__ import annotations
 import json
 import time
 
+import torch
+
+from .config import sweep_members
 from .graph import stamp_path
 
-# seconds per unit of work of each stage beyond its overhead: `make run` on a fresh clone with
-# a fresh HOME (cold Dr.Jit kernel cache), session 24, its stages' stamps (docs/BENCHMARKS.md,
-# "The whole default pipeline"), at the pace PROBE_REFERENCE; cloth and sweep: their rates of
-# sessions 16-19 times 0.67, the ratio of the other stages' rates then and now
+# seconds per unit of work of each stage beyond its overhead, from the stamps of `make run` on a
+# fresh clone with a fresh HOME (cold Dr.Jit kernel cache) at the pace PROBE_REFERENCE; cloth and
+# sweep from their own runs, scaled to that pace. The estimate is a forecast, printed beside the
+# seconds each stage then takes: a machine or code that drifts from it shows there
 OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "cloth": 8.0, "stability": 0.0,
             "sweep": 3.0, "report": 1.0}
 REFERENCE = {"fiber": 2.9e-4, "bake": 5.75e-7, "train": 8.5e-7, "export": 1.97, "render": 1.23e-6,
@@ -135,8 +138,6 @@ def _cloth_work(cfg) -> float:
 
 
 def _sweep_work(cfg) -> float:
-    from .config import sweep_members
-
     return sum(_bake_work(m) for _, m in sweep_members(cfg))
 
 
@@ -190,7 +191,6 @@ def plan(cfg, stages, root="artifacts") -> str:
 def kernels_note() -> str:
     """Which CPU kernels torch chose (``ATEN_CPU_CAPABILITY`` overrides), and what that means
     for training: the rates above were measured with vector kernels."""
-    import torch
 
     capability = torch.backends.cpu.get_cpu_capability()
     if capability.upper() in ("DEFAULT", "NO AVX"):

@@ -17,13 +17,16 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib
 import json
+import logging
 import os
 from pathlib import Path
 
 import yaml
 
 from models.io import write_text
+
 from .artifacts import config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,6 +44,20 @@ def dvc_yaml() -> dict:
 def _parse(text: str) -> dict:
     # libyaml's loader where PyYAML has it: ten times faster on this file
     return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+
+
+def run_stage(stage: str, cfg, root="artifacts", **options):
+    """Run ``stage``'s command for ``cfg`` (what ``bcsdf STAGE`` runs, less its stamp).
+
+    The one way to a stage from outside it: the CLI, and the stages that run others (the
+    sweep's members, the stability stage's stiff model) call it, so no stage imports
+    another (tests/test_layout.py)."""
+    return stage_module(stage).run(cfg, root, **options)
+
+
+def stage_module(stage: str):
+    """``pipeline.stages.<stage>``, imported when it runs (a stage loads no other's code)."""
+    return importlib.import_module(f"pipeline.stages.{stage}")
 
 
 def template(stage: str, cfg) -> str:
@@ -170,7 +187,6 @@ def record_dvc_lock(stages, cfg) -> str:
     except ImportError:
         return ("dvc.lock not updated: DVC is not installed (`make setup` installs it; then `bcsdf run` "
                 "again records the lock without re-running anything)")
-    import logging
 
     logging.getLogger("dvc").setLevel(logging.WARNING)
     with Repo(str(ROOT)) as repo:

@@ -15,6 +15,7 @@ import math
 from pathlib import Path
 
 from models.io import write_text
+
 from .artifacts import stage_dir
 
 

@@ -4,8 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import colour
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import FuncNorm
 
+from models.grid import Cells
+from models.io import atomic_path
 from models.spectrum import spectrum_to_srgb
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # linear sRGB -> Y
@@ -41,7 +47,6 @@ def log_map(Y, scale: tuple[float, float]):
 def tone_map(rgb: np.ndarray, scale: tuple[float, float] | None = None) -> np.ndarray:
     """Log tone mapping on luminance, hue kept; sRGB-encoded in [0, 1]. ``scale`` (from
     :func:`log_scale`) shares one mapping between images that are compared."""
-    import colour
 
     rgb = np.maximum(rgb, 0.0)
     Y = rgb @ LUMINANCE
@@ -55,7 +60,6 @@ def theta_rows(f: np.ndarray, theta_edges) -> np.ndarray:
     """``f[theta_o, ...]`` over bins with ``theta_edges`` as rows of equal height (an image's
     rows are equal): each bin repeated over the rows it covers (rows half its narrowest bin
     high), so a cone layout's narrow bins keep their width on the page. Equal bins: ``f``."""
-    from models.grid import Cells
 
     cells = Cells(theta_edges)
     if cells.uniform:
@@ -71,12 +75,6 @@ def spectral_image(f: np.ndarray, wavelength, path: Path, title: str,
     """``f[theta_o, phi_o, lambda]`` as an sRGB image (log tone map), theta_o upwards,
     with a colour bar of its luminance in ``unit`` (a flat spectrum of value v has
     luminance v). Returns the tone map's scale, so a compared image can share it."""
-    import colour
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import FuncNorm
 
     rgb = spectrum_to_srgb(f, wavelength)
     scale = scale or log_scale(np.maximum(rgb, 0.0) @ LUMINANCE)
@@ -118,10 +116,6 @@ def axes_in(fig, left: float, bottom: float, right: float, top: float):
 
 
 def save_figure(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    from models.io import atomic_path
-
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)

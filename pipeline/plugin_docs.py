@@ -18,7 +18,10 @@ import re
 import sys
 from pathlib import Path
 
+import mitsuba as mi
+
 from mitsuba_ext import plugin_modules
+from models.io import write_text
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "plugins"
 KIND = {"fiber_bundle": "BSDF", "fiber_table": "BSDF", "fiber_ray": "BSDF", "bundle_path": "integrator"}
@@ -79,7 +82,6 @@ def markdown(doc: str) -> str:
 
 def pages() -> dict:
     """``{file name: text}`` of every plugin's page."""
-    import mitsuba as mi
 
     if mi.variant() is None:
         mi.set_variant("scalar_rgb")
@@ -111,7 +113,6 @@ def main(argv=None) -> int:
             if not path.exists() or path.read_text() != text:
                 stale.append(str(path))
         else:
-            from models.io import write_text
             write_text(path, text)
             print(f"wrote {path}")
     if stale:

@@ -14,17 +14,17 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
+
+import mitsuba_ext
+from mitsuba_ext.crossing import check_integrator
+from models.io import atomic_path
+from pipeline.images import exposure_of, save_png, to_srgb
 
 
 def render_scene(scene_path, out, spp=None, variant="llvm_ad_spectral", defines=()) -> dict:
-    import drjit as dr
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    from .stages.render import exposure_of, save_png, to_srgb
-
     scene_path = Path(scene_path)
     if not scene_path.is_file():
         raise FileNotFoundError(f"{scene_path}: no such scene file")
@@ -46,7 +46,6 @@ def render_scene(scene_path, out, spp=None, variant="llvm_ad_spectral", defines=
             where, _, rest = text.partition("Traceback")
             text = where.strip().rstrip(":") + ": " + rest.strip().splitlines()[-1]
         raise ValueError(f"{scene_path}: {text}") from None
-    from mitsuba_ext.crossing import check_integrator
 
     problem = check_integrator(scene)
     if problem:
@@ -60,7 +59,6 @@ def render_scene(scene_path, out, spp=None, variant="llvm_ad_spectral", defines=
     if not np.all(np.isfinite(image)):
         raise FloatingPointError(f"{scene_path}: the render holds {np.sum(~np.isfinite(image))} NaN or Inf values")
     out = Path(out)
-    from models.io import atomic_path
 
     with atomic_path(out.with_suffix(".exr")) as tmp:
         mi.Bitmap(image).write(str(tmp), mi.Bitmap.FileFormat.OpenEXR)

@@ -16,6 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.bundle import TwistedBundle, zhao2016_row
+
+from .closure import helix_control_points, write_curves
+
 UM = 1e-3  # micrometres in scene units (mm)
 FOV_DEG = 60.0  # the render stage's perspective camera, across the image
 
@@ -115,10 +119,6 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, p
     written to ``curve_file``, long enough to be moved by up to ``reach`` scene units
     along the axis.
     """
-    from models.bundle import TwistedBundle
-
-    from .closure import helix_control_points, write_curves
-
     L = ply_length(cfg)
     scene = _base(mi, cfg, 0.5 * L, spp, seed)
     fiber = {"type": plugin, "filename": str(fiber_table_path)}
@@ -156,7 +156,6 @@ def yarn_helices(cfg, row: dict, n_points: int = 64):
 
 
 def yarn_scene(mi, cfg, bsdf: dict, curve_path, row: dict, spp: int, seed: int = 0) -> dict:
-    from .closure import write_curves
 
     plies, L, R_ply = yarn_helices(cfg, row)
     write_curves(plies, curve_path)
@@ -212,3 +211,11 @@ def cloth_scene(mi, c, shapes: dict, bbox, spp: int, seed: int = 0, view=None) -
             [0.5 * (lo[0] + hi[0]), lo[1], 0.5 * (lo[2] + hi[2])]).rotate([1, 0, 0], -90).scale(size),
             "bsdf": {"type": "diffuse", "reflectance": {"type": "spectrum", "value": c.ground_reflectance}}}
     return scene
+
+
+def named_scene(mi, cfg, name: str, bsdf: dict, spp: int, out, seed: int = 0) -> dict:
+    """The render stage's scene ``name`` of ``render.scenes`` (``ply`` or ``yarn``; the
+    yarn's ply curves are written to ``out``)."""
+    if name == "ply":
+        return ply_scene(mi, cfg, bsdf, spp, seed)
+    return yarn_scene(mi, cfg, bsdf, out / "yarn_curves.txt", zhao2016_row(cfg.render.yarn), spp, seed)

@@ -14,7 +14,7 @@ from models.bundle import Bundle, poisson
 from models.bundle_table import BundleTable
 from models.fiber.patterns import PatternFiber
 from models.fiber.ray import RayFiber
-from pipeline.stages.bake import bake_unreduced
+from models.bake import bake_unreduced
 
 WL = np.array([450.0, 650.0])
 NODES = np.deg2rad(np.arange(0, 91, 5.0))

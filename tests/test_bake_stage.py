@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import yaml
 
-from models.bake import Baker, BakeSpec
+from models.bake import Baker, BakeSpec, tally_to_table
 from models.bundle import Bundle, poisson
 from models.bundle_table import BundleTable
 from models.fiber.patterns import PatternFiber
@@ -113,7 +113,7 @@ def test_extremes_are_finite(mi_llvm, estimator):
     spec = BakeSpec(np.deg2rad([0.0, 89.9, 90.0]), [0.0], 12, 16, estimator=estimator, max_bounces=3000)
     for bundle in (touching, poisson((150, 150), 20, seed=9)):
         tally = Baker(bundle, iso, spec).trace(0, 20_000, 1)
-        table = bake_stage.tally_to_table(tally, spec, iso, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
+        table = tally_to_table(tally, spec, iso, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
         table.validate()  # finite everywhere
         assert np.all(table.values >= 0)
         assert np.allclose(table.energy_balance()["total"], 1, atol=0.05)

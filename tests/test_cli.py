@@ -125,7 +125,7 @@ def test_fiber_stage_end_to_end_and_failure_keeps_artifacts(tmp_path):
 
 def test_run_skips_what_is_up_to_date_and_force_reruns_it(tmp_path, monkeypatch, capsys):
     """``bcsdf run``'s bookkeeping, with stand-in stages that only write their outputs."""
-    from pipeline import cli
+    from pipeline import cli, graph
 
     ran = []
 
@@ -142,7 +142,7 @@ def test_run_skips_what_is_up_to_date_and_force_reruns_it(tmp_path, monkeypatch,
             metrics.mkdir(exist_ok=True)
             (metrics / f"{self.name}.json").write_text("{}")  # what dvc.yaml lists as its metrics
 
-    monkeypatch.setattr(cli, "_stage", Stage)
+    monkeypatch.setattr(graph, "stage_module", Stage)
     cfg = write_config(tmp_path / "tiny.yaml")
     art = str(tmp_path / "art")
     assert cli.main(["--artifacts", art, "run", str(cfg)]) == 0
@@ -164,7 +164,7 @@ def test_a_failed_stage_keeps_its_diagnosis_and_the_report_says_so(tmp_path, mon
     """A stability check that fails: exit 2 with the failing rows printed; the table is kept
     under failed/stability/ while the last good outputs stay; the report, still written by
     `bcsdf run`, says 'stability failed', and a later success clears the record."""
-    from pipeline import cli
+    from pipeline import cli, graph
     from pipeline.stages import stability
 
     cfg = write_config(tmp_path / "tiny.yaml")
@@ -263,7 +263,7 @@ def test_atomic_writes_keep_the_old_file_on_failure_and_give_the_usual_mode(tmp_
 def test_ctrl_c_inside_a_traced_loop_is_an_interruption(tmp_path, monkeypatch, capsys):
     """Dr.Jit re-raises a Ctrl-C that lands in ``dr.while_loop`` as a RuntimeError from it:
     still exit 130 with the interruption message, not a traceback."""
-    from pipeline import cli
+    from pipeline import cli, graph
 
     class Stage:
         def run(self, cfg, root):
@@ -272,7 +272,7 @@ def test_ctrl_c_inside_a_traced_loop_is_an_interruption(tmp_path, monkeypatch, c
             except KeyboardInterrupt as e:
                 raise RuntimeError("dr.while_loop(): encountered an exception (see above).") from e
 
-    monkeypatch.setattr(cli, "_stage", lambda name: Stage())
+    monkeypatch.setattr(graph, "stage_module", lambda name: Stage())
     assert cli.main(["--artifacts", str(tmp_path / "art"), "fiber", str(write_config(tmp_path / "t.yaml"))]) == 130
     assert "interrupted" in capsys.readouterr().err
 
@@ -280,6 +280,6 @@ def test_ctrl_c_inside_a_traced_loop_is_an_interruption(tmp_path, monkeypatch, c
         def run(self, cfg, root):
             raise RuntimeError("a real bug")
 
-    monkeypatch.setattr(cli, "_stage", lambda name: Failing())
+    monkeypatch.setattr(graph, "stage_module", lambda name: Failing())
     with pytest.raises(RuntimeError, match="a real bug"):  # other errors are not swallowed
         cli.main(["--artifacts", str(tmp_path / "art"), "fiber", str(tmp_path / "t.yaml")])

@@ -440,7 +440,7 @@ def test_patch_cuts_runs_inside_the_sphere():
 
 def test_a_model_too_large_for_memory_is_refused_before_building():
     from pipeline.config import load_config
-    from pipeline.stages.cloth import check_fits, yarn_model, yarn_spec
+    from pipeline.garment import check_fits, yarn_model, yarn_spec
 
     cfg = load_config(ROOT / "configs" / "glove.yaml", ["cloth.units_mm=100000"])
     with pytest.raises(ValueError, match="more than half of this machine"):

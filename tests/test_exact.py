@@ -16,7 +16,7 @@ from models.bake import BakeSpec
 from models.bundle import Bundle, poisson
 from models.fiber import lobes
 from models.fiber.ray import RayFiber
-from pipeline.stages.bake import bake_unreduced
+from models.bake import bake_unreduced
 
 ETA = 1.5639
 NODES = np.deg2rad(np.arange(0, 91, 5.0))

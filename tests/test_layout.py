@@ -68,3 +68,80 @@ def test_layers_import_downwards():
            if (m.startswith("models") and n.split(".")[0] in ("pipeline", "mitsuba_ext"))
            or (m.startswith("mitsuba_ext") and n.startswith("pipeline"))]
     assert not bad, f"upward imports: {bad}"
+
+
+def test_stages_are_leaves():
+    """A stage imports no other stage, and nothing but tests imports a stage: what two of
+    them share lives in a library module (``models``, ``pipeline``). A stage runs another
+    only through ``pipeline.graph.run_stage``, as the CLI does."""
+    bad = [(m, n) for m, targets in imports().items() for n in targets
+           if n.startswith("pipeline.stages.") and not m.startswith("tests.")]
+    assert not bad, f"imports of a stage (move what they share into a library module): {bad}"
+
+
+# The function-local imports of the project's own modules, each a seam on purpose. Every
+# other import is at the top of its module.
+LAZY = {
+    # the fiber registry loads a model's module when a config names it, so that the stages
+    # reading fiber tables (bake, train, ...) do not run (nor depend on) every model's code
+    ("models/fiber/__init__.py", "models.fiber.mie"): "fiber registry",
+    ("models/fiber/__init__.py", "models.fiber.ray"): "fiber registry",
+    ("models/fiber/__init__.py", "models.fiber.table"): "fiber registry",
+    # the config's validators read model data (a yarn's row, a .bcc file, a migration's
+    # period) only where a config has that key: every stage loads the config
+    ("pipeline/config.py", "models.bundle"): "config validators",
+    ("pipeline/config.py", "models.spectrum"): "config validators",
+    ("pipeline/config.py", "models.cloth.bcc"): "config validators",
+    # the checked loaders: a stage that reads only bundle tables runs no fiber code, one that
+    # reads fiber tables no bundle-table code (dvc.yaml lists each stage's code)
+    ("pipeline/artifacts.py", "models.fiber.base"): "checked loaders",
+    ("pipeline/artifacts.py", "models.bundle_table"): "checked loaders",
+    # the CLI runs every stage: it loads render-scene's code (Mitsuba scenes, images) for that
+    # command alone, so that no stage runs it (dvc.yaml lists each stage's code)
+    ("pipeline/cli.py", "pipeline.render_scene"): "render-scene command",
+    # a Dask task imports the baker on the worker's executor thread, not when it is unpickled
+    # on the worker's event loop: @dr.syntax runs ast.parse, which CPython 3.11 cannot run in
+    # two threads at once (gh-106905)
+    ("pipeline/cluster.py", "pipeline.build"): "Dask worker thread",
+    ("pipeline/cluster.py", "models.bake"): "Dask worker thread",
+    # mpmath is in the test extra only
+    ("pipeline/stages/stability.py", "models.fiber.mie_reference"): "optional mpmath",
+}
+
+
+def local_imports() -> set:
+    """``{(file, imported project module)}`` of the imports inside functions."""
+    found = set()
+    for pkg in PACKAGES:
+        for path in (ROOT / pkg).rglob("*.py"):
+            name = module_name(path)
+            package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+            for fn in ast.walk(ast.parse(path.read_text())):
+                if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    continue
+                for node in ast.walk(fn):
+                    if isinstance(node, ast.ImportFrom):
+                        base = node.module or ""
+                        if node.level:
+                            up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                            base = ".".join(up + ([base] if base else []))
+                        targets = [f"{base}.{a.name}" if base in PACKAGES or f"{base}.{a.name}" in _modules()
+                                   else base for a in node.names]
+                    elif isinstance(node, ast.Import):
+                        targets = [a.name for a in node.names]
+                    else:
+                        continue
+                    for t in targets:
+                        if t.split(".")[0] in PACKAGES:
+                            found.add((path.relative_to(ROOT).as_posix(), t))
+    return found
+
+
+def _modules() -> set:
+    return {module_name(p) for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")}
+
+
+def test_imports_at_the_top_but_the_listed_seams():
+    unlisted = sorted(local_imports() - set(LAZY))
+    assert not unlisted, ("function-local imports of the project's modules (move them to the top, or list "
+                          f"the seam in LAZY with its reason): {unlisted}")

@@ -181,7 +181,7 @@ def test_folded_features_are_the_symmetries_and_nothing_more():
 
 
 def test_folds_are_chosen_by_the_data(tmp_path):
-    from pipeline.stages.train import choose_folds
+    from models.fit import choose_folds
 
     cfg = make_config(tmp_path)
     table = synthetic_table(cfg, tmp_path / "t.npz").expanded()
@@ -195,13 +195,13 @@ def test_folds_are_chosen_by_the_data(tmp_path):
 
 def test_held_out_bins_have_their_mirror_images_held_out(tmp_path):
     """A held-out bin whose mirror image is trained on would be a leak, not a test."""
-    from pipeline.stages.train import held_out_bins
+    from models.fit import held_out_bins
 
     cfg = make_config(tmp_path)
     table = synthetic_table(cfg, tmp_path / "t.npz").expanded()
     shape = table.values.shape[:4]
     val = np.zeros(shape, bool)
-    val.ravel()[held_out_bins(table, _spec(True, ["theta", "dphi"]), cfg)] = True
+    val.ravel()[held_out_bins(table, _spec(True, ["theta", "dphi"]), cfg.train)] = True
     assert 0.05 < val.mean() < 0.15
     # index mirrors: theta_i nodes, theta_o and phi_o bin centres are symmetric about 0
     assert np.allclose(table.theta_i, -table.theta_i[::-1]) and np.allclose(table.phi_o, -table.phi_o[::-1])

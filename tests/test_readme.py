@@ -7,6 +7,7 @@ two each: they are ``slow`` tests, which ``.ci/run`` runs on every landing
 
 import re
 import shlex
+import sys
 import shutil
 import subprocess
 import time
@@ -92,3 +93,27 @@ def test_a_ply_of_ones_own_runs_as_printed(tmp_path):
             assert r.returncode == 0, part + "\n" + r.stdout[-3000:] + r.stderr[-3000:]
     png = repo / "artifacts" / "my_ply.png"
     assert (repo / "artifacts" / "my_ply.exr").stat().st_size > 10_000 and png.stat().st_size > 10_000
+
+
+def test_the_documents_quote_only_recorded_figures():
+    """Every measured figure in README.md and docs/ is a bench's record, copied by
+    ``python -m pipeline.figures``: a stale block or a figure typed by hand fails here."""
+    r = subprocess.run([sys.executable, "-m", "pipeline.figures", "--check"], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+
+
+def test_the_figure_check_catches_typed_and_stale_figures(tmp_path, monkeypatch):
+    from pipeline import figures
+    from pipeline.bench import results
+
+    typed = "The model is 570x smaller and renders in 301 s; FLIP\n0.066, within 3% + 3 standard errors.\n"
+    found = [line for line, _ in figures.typed_figures(typed)]
+    assert len(found) == 3, found  # the ratio, the time, the FLIP value; not the criterion
+    assert figures.typed_figures("```\n570x\n```\n<!-- 12% -->\n`301 s`\n") == []
+    monkeypatch.setattr(results, "RESULTS", tmp_path)
+    results.save("probe", "| a |\n|---|\n| 1.5% |", cmd="python -m pipeline.bench.probe", folder=tmp_path)
+    doc = "<!-- results: probe -->\nold\n<!-- /results -->\n"
+    fresh = figures.regenerate(doc)
+    assert "| 1.5% |" in fresh and "python -m pipeline.bench.probe" in fresh and fresh != doc
+    assert figures.typed_figures(fresh) == []  # figures inside a block are the record's
+    assert "Not measured yet" in figures.regenerate("<!-- results: never -->\n<!-- /results -->\n")

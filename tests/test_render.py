@@ -66,14 +66,14 @@ def test_explicit_fibers_and_the_baked_bundle_look_the_same(baked, mi_plugins, m
     import copy
 
     from pipeline import scenes
-    from pipeline.stages import render
+    from pipeline.bsdfs import backend_props
     from pipeline.build import build_bundle
 
     mi = mi_plugins
     monkeypatch.setattr(scenes, "_sensor", wide_view)
     path, art = baked
     cfg = load_config(path)
-    table = render.backend_props(cfg, art, "table")
+    table = backend_props(cfg, art, "table")
     bundle = build_bundle(cfg)
     fiber = art / cfg.name / "fiber" / "fiber_table.npz"
 

@@ -22,7 +22,7 @@ from models.bake import Baker, BakeSpec
 from models.bake.twisted import TwistedBaker
 from models.bundle import Bundle, Migration, TwistedBundle, poisson
 from models.fiber.patterns import PatternFiber
-from pipeline.stages.bake import tally_to_table
+from models.bake import tally_to_table
 
 WL = np.array([450.0, 650.0])
 NODES = np.deg2rad(np.arange(0, 91, 5.0))

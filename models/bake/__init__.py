@@ -4,11 +4,13 @@
 ``tally``      :class:`BakeSpec` (what to tabulate, how) and :class:`Tally` (the sums)
 ``scene``      :class:`BundleScene`: the fibers as Mitsuba cylinders, 2D ray casts
 ``baker``      :class:`Baker`: the tracer (the fast estimator, the thesis baseline)
+``tables``     :func:`tally_to_table`; :func:`bake_unreduced`, a small bake in one call
 =============  ====================================================================
 """
 
 from .baker import Baker
 from .scene import BundleScene
+from .tables import bake_unreduced, tally_to_table
 from .tally import EXITS, BakeSpec, Tally
 
-__all__ = ["Baker", "BakeSpec", "BundleScene", "EXITS", "Tally"]
+__all__ = ["Baker", "BakeSpec", "BundleScene", "EXITS", "Tally", "bake_unreduced", "tally_to_table"]

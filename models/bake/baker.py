@@ -78,9 +78,9 @@ from ..fiber.base import FiberTable
 from ..fiber.sampling import FiberSampler
 from ..fiber.sampling_drjit import DrJitFiber
 from ..jit import to_drjit
+from . import weights
 from .rounds import LoopState, in_rounds
 from .scene import BundleScene
-from . import weights
 from .tally import BakeSpec, Tally, output_bin
 
 # how a path of the fast estimator ended
@@ -319,10 +319,10 @@ class Baker:
         spectral weight ``B`` and the weight lost to absorption after the first bounce
         ``R`` (lists of Dr.Jit arrays). Random numbers come from a PCG32 stream per path and
         bounce, so results do not depend on batching or checkpoints. One kernel for all
-        bounces ran 1.5x the vertex rate of the earlier kernel-per-bounce with compaction
-        on the thesis's 600 um bundle; reading the final state instead of scattering each
-        path's result from inside the loop (52 masked scatters per vertex) and packet
-        gathers of whole spectra gained more (docs/BENCHMARKS.md).
+        bounces outruns a kernel per bounce with compaction; reading the final state instead
+        of scattering each path's result from inside the loop (dozens of masked scatters per
+        vertex) and packet gathers of whole spectra gain more (``make bench-bake`` measures
+        the vertex rate).
         """
         Float, UInt = mi.Float, mi.UInt32
         n, L = len(theta), self.n_lambda

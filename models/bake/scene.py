@@ -14,6 +14,7 @@ from ..bundle import Bundle
 from ..fiber import lobes
 from ..jit import to_drjit
 
+
 class BundleScene:
     """The bundle as a Mitsuba scene of cylinders along y; casts 2D rays."""
 

@@ -22,6 +22,8 @@ B-spline segment: an upper bound of the distance between the two curves.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve
 
 KINDS = ("catmull_rom", "bspline", "bezier", "polyline")
 
@@ -112,8 +114,6 @@ def interpolate_bspline(Q: np.ndarray, closed: bool) -> np.ndarray:
     ``Q`` may be ``[N, ..., 3]``: many curves of ``N`` samples each, solved together (one
     factorization), ``C`` then ``[M, ..., 3]``.
     """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import spsolve
 
     Q = np.asarray(Q, np.float64)
     N, tail = len(Q), Q.shape[1:]

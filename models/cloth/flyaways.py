@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .curves import bspline_samples, interpolate_bspline
 from .plies import transport_frames
@@ -122,7 +123,6 @@ def place_hairs(frames, hairs: Hairs, r_out: float) -> np.ndarray:
 def piercing(points: np.ndarray, owner: np.ndarray, ply_samples: list[np.ndarray], reach: float) -> np.ndarray:
     """Which hairs (``points [HAIR_SAMPLES, n, 3]``, of plies ``owner [n]``) come within
     ``reach`` of another ply's centre line (its samples): they would pierce it."""
-    from scipy.spatial import cKDTree
 
     pts = np.concatenate(ply_samples)
     ids = np.concatenate([np.full(len(p), k) for k, p in enumerate(ply_samples)])

@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 @dataclass
@@ -126,8 +127,8 @@ def wind_plies(frames: Frames, K: int, R: float, pitch: float, samples_per_turn:
     strays about 1e-4 of ``R`` from a helix: ``tests/test_cloth.py``), and at least
     ``min_samples`` times along the curve (the caller's measure of the centre line's own
     detail: :func:`~models.cloth.yarn.build_plies` asks for two per segment of the file's
-    curve). Sampling the plies as densely as the centre line's samples instead held 29% more
-    control points for the same curves on the glove (docs/BENCHMARKS.md, "Cloth").
+    curve). Sampling the plies as densely as the centre line's samples instead holds many more
+    control points for the same curves (the cloth bench's ``speed`` part counts them).
     """
     if K < 1:
         raise ValueError(f"a yarn needs at least one ply (got K = {K})")
@@ -155,7 +156,6 @@ def nearest_other(curves: list[np.ndarray], closed: list[bool], along_min: float
     """For every sample of ``curves`` (concatenated), the distance to the nearest sample of
     another curve, or of its own curve more than ``along_min`` away along it (``inf`` if none
     is among its ``k`` nearest): where yarns touch or interpenetrate."""
-    from scipy.spatial import cKDTree
 
     pts = np.concatenate(curves)
     owner = np.concatenate([np.full(len(c), i) for i, c in enumerate(curves)])

@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.spectrum import cauchy, spectral_values
+
 from .base import FiberModel, FiberTable, Lobe  # noqa: F401
+from .patterns import PatternFiber
 
 
 def build(fiber, wavelength) -> FiberModel:
     """The model named by a validated ``fiber`` config block, at these wavelengths (nm)."""
-    from models.spectrum import cauchy, spectral_values
 
     wl = np.asarray(wavelength, dtype=np.float64)
     n = cauchy(fiber.ior.cauchy_a, fiber.ior.cauchy_b_um2, wl)
@@ -46,6 +48,5 @@ def build(fiber, wavelength) -> FiberModel:
                              f"the config asks for {len(wl)} from {wl[0]:.0f} to {wl[-1]:.0f} nm: set `wavelengths:` "
                              "to the table's (start_nm, stop_nm, count) or use a table made for these")
         return TableFiber(table)
-    from .patterns import PatternFiber
     p = fiber.pattern
     return PatternFiber(wl, fiber.model, p.n_stripes_theta, p.n_stripes_phi, p.albedo, p.n_phi)

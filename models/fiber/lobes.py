@@ -27,6 +27,7 @@ import drjit as dr
 import numpy as np
 
 from ..xp import asin, select
+from .longitudinal import Longitudinal
 
 TWO_PI = 2 * np.pi
 P_MAX = 3  # Chiang's explicit paths: R, TT, TRT (then the residual)
@@ -157,8 +158,6 @@ class LobeSampler:
     """
 
     def __init__(self, meta: dict, wavelength, Float):
-        from .longitudinal import Longitudinal
-
         if meta.get("model") != "ray":
             raise ValueError(f"the h-resolved exit needs a 'ray' fiber (this table is {meta.get('model')!r}); "
                              "use bake.exit: uniform or entry for other fibers")

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import special
+from tqdm import tqdm
 
 from .base import FiberModel, FiberTable, Lobe, check_theta
 from .longitudinal import Longitudinal
@@ -266,8 +267,6 @@ class MieFiber(FiberModel):
         return Longitudinal("deon", v=self.beta**2)
 
     def tabulate(self, theta_i):
-        from tqdm import tqdm
-
         theta_i = np.asarray(theta_i, dtype=np.float64)
         n_ti, n_wl = len(theta_i), len(self.wavelength)
         N = np.empty((n_ti, 1, self.n_phi, n_wl), dtype=np.float32)

@@ -34,10 +34,11 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import special
+from tqdm import tqdm
 
 from . import lobes
-from .lobes import P_MAX, logistic_scale, longitudinal_variance, tilt_shifts  # noqa: F401 (this model's API)
 from .base import FiberModel, FiberTable, Lobe, check_theta
+from .lobes import P_MAX, logistic_scale, longitudinal_variance, tilt_shifts  # noqa: F401 (this model's API)
 from .longitudinal import Longitudinal
 
 # --------------------------------------------------------------------------
@@ -165,7 +166,6 @@ class RayFiber(FiberModel):
     def tabulate(self, theta_i):
         if self.transport == "camera":
             return self._tabulate_camera(np.asarray(theta_i, dtype=np.float64))
-        from tqdm import tqdm
 
         theta_i = np.asarray(theta_i, dtype=np.float64)
         phi = -np.pi + 2 * np.pi * np.arange(self.n_phi) / self.n_phi
@@ -190,7 +190,6 @@ class RayFiber(FiberModel):
         arrives at a fiber with the weight ``cos(theta_i)``, and a node at 90 deg holds 4 times
         the value at the node before it, which makes the product's integral over that last
         cell, linear in ``theta_i`` as tables interpolate, the adjoint's to first order."""
-        from tqdm import tqdm
 
         theta_o = np.deg2rad(np.linspace(-90.0, 90.0, 181))
         to_safe = np.clip(theta_o, -np.deg2rad(89.99), np.deg2rad(89.99))

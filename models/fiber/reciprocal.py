@@ -17,7 +17,7 @@ with the half angle ``theta_d = (theta_i - theta_o) / 2`` (``= theta_i`` on the 
 ``dphi`` (the Mie pattern is), so ``f cos(theta_i)`` is symmetric term by term. The
 weight ``cos(theta_o) / cos(theta_d)`` is one on the cone. Off it, and near grazing
 incidence where the cone's cosines change fastest, the form would no longer integrate to
-the pattern's albedo (+50% at 89 deg for a 3 deg lobe), so the symmetric scale ``c``
+the pattern's albedo (by half as much again near grazing, for a lobe of a few degrees), so the symmetric scale ``c``
 (one number per node and wavelength) is solved for by symmetric Sinkhorn iteration
 so that ``integral f d omega_o = integral N d phi`` at every node: scaling by
 ``c(theta_i) c(theta_o)`` keeps the symmetry whatever ``c`` is.

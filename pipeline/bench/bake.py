@@ -23,14 +23,20 @@ import tempfile
 import time
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 import yaml
 
+from models import fiber as fiber_models
+from models.bake import Baker, BundleScene, Tally, tally_to_table
+from models.fit import energy_bins
+from pipeline.bench import results
+from pipeline.build import build_bundle, make_spec
+from pipeline.config import load_config
+
 
 def median_rel_error(tally, spec, fiber, bins=None, fraction=0.9):
-    from pipeline.stages.bake import tally_to_table
-    from pipeline.stages.train import energy_bins
-
     t = tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
     v = t.values.astype(float)
     e = t.stderr.astype(float)
@@ -50,14 +56,6 @@ def main(argv=None):
     parser.add_argument("--memory-paths", type=int, default=131072)
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
-
-    import drjit as dr
-    import mitsuba as mi
-
-    from models import fiber as fiber_models
-    from models.bake import Baker, BundleScene, Tally
-    from pipeline.build import build_bundle, make_spec
-    from pipeline.config import load_config
 
     cfg = load_config(args.config)
     mi.set_variant(cfg.bake.variant)
@@ -159,4 +157,5 @@ def main(argv=None):
 _FIBER = None
 
 if __name__ == "__main__":
-    main()
+    with results.recorded("bake", smoke="--quick" in sys.argv):
+        main()

@@ -24,15 +24,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
 
+import mitsuba_ext
+from models import fiber as fibers
+from models.bake import BakeSpec, bake_unreduced
+from models.bundle import poisson
 from models.io import write_text
+from pipeline.bench import results
 
-from ..config import load_config
+from .. import bsdfs, closure, scenes
 from ..artifacts import config_dir, stage_dir
+from ..build import build_bundle
+from ..config import load_config
+from ..config import load_config as load
 
 LAM = 550.0
 
@@ -58,14 +68,11 @@ def reciprocity(table, n: int = 40_000, seed: int = 0) -> dict:
 # -- 2. far-field closure ------------------------------------------------------------
 def far_field(mi, cfg, out_root) -> dict:
     """rendered / predicted of one fiber and of the bundle in every backend (config's artifacts)."""
-    from ..stages import render
-    from .. import closure
-    from ..build import build_bundle
 
     root = config_dir(cfg, out_root)
     pairs = closure.direction_pairs(cone_offsets_deg=(0.0, 0.8, -1.7, -3.0))
     fiber = {"type": "fiber_table", "filename": str(root / "fiber" / "fiber_table.npz")}
-    bundles = {b: render.backend_props(cfg, out_root, b) for b in ("table", "mlp", "onnx")}
+    bundles = {b: bsdfs.backend_props(cfg, out_root, b) for b in ("table", "mlp", "onnx")}
     Rf, Rb = cfg.fiber.radius_um * 1e-3, build_bundle(cfg).bounding_radius * 1e-3
     cases = {"fiber_table": (fiber, Rf, closure.evaluator(mi, "fiber", fiber["filename"], LAM)),
              **{b: (p, Rb, closure.evaluator(mi, b, p.get("table") or p.get("model"), LAM))
@@ -77,16 +84,6 @@ def far_field(mi, cfg, out_root) -> dict:
 
 # -- 3. explicit fibers against the bake ---------------------------------------------
 def explicit_vs_bake(mi, cfg, out_root, quick: bool, spp: int = 32) -> list:
-    import mitsuba_ext
-    from models import fiber as fibers
-    from models.bake import BakeSpec
-    from models.bundle import poisson
-
-    from .. import closure
-    from ..build import build_bundle
-    from ..stages.bake import bake_unreduced
-    from ..config import load_config as load
-
     wl = np.array([450.0, 550.0, 650.0])
     nodes = np.deg2rad(np.arange(0, 91, 5.0))
     ray_cfg = load(Path(__file__).resolve().parents[2] / "configs" / "fiber_ray.yaml")
@@ -133,15 +130,6 @@ def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
     explicit fibers over 16 turns (``16 x spp_per_turn`` samples each). A Mie ply's
     explicit image is a few glints per pixel, so one average is noisy (a few per cent):
     the seeds give its standard error."""
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    from ..stages import render
-
-    from .. import closure, scenes
-    from ..build import build_bundle
-
     r = cfg.render
     mi.set_variant(r.variant)
     mitsuba_ext.register()
@@ -149,7 +137,7 @@ def ply_scene(cfg, out_root, seeds: int = 9, spp_per_turn: int = 32) -> dict:
     fiber = stage_dir(cfg, "fiber", out_root) / "fiber_table.npz"
     rows = scenes.ply_rows(cfg, r.height)
     mean = lambda sc: float(np.asarray(mi.render(mi.load_dict(sc)))[rows].mean())  # noqa: E731
-    bundle_means = {b: mean(scenes.ply_scene(mi, cfg, render.backend_props(cfg, out_root, b), 256, 5,
+    bundle_means = {b: mean(scenes.ply_scene(mi, cfg, bsdfs.backend_props(cfg, out_root, b), 256, 5,
                                              twist_turns=0.0)) for b in ("table", "mlp")}
     # one explicit scene, its fibers turned between views (closure.TurnedFibers: one kernel)
     scene = mi.load_dict(scenes.explicit_scene(mi, cfg, bundle, fiber, spp_per_turn))
@@ -184,10 +172,6 @@ def main(argv=None) -> int:
         result = ply_scene(cfg, args.artifacts)
         write_text(stage_dir(cfg, "closure", args.artifacts) / "bench_closure_ply.json", json.dumps(result, indent=2))
         return 0
-    import mitsuba as mi
-
-    import mitsuba_ext
-    from models import fiber as fibers
 
     wl = np.linspace(cfg.wavelengths.start_nm, cfg.wavelengths.stop_nm, cfg.wavelengths.count)
     ray_cfg = load_config(Path(__file__).resolve().parents[2] / "configs" / "fiber_ray.yaml")
@@ -211,7 +195,6 @@ def main(argv=None) -> int:
     groups = {}
     for r_ in result["explicit"]:
         groups.setdefault(f"{r_['fiber']}, {r_['ply']} ({r_['fibers']} fibers)", []).append(r_)
-    from .. import closure
     closure.plot(result["far_field"], groups, out / "closure.png", f"{cfg.name}: the chain's closure")
     z = np.array([(r["ratio"] - 1) / r["sigma"] for r in result["explicit"]])
     within = np.mean([abs(r["ratio"] - 1) <= 0.02 + 3 * r["sigma"] for r in result["explicit"]])
@@ -221,4 +204,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with results.recorded("closure", smoke="--quick" in sys.argv):
+        raise SystemExit(main())

@@ -1,4 +1,4 @@
-"""What the bundle BSDF buys on cloth, measured (issue 27): scale, and explicit fibers.
+"""What the bundle BSDF buys on cloth, measured: scale, and explicit fibers.
 
 Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``export``).
 
@@ -30,7 +30,8 @@ Needs the config's bake and export (``bcsdf run configs/glove.yaml`` up to ``exp
               bundles, with ``bundle_path``'s ``overlaps`` off and on (far-field
               intensity, three views): where the bundle BSDF errs where yarns overlap.
 
-Writes ``docs/cloth.json`` and ``docs/images/cloth_scale.png``, ``cloth_explicit.png``::
+Records ``benchmarks/cloth.json`` (``pipeline.bench.results``; a part not measured keeps its
+rows) and draws ``docs/images/cloth_scale.png``, ``cloth_explicit.png``::
 
     .venv/bin/python -m pipeline.bench.cloth [CONFIG]            # configs/glove.yaml
     .venv/bin/python -m pipeline.bench.cloth --quick             # fewer sizes and distances
@@ -46,10 +47,36 @@ import json
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
+import drjit as dr
+import flip_evaluator as flip
+import matplotlib.pyplot as plt
+import mitsuba as mi
 import numpy as np
+from scipy.ndimage import uniform_filter
+
+import mitsuba_ext
+from mitsuba_ext.backends import load_backend
+from models.bundle import zhao2016_row
+from models.cloth.bcc import read_bcc
+from models.cloth.curves import write_mitsuba_curves
+from models.cloth.fibers import explicit_fibers, explicit_point_count, patch
+from models.cloth.flyaways import tapered
+from models.cloth.yarn import build_plies
+from models.io import atomic_path
+from pipeline import closure, scenes
+from pipeline.artifacts import fiber_table_path, load_bundle_table
+from pipeline.bench import results
+from pipeline.bsdfs import backend_props
+from pipeline.build import build_bundle, build_ply
+from pipeline.config import load_config
+from pipeline.garment import build, flyaways, yarn_model, yarn_spec
+from pipeline.images import exposure_of, flip_and_psnr, to_srgb
+
+from ..graph import require
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 PLY_PX = (1, 2, 4, 8)   # the camera distances: a ply's width in pixels
@@ -78,12 +105,6 @@ def peak_mb() -> float:
 
 
 def _setup(config, root):
-    import mitsuba as mi
-
-    import mitsuba_ext
-    from pipeline.config import load_config
-    from pipeline.stages.render import backend_props
-
     cfg = load_config(config)
     props = backend_props(cfg, root, "table")
     mi.set_variant(cfg.cloth.variant)
@@ -93,7 +114,6 @@ def _setup(config, root):
 
 def _render(mi, scene_dict, spp_seeds=(0, 1)):
     """Images of two seeds and the seconds of the second (kernels compiled)."""
-    import drjit as dr
 
     scene = mi.load_dict(scene_dict)
     images, seconds = [], 0.0
@@ -111,9 +131,6 @@ def _render(mi, scene_dict, spp_seeds=(0, 1)):
 
 # -- children: one measurement per process (its peak memory is its own) ------------------
 def child_scale(config, root, n_curves, out):
-    from pipeline import scenes
-    from pipeline.stages.cloth import build
-
     mi, cfg, props = _setup(config, root)
     base = peak_mb()
     c = cfg.cloth.model_copy(update={"curves": n_curves, "width": 320, "height": 240})
@@ -125,7 +142,6 @@ def child_scale(config, root, n_curves, out):
     scene = mi.load_dict(scenes.cloth_scene(mi, c, {"yarn": scenes.ply_shape(Path(out) / "plies.txt", props, g.radius)},
                                             info["bbox_mm"], 4))
     loaded = time.perf_counter() - t0
-    import drjit as dr
     rendered = []
     for seed in (0, 1):  # the first compiles (the camera's framing is in the kernel: a new one per N)
         t0 = time.perf_counter()
@@ -141,9 +157,6 @@ def patch_scene(cfg, ply_px, out: Path):
     """The patch of the model (every yarn's control points within 16 yarn radii of a point
     on its upper surface), its plies, its flyaways (the cloth stage's, drawn about the
     patch's plies) and a camera at which a ply spans ``ply_px`` pixels."""
-    from models.cloth.fibers import patch
-    from models.cloth.yarn import build_plies
-    from pipeline.stages.cloth import yarn_model, yarn_spec
 
     c = cfg.cloth.model_copy(update={"curves": None, "width": 192, "height": 192, "ground": False})
     model = yarn_model(c)
@@ -168,16 +181,6 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     ply as its own curve with the single-fiber model); all carry the same flyaways; ``sky``:
     nothing but the sky (which pixels the cloth changes). Saves the means of the two halves
     of the seeds (their difference is the noise of the mean)."""
-    from models.cloth.fibers import explicit_fibers
-    from models.cloth.flyaways import tapered
-    from models.cloth.curves import write_mitsuba_curves
-    from models.io import atomic_path
-    from pipeline import closure, scenes
-    from pipeline.artifacts import fiber_table_path, load_bundle_table
-    from pipeline.build import build_bundle
-    from pipeline.stages.cloth import flyaways
-
-    import drjit as dr
 
     mi, cfg, props = _setup(config, root)
     base = peak_mb()
@@ -254,7 +257,6 @@ def child_speed(config, root, shadow_rr, geometry, out, overlaps=True):
     """The whole model (plies and flyaways, ``geometry``: the files the parent built) at
     ``SPEED_SIZE`` x ``SPEED_SPP`` with the integrator's ``shadow_rr`` and ``overlaps``:
     seconds per render (compiled), the mean and the variance per sample (from two seeds)."""
-    from pipeline import scenes
 
     mi, cfg, props = _setup(config, root)
     g = json.loads(Path(geometry).read_text())
@@ -282,16 +284,6 @@ def child_overlap(config, root, spacing, lam_nm, spp, turns, overlaps):
     interpenetrate (spacing < 2), light that leaves one ply inside the other meets fibers of
     the other in the explicit scene, and, unless ``overlaps``, nothing in the bundle scene
     (a curve reports no hit from inside)."""
-    import tempfile
-
-    import mitsuba as mi
-
-    import mitsuba_ext
-    from pipeline import closure
-    from pipeline.artifacts import fiber_table_path
-    from pipeline.build import build_ply
-    from pipeline.config import load_config
-    from pipeline.stages.render import backend_props
 
     mi.set_variant("llvm_ad_mono")
     mitsuba_ext.register()
@@ -337,12 +329,6 @@ def child_memory(config, root, out):
     MLP), against every fiber of every ply as its own curve (the bake's fiber count, and the
     Zhao yarn's fibers per ply), at 20 bytes a control point (x, y, z, r and a segment index
     in float32 / uint32: what a curve renderer holds at least; the BVH comes on top of both)."""
-    from mitsuba_ext.backends import load_backend
-    from models.bundle import zhao2016_row
-    from models.cloth.fibers import explicit_point_count
-    from pipeline.build import build_bundle
-    from pipeline.stages.cloth import build
-    from pipeline.stages.render import backend_props
 
     mi, cfg, props = _setup(config, root)
     _, g = build(cfg, Path(out))
@@ -392,9 +378,6 @@ def variance_per_spp(a, b, spp: int) -> float:
 
 def masked_flip(reference, test, exposure, mask) -> float:
     """Mean LDR-FLIP over ``mask`` (the yarn's pixels), on the displayed sRGB images."""
-    import flip_evaluator as flip
-
-    from pipeline.stages.render import to_srgb
 
     error_map, _, _ = flip.evaluate(to_srgb(reference, exposure), to_srgb(test, exposure), "LDR", applyMagma=False)
     error_map = np.asarray(error_map, np.float64)
@@ -414,15 +397,11 @@ def ply_scale(image, ply_px: int):
     """``image [h, w, 3]`` averaged over a ply's width (a ``ply_px`` square box): what a
     far-field BSDF claims to draw, the ply's mean radiance, without the single fibers and
     the twist's stripes inside a ply (and without most of the render noise)."""
-    from scipy.ndimage import uniform_filter
 
     return uniform_filter(image, size=(ply_px, ply_px, 1), mode="nearest")
 
 
 def measure_scale(config, root, quick, tmp) -> list:
-    from models.cloth.bcc import read_bcc
-    from pipeline.config import load_config
-
     cfg = load_config(config)
     total = len(read_bcc(cfg.cloth.model).curves) if cfg.cloth.model else cfg.cloth.swatch.courses
     sizes = sorted({n for n in ((1, 10, total) if quick else (1, 3, 10, 30, total)) if n <= total})
@@ -438,9 +417,6 @@ def measure_speed(config, root, quick, tmp) -> list:
     overlapping plies' entry, with plies sampled more densely (the same hairs) and with the
     hairs as B-splines (the same plies), side by side (each in its own process): seconds, and
     the time to equal noise."""
-    from pipeline.config import load_config
-    from pipeline.stages.cloth import build, flyaways, yarn_spec
-
     cfg = load_config(config)
     cases = SPEED_CASES[:2] if quick else SPEED_CASES
     plies, hairs, geometry = {}, {}, {}
@@ -478,9 +454,6 @@ def measure_speed(config, root, quick, tmp) -> list:
 
 
 def measure_explicit(config, root, quick, tmp, ply_px=None, samples=1) -> list:
-    from pipeline.config import load_config
-    from pipeline.stages.render import exposure_of, flip_and_psnr
-
     own = load_config(config).cloth.exit_split
     others = [k for k in EXITS if k != own]
     # ``samples`` times the seeds on both sides (seeds 0, 1, ...: the standard run's and more)
@@ -604,10 +577,6 @@ PARTS = {"scale": measure_scale, "speed": measure_speed, "explicit": measure_exp
 
 
 def plot(result, tmp, path_scale, path_explicit):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     if result.get("scale"):
         plot_scale(plt, result["scale"], path_scale)
@@ -634,8 +603,6 @@ def plot_scale(plt, s, path_scale):
 
 
 def plot_explicit(plt, explicit, tmp, path_explicit):
-    from pipeline.stages.render import exposure_of, to_srgb
-
     e = [r for r in explicit if "failed" not in r]
     fig, ax = plt.subplots(1, 1 + min(2, len(e)), figsize=(4 + 4 * min(2, len(e)), 5.4))
     ax = np.atleast_1d(ax)
@@ -678,12 +645,7 @@ def plot_explicit(plt, explicit, tmp, path_explicit):
 def plot_pairs(explicit, tmp, path):
     """Each distance's two images side by side and their difference in luminance, relative
     to the cloth's mean: where the bundle and the explicit fibers differ (``--samples``)."""
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from pipeline.stages.render import exposure_of, to_srgb
 
     e = [r for r in explicit if "failed" not in r]
     if not e:
@@ -714,12 +676,12 @@ def main(argv=None) -> int:
     parser.add_argument("--artifacts", default="artifacts")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--parts", nargs="+", choices=list(PARTS), default=list(PARTS),
-                        help="what to measure (default: all); the others keep their figures in docs/cloth.json")
+                        help="what to measure (default: all); the others keep their figures in benchmarks/cloth.json")
     parser.add_argument("--ply-px", type=int, nargs="+", default=None,
                         help=f"the explicit part's camera distances, a ply's width in pixels (default {PLY_PX})")
     parser.add_argument("--samples", type=int, default=1,
                         help="the explicit part with this many times the samples on both sides (how FLIP falls "
-                             "with the noise): its rows go to 'explicit_x<K>' in docs/cloth.json, its pictures to "
+                             "with the noise): its rows go to 'explicit_x<K>' in benchmarks/cloth.json, its pictures to "
                              "docs/images/cloth_explicit_x<K>.png; the others are kept")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -731,17 +693,10 @@ def main(argv=None) -> int:
                     "overlap": child_overlap}
         print(json.dumps(children[kind](*rest)))
         return 0
-    import tempfile
-
-    from models.io import write_text
-
-    from ..config import load_config
-    from ..graph import require
-
     require(load_config(args.config), ("bake", "train", "export"), args.artifacts,
             f".venv/bin/bcsdf run {args.config} (make cloth)")
-    out = DOCS / "cloth.json"
-    result = json.loads(out.read_text()) if out.exists() else {}
+    earlier = results.load("cloth")
+    result = earlier["data"] if earlier else {}
     result["config"] = str(args.config)
     with tempfile.TemporaryDirectory() as tmp:
         parts = {**PARTS, "explicit": functools.partial(measure_explicit, ply_px=args.ply_px, samples=args.samples)}
@@ -759,9 +714,26 @@ def main(argv=None) -> int:
         fresh["explicit"] = sorted([r for r in result.get("explicit", []) if r["ply_px"] not in args.ply_px]
                                    + fresh["explicit"], key=lambda r: r["ply_px"])
     result.update(fresh)
-    write_text(out, json.dumps(result, indent=1))
-    print(f"wrote {out}")
+    if args.quick:
+        print("not recorded: --quick is a smoke run")
+        return 0
+    results.save("cloth", markdown(result), result)
     return 0
+
+
+def markdown(result: dict) -> str:
+    """The record's tables, one per part measured (the parts not run this time keep theirs)."""
+    parts = []
+    for key, title in (("scale", "Scale: curves of the glove, build, load and render"),
+                       ("speed", "Speed: the integrator's options on the glove"),
+                       ("explicit", "The bundle against explicit fibers, by a ply's width in pixels"),
+                       ("explicit_x4", "The same with four times the samples"),
+                       ("overlap", "Overlapping fibers"), ("memory", "Memory")):
+        if key not in result:
+            continue
+        rows = result[key] if isinstance(result[key], list) else [result[key]]
+        parts.append(f"**{title}** (`{key}`)\n\n{results.rows_table(rows)}")
+    return "\n\n".join(parts)
 
 
 if __name__ == "__main__":

@@ -24,17 +24,24 @@ import tempfile
 import time
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
+
+from models.bundle_table import BundleTable
+from models.io import write_text
+from pipeline.bench import results
+
+from .. import graph
 from ..artifacts import config_dir, stage_dir
+from ..config import load_config
 
 
 def _bake(cfg, root, workers=None) -> tuple[float, float, float]:
     """(stage seconds, tracing seconds, CPU seconds of this process while tracing) of one
     bake: with workers, this process is the client and the scheduler (LocalCluster runs it here)."""
-    from ..stages import bake
 
     t0 = time.perf_counter()
-    bake.run(cfg, root, workers=workers)
+    graph.run_stage("bake", cfg, root, workers=workers)
     stage = time.perf_counter() - t0
     summary = json.loads((stage_dir(cfg, "bake", root) / "summary.json").read_text())
     return stage, summary["bake_seconds"], summary["tracing_cpu_seconds"]
@@ -52,13 +59,7 @@ def main(argv=None) -> int:
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
         os.execve(sys.executable, [sys.executable, "-m", "pipeline.bench.cluster", *sys.argv[1:]], env)
     os.environ.setdefault("TQDM_DISABLE", "1")
-    from models.bundle_table import BundleTable
-    from models.io import write_text
 
-    from ..stages import fiber
-    from ..config import load_config
-
-    import drjit as dr
 
     # one Dr.Jit thread everywhere: a worker is one core, and the serial bake is the
     # one-core reference (a bake is bit for bit reproducible at a given thread count)
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
     runs = {"serial": None, "1 worker": 1, "2 workers": 2}
     with tempfile.TemporaryDirectory() as tmp:
         roots = {k: Path(tmp) / k for k in (*runs, "one batch serial", "one batch 1 worker")}
-        fiber.run(cfg, roots["serial"])
+        graph.run_stage("fiber", cfg, roots["serial"])
         for k in list(roots)[1:]:
             config_dir(cfg, roots[k]).mkdir(parents=True)
             os.symlink(stage_dir(cfg, "fiber", roots["serial"]), stage_dir(cfg, "fiber", roots[k]))
@@ -106,4 +107,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with results.recorded("cluster", smoke="--quick" in sys.argv):
+        raise SystemExit(main())

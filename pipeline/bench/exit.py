@@ -1,4 +1,4 @@
-"""Exit models against exact geometry (issue 21): where light leaves a fiber, measured.
+"""Exit models against exact geometry: where light leaves a fiber, measured.
 
 For three plies (the default 200 um ply, a sparse ply and the thesis's 600 um ply) and
 three incidences, the exact tracer (:mod:`models.exact`: smooth dielectric circles,
@@ -13,8 +13,8 @@ each exit model:
 
 Figures per (ply, theta_i, model): albedo / exact, the energy per 30 deg sector of
 |dphi| / exact, and over the 10 deg azimuth bins that hold 90% of the exact energy the
-share within 2% + 3 standard errors and the worst ratio. Writes
-``docs/exit_models.json`` (read by the report) and ``docs/images/exit_models.png``::
+share within 2% + 3 standard errors and the worst ratio. Records ``benchmarks/exit.json``
+(``pipeline.bench.results``) and draws ``docs/images/exit_models.png``::
 
     .venv/bin/python -m pipeline.bench.exit            # about 5 minutes on 2 cores
     .venv/bin/python -m pipeline.bench.exit --quick    # the default ply only, fewer rays
@@ -23,11 +23,20 @@ share within 2% + 3 standard errors and the worst ratio. Writes
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt
+import mitsuba as mi
 import numpy as np
+from tqdm import tqdm
+
+from models import bundle, exact
+from models.bake import BakeSpec, bake_unreduced
+from models.fiber.ray import RayFiber
+
+from ..plots import save_figure
+from . import results
 
 ETA = 1.5639
 EXITS = ("uniform", "entry", "lobe")
@@ -36,7 +45,7 @@ PLIES = {  # name: (radius um, packing or None for Poisson-disk tight)
     "sparse 400 um, packing 0.2": (400.0, 0.2),
     "thesis 600 um": (600.0, None),
 }
-DOCS = Path(__file__).resolve().parents[2] / "docs"
+IMAGES = Path(__file__).resolve().parents[2] / "docs" / "images"
 
 
 def folded(energy, width_bins):
@@ -66,15 +75,7 @@ def compare(E, V, ref, n_rays) -> dict:
 
 
 def measure(rays: int, paths: int, plies: dict, thetas) -> list:
-    import mitsuba as mi
-
     mi.set_variant("llvm_ad_mono")
-    from tqdm import tqdm
-
-    from models import bundle, exact
-    from models.bake import BakeSpec
-    from models.fiber.ray import RayFiber
-    from pipeline.stages.bake import bake_unreduced
 
     nodes = np.deg2rad(np.arange(0, 91, 5.0))
     fiber = RayFiber([550.0], ETA, 0.0, 0.05, 0.05, 0.0, n_h=512, n_phi=1440, lobes=8).tabulate(nodes)
@@ -117,11 +118,6 @@ def markdown(rows) -> str:
 
 
 def plot(rows, path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plots import save_figure
 
     cols = min(3, len(rows))
     n_rows = -(-len(rows) // cols)
@@ -148,7 +144,6 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="the default ply at theta_i 0 and 30, 100k rays and paths")
     ap.add_argument("--rays", type=int, default=400_000, help="exact rays per case")
     ap.add_argument("--paths", type=int, default=1_000_000, help="bake paths per case")
-    ap.add_argument("--out", type=Path, default=DOCS, help="folder for exit_models.json and images/")
     a = ap.parse_args(argv)
     plies = {"default 200 um": PLIES["default 200 um"]} if a.quick else PLIES
     thetas = (0.0, 30.0) if a.quick else (0.0, 30.0, 60.0)
@@ -156,10 +151,9 @@ def main(argv=None) -> int:
     rows = measure(rays, paths, plies, thetas)
     table = markdown(rows)
     print(table)
-    from models.io import write_text
-    write_text(a.out / "exit_models.json", json.dumps({"rows": rows, "markdown": table,
-                                                       "command": "python -m pipeline.bench.exit"}, indent=1))
-    plot(rows, a.out / "images" / "exit_models.png")
+    if not a.quick:  # a smoke run is not a measurement
+        results.save("exit", table, {"rows": rows})
+    plot(rows, IMAGES / "exit_models.png")
     return 0
 
 

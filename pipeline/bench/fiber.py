@@ -11,11 +11,13 @@ import argparse
 import os
 import platform
 import statistics
+import sys
 import time
 
 import numpy as np
 
 from models import fiber as fiber_models
+from pipeline.bench import results
 from pipeline.config import load_config
 
 
@@ -59,4 +61,5 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    with results.recorded("fiber", smoke="--quick" in sys.argv):
+        main()

@@ -12,8 +12,8 @@ ply with the mapped ray fiber (``models.fiber.ray.mitsuba_hair``):
                     as incident), leaving as from curves (invisible from inside).
 
 Per bin: bake / explicit and its standard error (bake and render). It also tabulates the
-albedo of a lossless fiber in either transport, the reason the two differ. Writes
-``docs/hair_closure.json`` and ``.md``::
+albedo of a lossless fiber in either transport, the reason the two differ. Records
+``benchmarks/hair.json`` (``pipeline.bench.results``)::
 
     .venv/bin/python -m pipeline.bench.hair            # about 10 minutes on 2 cores
     .venv/bin/python -m pipeline.bench.hair --quick    # the six-fiber ply, fewer paths
@@ -22,14 +22,19 @@ albedo of a lossless fiber in either transport, the reason the two differ. Write
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
-from datetime import date
-from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
+from tqdm import tqdm
+
+from models.bake import BakeSpec, bake_unreduced, tally_to_table
+from models.bake.twisted import TwistedBaker
+from models.bundle import Bundle, TwistedBundle, poisson
+from models.fiber.ray import RayFiber, mitsuba_hair
+from pipeline import closure
+
+from . import results
 
 BETA_M, BETA_N, TILT, ETA = 0.2, 0.3, 2.0, 1.5639
 WL = np.array([450.0, 550.0, 650.0])
@@ -37,12 +42,10 @@ LAM = 550.0
 NODES = np.deg2rad(np.arange(0, 91, 5.0))
 THETA_I = (10.0, 30.0, 70.0)
 BAKES = {"light / lobe": ("light", "lobe"), "camera / curve": ("camera", "curve")}
-DOCS = Path(__file__).resolve().parents[2] / "docs"
 
 
 def ray_fiber(transport: str, sigma_a: float = 0.0, tilt: float = TILT):
     """The ray fiber of the comparisons (eta 1.5639, roughness 0.2 / 0.3), tabulated."""
-    from models.fiber.ray import RayFiber
 
     return RayFiber(WL, [ETA] * 3, [sigma_a] * 3, BETA_M, BETA_N, tilt, n_h=64, n_phi=180,
                     transport=transport).tabulate(NODES)
@@ -56,7 +59,6 @@ def ply_of(name: str):
     (packing 0.4); ``default``: the default config's ply (39 fibers of 20 um in 200 um);
     ``+twist``: twisted at :data:`PITCH_UM` (the default ply's Poisson disks spaced out by
     what the lean of its rim takes, as ``pipeline.build`` does)."""
-    from models.bundle import Bundle, TwistedBundle, poisson
 
     base = name.removesuffix("+twist")
     if base == "one":
@@ -83,12 +85,6 @@ def cases_of(table) -> list:
 
 def bake_of(ply, fiber, exit_model: str, paths: int, seed: int = 1):
     """A relative table of ``ply`` (a Bundle or a TwistedBundle) at :data:`THETA_I`."""
-    import mitsuba as mi
-
-    from models.bake import BakeSpec
-    from models.bake.twisted import TwistedBaker
-    from models.bundle import TwistedBundle
-    from pipeline.stages.bake import bake_unreduced, tally_to_table
 
     mi.set_variant("llvm_ad_rgb")  # the baker's own variant
     spec = BakeSpec(np.deg2rad(THETA_I), [0.0], 18, 36, relative_phi=True, exit=exit_model)
@@ -103,10 +99,6 @@ def bake_of(ply, fiber, exit_model: str, paths: int, seed: int = 1):
 def explicit_hair(ply, fiber, tables, spp: int = 16) -> list:
     """``[ratio, sigma]`` rows per table: bake / explicit ``hair`` fibers at the bins of
     :func:`cases_of`, with the standard error of both."""
-    import mitsuba as mi
-
-    from models.fiber.ray import mitsuba_hair
-    from pipeline import closure
 
     mi.set_variant("llvm_ad_mono")
     lam = list(WL).index(LAM)
@@ -134,7 +126,6 @@ def outside(res) -> np.ndarray:
 
 def albedos(betas=(0.2, 0.3, 0.5), thetas=(0.0, 30.0, 60.0, 75.0, 85.0)) -> list:
     """Albedo of a lossless ray fiber (eta 1.5639, tilt 2 deg) in either transport."""
-    from models.fiber.ray import RayFiber
 
     to = np.linspace(-np.pi / 2, np.pi / 2, 361)
     po = -np.pi + 2 * np.pi * (np.arange(180) + 0.5) / 180
@@ -152,8 +143,6 @@ def albedos(betas=(0.2, 0.3, 0.5), thetas=(0.0, 30.0, 60.0, 75.0, 85.0)) -> list
 
 
 def measure(plies, paths: int, spp: int) -> list:
-    from tqdm import tqdm
-
     rows = []
     for name, sigma_a in tqdm(plies, desc="hair closure", unit="ply"):
         ply = ply_of(name)
@@ -178,9 +167,7 @@ def measure(plies, paths: int, spp: int) -> list:
 
 
 def markdown(rows, albedo_rows) -> str:
-    head = (f"Measured by `python -m pipeline.bench.hair` on {date.today().isoformat()}, "
-            f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores.")
-    lines = [head, "", "| ply | sigma_a | bake | bins outside 3% + 3 se | worst bake / hair | median deviation "
+    lines = ["| ply | sigma_a | bake | bins outside 3% + 3 se | worst bake / hair | median deviation "
              "| median se |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         for b in BAKES:
@@ -200,7 +187,6 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="the six-fiber ply only, 2M paths, 16 spp")
     ap.add_argument("--paths", type=int, default=16_000_000, help="bake paths per ply and bake")
     ap.add_argument("--spp", type=int, default=64, help="samples per pixel of the explicit renders")
-    ap.add_argument("--out", type=Path, default=DOCS, help="folder for hair_closure.json and .md")
     a = ap.parse_args(argv)
     plies = [("six", 0.0), ("six+twist", 0.5)] if a.quick else \
         [("one", 0.0), ("six", 0.0), ("six+twist", 0.5), ("default", 0.0), ("default", 0.5), ("default+twist", 0.0)]
@@ -209,10 +195,8 @@ def main(argv=None) -> int:
     albedo_rows = albedos()
     table = markdown(rows, albedo_rows)
     print(table)
-    from models.io import write_text
-    write_text(a.out / "hair_closure.json", json.dumps({"rows": rows, "albedo": albedo_rows, "markdown": table,
-                                                        "command": "python -m pipeline.bench.hair"}, indent=1))
-    write_text(a.out / "hair_closure.md", table + "\n")
+    if not a.quick:  # a smoke run is not a measurement
+        results.save("hair", table, {"rows": rows, "albedo": albedo_rows})
     return 0
 
 

@@ -1,5 +1,5 @@
 """The highlight's resolution: explicit fibers against the table's lookup at single
-directions on the specular cone, for theta_o layouts side by side (docs/BENCHMARKS.md).
+directions on the specular cone, for theta_o layouts side by side.
 
     python -m pipeline.bench.highlight [CONFIG] [--artifacts DIR] [--paths N] [--spp N]
                                        [--layouts L ...] [--measures {550 nm,luminance} ...]
@@ -9,9 +9,9 @@ The config's ply (its fiber table from ``bcsdf run`` / ``bcsdf fiber``) is baked
 layout (``--layouts``) with the same paths and seed: ``uniform 36`` (36 equal 5 deg bins,
 the layout before the cone one), ``cone 35`` (a 2 deg bin on every node's cone, one bin
 between; theta_i nodes every 10 deg, as these two), ``graded cone 35`` (as many theta_i
-nodes, graded: 15 deg apart up to 60, 5 deg from 60 to 80, and 90: the default's of sessions
-22-27; ``--graded`` takes other nodes, the bins following them), ``held cone 43`` (the default's
-now: 85 and 87.5 instead of the pole node 90, the last node held along its cone up to the
+nodes, graded: 15 deg apart up to 60, 5 deg from 60 to 80, and a pole node at 90;
+``--graded`` takes other nodes, the bins following them), ``held cone 43`` (the default's:
+85 and 87.5 instead of the pole node 90, the last node held along its cone up to the
 pole) and ``uniform 180`` (1 deg bins, five times the bytes: what finer bins alone buy);
 bytes are those of the values as a table file holds them (half precision). Every fiber of
 the ply is then rendered as its own cylinder with ``fiber_table`` (16 turns of the arrangement) at directions exactly on the cone ``theta_o =
@@ -38,17 +38,29 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 
+import matplotlib.pyplot as plt
+import mitsuba as mi
 import numpy as np
 import yaml
 
+import mitsuba_ext
+from models.bake import bake_unreduced
+from models.bundle_table import BundleTable, from_half, lookup, to_half
+from models.fiber.base import FiberTable
+from models.grid import cone_bin_counts
 from models.io import write_text
+from pipeline.bench import results
 
-from ..artifacts import stage_dir
+from .. import closure
+from ..artifacts import bundle_table_path, stage_dir
+from ..build import build_bundle, make_spec
 from ..config import load_config
+from ..plots import save_figure
 
-GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # as many theta_i nodes as every 10 deg (sessions 22-27)
+GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # as many theta_i nodes as every 10 deg, with a pole node
 HELD = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 85, 87.5]"  # the default's now: no pole node
 EVERY_10 = ["bake.theta_i_deg=null", "bake.theta_i_step_deg=10"]    # theta_i nodes every 10 deg
 CONE = ["bake.theta_o_layout=cone", "bake.cone_bin_deg=2"]  # one bin between two cones: n_theta_o 2 G - 1
@@ -68,7 +80,6 @@ LAM = 550.0
 def layout_overrides(name: str, graded: str = GRADED) -> list:
     """The ``--set`` overrides of a layout; ``graded``: the nodes of ``graded cone 35``, its
     bins following them (one between every two cones)."""
-    from models.grid import cone_bin_counts
 
     sets = [s.replace(GRADED, graded) for s in LAYOUTS[name]]
     if name == "graded cone 35" and graded != GRADED:
@@ -81,14 +92,6 @@ def bake_layouts(config, artifacts, paths: int, layouts=tuple(LAYOUTS), graded: 
     """``{layout: (table, bake seconds, bytes of its values as a file holds them)}``: the config's
     ply baked once per layout (``graded``: the graded layout's theta_i nodes, a YAML list in
     degrees), its values rounded as ``BundleTable.save`` stores them (half precision)."""
-    import mitsuba as mi
-
-    from models.bundle_table import from_half, to_half
-    from models.fiber.base import FiberTable
-
-    from ..build import build_bundle, make_spec
-    from ..stages.bake import bake_unreduced
-
     mi.set_variant("llvm_ad_rgb")
     tables, warm = {}, False
     for name in layouts:
@@ -118,13 +121,6 @@ def explicit_on_cone(cfg, artifacts, spp: int, spread_deg: float = 0.0, waveleng
     (the mean over that azimuth range, theta_o still exactly on the cone). At one
     wavelength (a mono render), or, for ``wavelength_nm=None``, the luminance of a
     spectral render under a flat sun (``llvm_ad_spectral``, what a picture shows)."""
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    from .. import closure
-    from ..build import build_bundle
-
     mi.set_variant("llvm_ad_mono" if wavelength_nm is not None else "llvm_ad_spectral")
     mitsuba_ext.register()
     bundle = build_bundle(cfg)
@@ -150,9 +146,6 @@ def spread(width_deg: float, n: int = 16) -> np.ndarray:
 def table_entries(mi, tables: dict, wavelength_nm: float | None = LAM) -> dict:
     """``{layout: (S_of, bytes, bake seconds, theta_i nodes)}``: each baked table's lookup at
     ``wavelength_nm``, or its luminance in a spectral render (``None``)."""
-    from models.bundle_table import lookup
-
-    from .. import closure
 
     def reader(t):
         w = closure.spectrum_weights(mi, t.wavelength, wavelength_nm)
@@ -164,10 +157,6 @@ def model_entries(mi, cfg, roots, wavelength_nm: float | None = LAM) -> dict:
     """``{"table (ROOT)" | "mlp SIZE (ROOT)": (S_of, bytes, None)}``: the baked table and the
     models exported under each artifacts root (``bcsdf bake`` / ``train`` / ``export`` of this
     config there), evaluated as the plugin does (at ``wavelength_nm``, or the luminance)."""
-    from models.bundle_table import BundleTable
-
-    from .. import closure
-    from ..artifacts import bundle_table_path
 
     entries = {}
     for root in roots:
@@ -256,7 +245,6 @@ def main(argv=None) -> int:
     cfg = load_config(args.config)
     if cfg.bake.exit not in ("auto", "uniform") or cfg.fiber.model == "ray" or cfg.bundle.twist is not None:
         raise SystemExit("bench.highlight compares a parallel ply with the uniform exit (fiber_table explicit fibers)")
-    import mitsuba as mi
 
     tables = bake_layouts(args.config, args.artifacts, args.paths, args.layouts, args.graded)
     result = {"paths": args.paths, "measures": {}}
@@ -291,11 +279,6 @@ def main(argv=None) -> int:
 def plot(result: dict, path) -> None:
     """``lookup / explicit - 1`` per direction, one marker per layout; a panel per measure
     (single directions, a phi_o bin's azimuths) and spectrum (550 nm, luminance)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plots import save_figure
 
     panels = [(measure, key) for measure in result["measures"] for key in ("single", "phi_bin")]
     fig, axes = plt.subplots(len(panels), 1, figsize=(12, 3.75 * len(panels)), dpi=110, sharex=True,
@@ -324,4 +307,5 @@ def plot(result: dict, path) -> None:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with results.recorded("highlight", smoke="--quick" in sys.argv):
+        raise SystemExit(main())

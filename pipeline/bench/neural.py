@@ -19,25 +19,27 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 
 import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mitsuba_ext.neural import DrJitMLP
+from models.jit import to_drjit
+from pipeline.bench import results
 
 from ..artifacts import stage_dir
 from ..config import load_config
 from ..error_vs_time import measure
+from ..graph import require
 
 
 def one_form(weights: str, form: str, context: str, queries: int) -> tuple[float, float]:
     """Seconds of a first and a second evaluation of the model at ``weights`` in ``form``:
     ``context`` "plain" (one kernel over the queries) or "loop" (a symbolic loop of 8)."""
-    import time
-
-    import mitsuba as mi
-    import numpy as np
 
     mi.set_variant("llvm_ad_rgb")
-    from mitsuba_ext.neural import DrJitMLP
-    from models.jit import to_drjit
 
     mlp = DrJitMLP(weights, form=form)
     rng = np.random.default_rng(0)
@@ -94,7 +96,6 @@ def main(argv=None):
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
     cfg = load_config(args.config, args.overrides)
-    from ..graph import require
     require(cfg, ("bake", "train", "export"), args.artifacts,
             " ".join([".venv/bin/bcsdf run", str(args.config), *(f"--set '{o}'" for o in args.overrides)]))
     if args.forms:
@@ -104,4 +105,5 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    with results.recorded("neural", smoke="--quick" in sys.argv):
+        main()

@@ -13,40 +13,41 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
-from models.io import write_text
+import mitsuba as mi
 
-from ..config import load_config
+import mitsuba_ext
+from models.io import write_text
+from pipeline.bench import results
+
+from .. import bsdfs, images, scenes
 from ..artifacts import stage_dir
+from ..config import load_config
+from ..graph import require
 
 
 def measure(cfg, out_root="artifacts", spp=None) -> dict:
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    from ..stages import render
-
     r = cfg.render
     mi.set_variant(r.variant)
     mitsuba_ext.register()
     spp = spp or r.spp
     rows = []
-    table_props = render.backend_props(cfg, out_root, "table")
+    table_props = bsdfs.backend_props(cfg, out_root, "table")
     for scene in r.scenes:
-        ref, t_ref, _ = render.render_timed(mi, render._scene(mi, cfg, scene, table_props, spp, Path("/tmp")))
-        exposure = render.exposure_of(ref)
+        ref, t_ref, _ = images.render_timed(mi, scenes.named_scene(mi, cfg, scene, table_props, spp, Path("/tmp")))
+        exposure = images.exposure_of(ref)
         rows.append({"scene": scene, "method": "table", "backend": "table", "seconds": t_ref, "time_ratio": 1.0,
                      "flip": 0.0, "psnr": float("inf"),
                      "bytes": int(Path(table_props["table"]).stat().st_size)})
         for size in cfg.train.models:
             sized = cfg.model_copy(update={"render": r.model_copy(update={"model": size})})
             for backend in ("mlp", "onnx"):
-                props = render.backend_props(sized, out_root, backend)
-                img, t, _ = render.render_timed(mi, render._scene(mi, sized, scene, props, spp, Path("/tmp")),
+                props = bsdfs.backend_props(sized, out_root, backend)
+                img, t, _ = images.render_timed(mi, scenes.named_scene(mi, sized, scene, props, spp, Path("/tmp")),
                                                 backend)
-                flip, psnr, _ = render.flip_and_psnr(ref, img, exposure)
+                flip, psnr, _ = images.flip_and_psnr(ref, img, exposure)
                 rows.append({"scene": scene, "method": size, "backend": backend, "seconds": t,
                              "time_ratio": t / t_ref, "flip": flip, "psnr": psnr,
                              "bytes": int(Path(props["model"]).stat().st_size)})
@@ -62,7 +63,6 @@ def main(argv=None) -> int:
                     help="change a config key, as `bcsdf run --set` (make run-sizes: the three model sizes)")
     args = p.parse_args(argv)
     cfg = load_config(args.config, args.overrides)
-    from ..graph import require
     require(cfg, ("bake", "train", "export"), args.artifacts,
             " ".join([".venv/bin/bcsdf run", str(args.config), *(f"--set '{o}'" for o in args.overrides)]))
     result = measure(cfg, args.artifacts, args.spp)
@@ -77,4 +77,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with results.recorded("render", smoke="--quick" in sys.argv):
+        raise SystemExit(main())

@@ -2,19 +2,19 @@
 
 For each model size of the config, in one run on the same folded table, split and seed:
 
-* the **old** schedule (:data:`OLD`: the defaults until 2026-12-02, 1500 epochs of batch
-  1024 at lr 3e-3, patience 300, 300 calibration iterations) and
+* a long **reference** schedule (:data:`OLD`: 1500 epochs of batch 1024 at lr 3e-3,
+  patience 300, 300 calibration iterations; the rows call it ``old``) and
 * the config's own ``train:`` schedule (**new**),
 
-each trained by :func:`pipeline.stages.train.fit`, the code ``bcsdf train`` runs. During
+each trained by :func:`models.fit.fit`, the code ``bcsdf train`` runs. During
 phase 1 the best state so far is copied at about 12 log-spaced moments; their held-out
 relative L1 (bin averages, 4 x 4 points, the ``summary.json`` metric) is computed after the
 clock has stopped, so measuring costs the schedules nothing. After the calibration: the final
 held-out L1, the worst albedo error and the seconds of each phase. First, where a minibatch
 step's time goes (points and features, forward, backward, optimizer) for each size.
 
-Prints one table, writes ``docs/train_schedules.json`` and ``docs/images/train_schedules.png``
-(held-out L1 against seconds, one panel per size; the report shows them). ``--sizes`` limits
+Prints one table, recorded as ``benchmarks/train.json`` (``pipeline.bench.results``), and
+draws ``docs/images/train_schedules.png`` (held-out L1 against seconds, one panel per size). ``--sizes`` limits
 the sizes; ``--quick`` trains 1/10 of each schedule's epochs (a smoke run, not a measurement).
 ``--calibration 4 3`` instead compares the energy calibration at 4 x 4 and 3 x 3 points per
 bin from one phase-1 state per size (seconds, held-out L1, worst albedo error at fresh points).
@@ -25,21 +25,31 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
-import json
 import os
+import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
+import torch
 
-DOCS = Path(__file__).resolve().parents[2] / "docs"
+from models import fit as fitting
+from models.fit import BinFit, adam, fit, held_out_metrics, prepare
+from models.neural import make_torch_model
+from pipeline.artifacts import load_bundle_table
+from pipeline.config import TRAIN_SECTIONS, load_config
+from pipeline.plots import save_figure
 
-# the schedule of every default config until 2026-12-02 (issue 25's "today")
+from . import results
+
+IMAGES = Path(__file__).resolve().parents[2] / "docs" / "images"
+
+# the reference schedule: long and slow, the yardstick of the config's own
 OLD = {"epochs": 1500, "batch_size": 1024, "lr": 3e-3, "patience": 300, "bin_strata": 2, "calibration_steps": 300}
 
 
 def measure_schedule(cfg, problem, name, hidden, schedule: dict, quick=False) -> dict:
     """Train one size under one schedule; its curve and final figures."""
-    from pipeline.stages.train import fit, held_out_metrics
 
     if quick:
         schedule = {**schedule, "epochs": max(2, schedule["epochs"] // 10),
@@ -71,8 +81,8 @@ def measure_schedule(cfg, problem, name, hidden, schedule: dict, quick=False) ->
 
 
 def equal_accuracy_speedup(old: dict, new: dict):
-    """What issue 25 asks: how much sooner the new schedule reaches its accuracy than the
-    old one does. The old schedule's seconds to its first phase-1 snapshot at or below the
+    """How much sooner the config's schedule reaches its accuracy than the reference one
+    does. The old schedule's seconds to its first phase-1 snapshot at or below the
     new one's final held-out L1, plus its calibration, over the new schedule's seconds
     (the snapshots are ~24% of time apart: as coarse); ``None`` if no snapshot gets there."""
     reached = [p["seconds"] for p in old["curve"] if p["relative_l1"] <= new["relative_l1"]]
@@ -82,13 +92,6 @@ def equal_accuracy_speedup(old: dict, new: dict):
 def profile_steps(cfg, problem, name, hidden, steps=30) -> dict:
     """Milliseconds per minibatch step by phase (points and features, forward, backward,
     optimizer) and of one held-out evaluation, under the config's batch size and strata."""
-    import time
-
-    import torch
-
-    from models.neural import make_torch_model
-    from pipeline.stages.train import BinFit, adam
-
     c = cfg.train
     spec = dataclasses.replace(problem.base, hidden=list(hidden))
     p = BinFit(spec, problem)
@@ -124,31 +127,24 @@ def compare_calibration(cfg, problem, sizes, strata) -> dict:
     """Phase 1 once per size, then the calibration from that same state at each k x k points
     per bin: its seconds, the held-out L1 and the worst albedo error, the latter at 6 x 6
     fresh points per bin (not the calibration's own)."""
-    import time
-
-    import torch
-
-    from models.neural import make_torch_model
-    from pipeline.stages import train as T
-
     c = cfg.train
     rows = {}
     for name in sizes:
         spec = dataclasses.replace(problem.base, hidden=list(c.models[name]))
         torch.manual_seed(c.seed)
-        model, p = make_torch_model(spec), T.BinFit(spec, problem)
-        T.fit_bins(model, p, c, name)
+        model, p = make_torch_model(spec), fitting.BinFit(spec, problem)
+        fitting.fit_bins(model, p, c, name)
         state = copy.deepcopy(model.state_dict())
         rows[name] = {}
         for k in strata:
             model.load_state_dict(state)
             t0 = time.perf_counter()
-            T.calibrate(model, p, c, name, strata=k)
+            fitting.calibrate(model, p, c, name, strata=k)
             seconds = time.perf_counter() - t0
             fresh = p.stratified(len(p.every), 6, torch.Generator().manual_seed(12345))  # not the calibration's
             with torch.no_grad():
                 S = p.bin_means(p.every, model(p.encode(p.every, fresh)))[1]
-            r = {"seconds": seconds, "relative_l1": T.held_out_metrics(spec, model, problem.data,
+            r = {"seconds": seconds, "relative_l1": fitting.held_out_metrics(spec, model, problem.data,
                                                                        problem.val_idx)["relative_l1"],
                  "worst_albedo_error": p.worst_albedo_error(S)}
             rows[name][k] = r
@@ -163,24 +159,22 @@ def main(argv=None):
     parser.add_argument("--artifacts", default="artifacts")
     parser.add_argument("--sizes", nargs="*", help="model names of train.models (default: all)")
     parser.add_argument("--quick", action="store_true", help="a tenth of the epochs: a smoke run")
-    parser.add_argument("--out", type=Path, default=DOCS, help="folder for train_schedules.json and images/")
     parser.add_argument("--calibration", type=int, nargs="+", metavar="K",
                         help="instead: the calibration at K x K points per bin, side by side from one phase 1")
     parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
                     help="change a config key, as `bcsdf run --set` (make run-sizes: the three model sizes)")
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
+    with results.recorded("train-calibration" if args.calibration else "train", smoke=args.quick):
+        return schedules(args)
 
-    import torch
 
-    from pipeline.artifacts import load_bundle_table
-    from pipeline.config import load_config
-    from pipeline.stages.train import prepare
+def schedules(args):
 
     cfg = load_config(args.config, args.overrides)
     torch.set_num_threads(cfg.train.threads)
     table, table_path = load_bundle_table(cfg, args.artifacts)
-    problem = prepare(cfg, table, table_path)
+    problem = prepare(table, table_path, cfg.train, cfg.hash(*TRAIN_SECTIONS))
     new = {k: getattr(cfg.train, k) for k in OLD}
     sizes = args.sizes or list(cfg.train.models)
     if args.calibration:
@@ -211,23 +205,12 @@ def main(argv=None):
         cur["equal_accuracy_speedup"] = at
     total = {label: sum(rows[n][label]["seconds"] for n in sizes) for label in ("old", "new")}
     print(f"all sizes: old {total['old']:.0f} s, new {total['new']:.0f} s (x{total['old'] / total['new']:.1f})")
-    if args.quick:
-        return rows
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "train_schedules.json").write_text(json.dumps(
-        {"config": args.config, "sizes": {n: cfg.train.models[n] for n in sizes}, "profile": profile, "rows": rows,
-         "total": total},
-        indent=1))
-    plot(rows, args.out / "images" / "train_schedules.png")
+    if not args.quick:
+        plot(rows, IMAGES / "train_schedules.png")
     return rows
 
 
 def plot(rows: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from pipeline.plots import save_figure
 
     fig, axes = plt.subplots(1, len(rows), figsize=(4.6 * len(rows), 4), dpi=110, squeeze=False)
     for ax, (name, by) in zip(axes[0], rows.items()):

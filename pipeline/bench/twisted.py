@@ -20,9 +20,18 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
+import mitsuba as mi
 import numpy as np
+
+from models import fiber as fiber_models
+from models.bake import Tally
+from models.bundle import Migration, TwistedBundle
+from pipeline.bench import results
+from pipeline.build import build_bundle, build_ply, make_spec, tracer
+from pipeline.config import load_config
 
 from .bake import median_rel_error
 
@@ -40,13 +49,6 @@ def main(argv=None):
     args = parser.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
 
-    import mitsuba as mi
-
-    from models import fiber as fiber_models
-    from models.bake import Tally
-    from models.bundle import Migration, TwistedBundle
-    from pipeline.build import build_bundle, build_ply, make_spec, tracer
-    from pipeline.config import load_config
 
     # the cross-section spaced for the steepest pitch, shared by every row
     steepest = min(abs(p) for p in args.pitch)
@@ -102,4 +104,5 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    with results.recorded("twisted", smoke="--quick" in sys.argv):
+        main()

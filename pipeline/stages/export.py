@@ -17,21 +17,21 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from models.fit import load_checkpoint
 from models.io import atomic_path
 from models.neural import NeuralSpec, make_export_module, make_torch_model
 
 from .. import error_vs_time
+from ..artifacts import checkpoint_path, stage_dir
 from ..config import TRAIN_SECTIONS
-from .train import load_checkpoint
 from ..metrics import folder as metrics_folder
 from ..metrics import write_curve, write_metrics
-from ..artifacts import checkpoint_path, stage_dir
 
 
 def run(cfg, out_root="artifacts") -> Path:
     import onnx
-    import torch
 
     out = stage_dir(cfg, "export", out_root)
     for name in cfg.train.models:

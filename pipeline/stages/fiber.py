@@ -16,17 +16,20 @@ import json
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
 
 from models import fiber as fiber_models
 from models.fiber.base import FiberTable
 from models.grid import linear
 from models.io import write_text
 
+from ..artifacts import stage_dir
 from ..config import FIBER_SECTIONS
 from ..metrics import write_metrics
 from ..plots import save_figure, slice_nodes, spectral_image
-from ..artifacts import stage_dir
 
 
 def run(cfg, out_root="artifacts") -> Path:
@@ -104,11 +107,6 @@ def plot_slice(table: FiberTable, i: int, path: Path, max_columns: int = 1440) -
 
 
 def plot_energy(theta_i, wavelength, energy, ext, path, model_name) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
 
     n = 2 if ext is not None else 1
     fig, axes = plt.subplots(1, n, figsize=(5.8 * n, 4), dpi=110, squeeze=False, layout="constrained")

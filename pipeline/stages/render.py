@@ -20,146 +20,42 @@ backends read only their exported files: no table is loaded for them.
 from __future__ import annotations
 
 import json
+import tempfile
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt
+import mitsuba as mi
 import numpy as np
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
 from tqdm import tqdm
 
+import mitsuba_ext
+from mitsuba_ext.frame import spectral_weights
+from models.bake import bake_unreduced
+from models.bundle_table import BundleTable
+from models.fiber.base import FiberTable
 from models.io import atomic_path, write_text
 
-from ..config import BAKE_SECTIONS, RENDER_SECTIONS, TRAIN_SECTIONS
+from .. import closure, scenes
+from ..artifacts import config_dir, model_size, stage_dir
+from ..bsdfs import backend_props
+from ..build import build_ply, cross_section, make_spec
+from ..config import RENDER_SECTIONS
+from ..images import exposure_of, flip_and_psnr, render_timed, save_images, save_png, to_srgb
 from ..metrics import write_metrics
-from ..artifacts import config_dir, stage_dir
-
+from ..plots import save_figure
+from ..scenes import FOV_DEG
 
 # -- inputs ------------------------------------------------------------------------
-def model_size(cfg) -> str:
-    sizes = list(cfg.train.models)
-    size = cfg.render.model or max(sizes, key=lambda s: sum(cfg.train.models[s]))
-    if size not in cfg.train.models:
-        raise ValueError(f"render.model: {size!r} is not one of the trained sizes {sizes}")
-    return size
-
-
-def backend_props(cfg, out_root, backend: str) -> dict:
-    """The ``fiber_bundle`` parameters of one backend, checked against this config."""
-    from mitsuba_ext.neural import check_compatible, load_weights
-    from models.bundle_table import BundleTable
-
-    root = config_dir(cfg, out_root)
-    if backend == "table":
-        path = root / "bake" / "bundle_table.npz"
-        if not path.exists():
-            raise ValueError(f"{path} does not exist; run `bcsdf bake` with this config first")
-        if BundleTable.load(path).meta.get("config_hash") != cfg.hash(*BAKE_SECTIONS):
-            raise ValueError(f"{path} was baked from different settings than this config; re-run `bcsdf bake`")
-        return {"type": "fiber_bundle", "backend": "table", "table": str(path)}
-    size = model_size(cfg)
-    weights = root / "export" / size / "weights.npz"
-    if not weights.exists():
-        raise ValueError(f"{weights} does not exist; run `bcsdf export` with this config first")
-    spec, _ = load_weights(weights)
-    if spec.config_hash != cfg.hash(*TRAIN_SECTIONS):
-        raise ValueError(f"{weights} was trained with different settings than this config; "
-                         "re-run `bcsdf train` and `bcsdf export`")
-    check_compatible(spec, wavelength=np.linspace(cfg.wavelengths.start_nm, cfg.wavelengths.stop_nm,
-                                                  cfg.wavelengths.count))
-    if backend == "mlp":
-        return {"type": "fiber_bundle", "backend": backend, "model": str(weights)}
-    from mitsuba_ext.neural import OnnxMLP
-
-    onnx_path = root / "export" / size / "model.onnx"
-    if not onnx_path.exists():
-        raise ValueError(f"{onnx_path} does not exist; run `bcsdf export` with this config first")
-    if OnnxMLP(onnx_path).spec.config_hash != cfg.hash(*TRAIN_SECTIONS):  # every artifact read is checked
-        raise ValueError(f"{onnx_path} was exported from different settings than this config; re-run `bcsdf export`")
-    return {"type": "fiber_bundle", "backend": backend, "model": str(onnx_path)}
 
 
 # -- rendering ---------------------------------------------------------------------
-def render_timed(mi, scene, backend: str = "table", warm: bool = True,
-                 seed: int = 0) -> tuple[np.ndarray, float, float]:
-    """``(image, seconds, first_seconds)`` of a scene dict or a loaded scene: the second of
-    two renders (seeds ``seed`` and ``seed + 1``) is timed (warm kernels); ``warm=False``:
-    one render, timed with its compilation if its kernel is new."""
-    import drjit as dr
-
-    evaluated = backend == "onnx"  # onnxruntime needs Dr.Jit's evaluated mode
-    flags = dr.flag(dr.JitFlag.SymbolicLoops), dr.flag(dr.JitFlag.SymbolicCalls)
-    if evaluated:
-        dr.set_flag(dr.JitFlag.SymbolicLoops, False)
-        dr.set_flag(dr.JitFlag.SymbolicCalls, False)
-    try:
-        scene = mi.load_dict(scene) if isinstance(scene, dict) else scene
-        t0 = time.perf_counter()
-        img = mi.render(scene, seed=seed)
-        dr.eval(img)
-        dr.sync_thread()
-        first = seconds = time.perf_counter() - t0
-        if warm:
-            t0 = time.perf_counter()
-            img = mi.render(scene, seed=seed + 1)
-            dr.eval(img)
-            dr.sync_thread()
-            seconds = time.perf_counter() - t0
-    finally:
-        dr.set_flag(dr.JitFlag.SymbolicLoops, flags[0])
-        dr.set_flag(dr.JitFlag.SymbolicCalls, flags[1])
-    image = np.array(img, dtype=np.float32)[..., :3]
-    if not np.all(np.isfinite(image)):
-        raise FloatingPointError(f"render ({backend}) produced {np.sum(~np.isfinite(image))} non-finite values")
-    return image, seconds, first
-
-
-def exposure_of(img: np.ndarray) -> float:
-    """A scale that puts the 99.5th percentile of luminance at 0.85 (one per scene)."""
-    Y = img @ np.array([0.2126, 0.7152, 0.0722])
-    top = float(np.percentile(Y, 99.5))
-    return 0.85 / top if top > 0 else 1.0
-
-
-def to_srgb(img: np.ndarray, exposure: float = 1.0) -> np.ndarray:
-    """Linear sRGB -> display sRGB in [0, 1] (the transfer curve, clipped)."""
-    x = np.clip(img * exposure, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
-
-
-def save_images(mi, img: np.ndarray, stem: Path, exposure: float) -> None:
-    with atomic_path(stem.with_suffix(".exr")) as tmp:
-        mi.Bitmap(img).write(str(tmp), mi.Bitmap.FileFormat.OpenEXR)
-    save_png(to_srgb(img, exposure), stem.with_suffix(".png"))
-
-
-def save_png(srgb: np.ndarray, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    with atomic_path(path) as tmp:
-        plt.imsave(tmp, np.clip(srgb, 0, 1), format="png")
-
-
-def flip_and_psnr(reference: np.ndarray, test: np.ndarray, exposure: float) -> tuple[float, float, np.ndarray]:
-    """Mean LDR-FLIP, PSNR (dB), both on the displayed sRGB images, and the FLIP map (magma)."""
-    import flip_evaluator as flip
-
-    ref, tst = to_srgb(reference, exposure), to_srgb(test, exposure)
-    error_map, mean_flip, _ = flip.evaluate(ref, tst, "LDR")
-    mse = float(np.mean((ref - tst) ** 2))
-    psnr = float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
-    return float(mean_flip), psnr, np.asarray(error_map, np.float32)
 
 
 # -- the stage ---------------------------------------------------------------------
 def run(cfg, out_root="artifacts") -> Path:
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    from .. import scenes
-
     if cfg.bundle is None:
         raise ValueError("render: this config has no bundle; add a `bundle:` section")
     r = cfg.render
@@ -177,7 +73,7 @@ def run(cfg, out_root="artifacts") -> Path:
         images, entry = {}, {"description": scenes.describe(cfg, name)}
         for backend in r.backends:
             bar.update()
-            scene = _scene(mi, cfg, name, props[backend], r.spp, out)
+            scene = scenes.named_scene(mi, cfg, name, props[backend], r.spp, out)
             img, seconds, first = render_timed(mi, scene, backend)
             images[backend] = img
             entry[backend] = {"seconds": seconds, "first_seconds": first,
@@ -228,25 +124,8 @@ def headline(summary: dict) -> dict:
     return out
 
 
-def _scene(mi, cfg, name, bsdf, spp, out, seed=0):
-    from .. import scenes
-
-    if name == "ply":
-        return scenes.ply_scene(mi, cfg, bsdf, spp, seed)
-    from models.bundle import zhao2016_row
-
-    return scenes.yarn_scene(mi, cfg, bsdf, out / "yarn_curves.txt", zhao2016_row(cfg.render.yarn), spp, seed)
-
-
 def side_by_side(images: dict, flip_maps: dict, entry: dict, path: Path, name: str) -> None:
     """Each backend's image, and the FLIP map of each neural image, with their figures."""
-    import matplotlib.pyplot as plt
-
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
-
-    from ..plots import save_figure
-
     cols = list(images)
     h, w = next(iter(images.values())).shape[:2]
     # each render at twice its pixel size (at least 4 in wide), so that noise and detail can be judged
@@ -272,11 +151,6 @@ def side_by_side(images: dict, flip_maps: dict, entry: dict, path: Path, name: s
 
 def mono_check(mi, cfg, table_props: dict, out: Path) -> dict:
     """The spectral render against mono renders per table wavelength combined with CIE + D65."""
-    import mitsuba_ext
-    from mitsuba_ext.frame import spectral_weights
-    from models.bundle_table import BundleTable
-
-    from .. import scenes
 
     r = cfg.render
     small = cfg.model_copy(update={"render": r.model_copy(update={"width": r.mono_check_size[0],
@@ -320,14 +194,6 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
 
     Writes ``closure.png`` (the first two) and ``explicit_vs_bundle.png``.
     """
-    import tempfile
-
-    import mitsuba_ext
-    from models.bundle_table import BundleTable
-
-    from .. import closure, scenes
-    from ..build import build_ply, cross_section
-
     r = cfg.render
     root = config_dir(cfg, out_root)
     fiber_table = root / "fiber" / "fiber_table.npz"
@@ -433,11 +299,6 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
       position and its full width at half maximum.
 
     Writes ``parallel_table.npz`` and ``twisted_vs_parallel.png``."""
-    from models.fiber.base import FiberTable
-
-    from .. import closure, scenes
-    from ..build import make_spec
-    from .bake import bake_unreduced
 
     r = cfg.render
     fiber = FiberTable.load(fiber_table)
@@ -453,7 +314,6 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
     t_bake = time.perf_counter() - t0
     parallel.save(out / "parallel_table.npz")
     tables = {"twisted table": table_props["table"], "parallel table": out / "parallel_table.npz"}
-    import mitsuba_ext
 
     # -- the highlight: a cut through the far field, explicit helices against both lookups
     mi.set_variant("llvm_ad_mono")
@@ -502,7 +362,6 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
 def view_angle(n: int) -> np.ndarray:
     """The view's angle along the ply (deg) at each of ``n`` image columns (the ply scene's
     perspective camera, ``scenes.FOV_DEG`` across)."""
-    from ..scenes import FOV_DEG
 
     u = (np.arange(n) + 0.5) / n * 2 - 1
     return np.rad2deg(np.arctan(u * np.tan(np.radians(FOV_DEG / 2))))
@@ -510,10 +369,7 @@ def view_angle(n: int) -> np.ndarray:
 
 def plot_parallel_misses(images: dict, profiles: dict, result: dict, exposure: float, path: Path, name: str) -> None:
     """The three renders, labelled; their brightness along the ply; the highlight's cut."""
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     n = len(images)
     fig = plt.figure(figsize=(12, 2.0 * n + 1.0))

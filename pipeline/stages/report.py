@@ -12,18 +12,25 @@ from __future__ import annotations
 
 import html
 import json
-import shutil
 from importlib import metadata
 from pathlib import Path
 
+import drjit as dr
+import matplotlib.pyplot as plt
+import mitsuba as mi
 import numpy as np
 import yaml
 
-from models.io import atomic_path, write_text
+from mitsuba_ext.neural import DrJitMLP
+from models.io import write_text
 from models.jit import to_drjit
+from models.neural import bin_average, table_cells
 
+from ..artifacts import config_dir, failure_dir, load_bundle_table, model_size, read_failure, stage_dir
+from ..build import code_version
+from ..graph import stamp_path
+from ..html import html_page, img_tag, not_run
 from ..plots import save_figure, spectral_image, theta_rows
-from ..artifacts import config_dir, failure_dir, read_failure, stage_dir
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
 
@@ -80,7 +87,7 @@ def run(cfg, out_root="artifacts") -> Path:
         slices = sorted((bake / "slices").glob("*.png"))
         chosen = [p for p in slices if "theta_i_+30.0" in p.name or "theta_i_+60.0" in p.name][:4] or slices[:2]
         body += "".join(img_tag(out, p, p.stem) for p in [bake / "arrangement.png", *chosen, bake / "energy.png"])
-        body += exit_section(s.get("exit", "uniform"), out)
+        body += exit_section(s.get("exit", "uniform"))
         sections.append(("Bundle and baked table", body))
     else:
         sections.append(("Bundle and baked table", not_run("bcsdf bake")))
@@ -105,7 +112,8 @@ def run(cfg, out_root="artifacts") -> Path:
                 + "".join(rows) + "</table>")
         body += "".join(img_tag(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
                         if (train / n / "loss.png").exists())
-        body += schedule_section(out)
+        body += ("<p>Training schedules and where a step's time goes: <code>make bench-train</code>, "
+                 "docs/BENCHMARKS.md, \"Training schedules\".</p>")
         body += compare_slices(cfg, out_root, out)
         bench = root / "export" / "error_vs_time.json"
         if bench.exists():  # measured by the export stage
@@ -129,7 +137,6 @@ def run(cfg, out_root="artifacts") -> Path:
 
     # -- versions and config ---------------------------------------------------------
     versions = "".join(f"<tr><td>{p}</td><td>{_version(p)}</td></tr>" for p in PACKAGES)
-    from ..build import code_version
     sections.append(("Versions and config",
                      f"<p>code {code_version()}, config hash {cfg.hash()}</p><table>{versions}</table>"
                      f"<pre>{html.escape(yaml.safe_dump(cfg.model_dump(mode='json'), sort_keys=False))}</pre>"))
@@ -156,14 +163,11 @@ def summary_section(cfg, root: Path, out_root) -> str:
     its cost is the Dr.Jit evaluator's against the table's multilinear lookup, from the
     export stage's measurement.
     """
-    from ..graph import stamp_path
 
     lines = []
     summaries = {n: json.loads((root / "train" / n / "summary.json").read_text()) for n in cfg.train.models
                  if (root / "train" / n / "summary.json").exists()}
     if cfg.bundle is not None and summaries:
-        from .render import model_size
-
         best = min(m["relative_l1"] for m in summaries.values())
         fits = [n for n, m in summaries.items() if m["relative_l1"] <= 1.2 * best
                 and m.get("worst_albedo_error_after", 0.0) < 0.02]
@@ -199,16 +203,6 @@ def summary_section(cfg, root: Path, out_root) -> str:
 
 def compare_slices(cfg, out_root, out) -> str:
     """Table against each model at two incidences: sRGB slices and a relative error map."""
-    import drjit as dr
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import mitsuba as mi
-
-    from mitsuba_ext.neural import DrJitMLP
-    from models.neural import bin_average, table_cells
-    from ..artifacts import load_bundle_table
-    from .render import model_size
 
     mi.set_variant(cfg.bake.variant)
     table, _ = load_bundle_table(cfg, out_root)
@@ -250,34 +244,6 @@ def compare_slices(cfg, out_root, out) -> str:
     return body
 
 
-TRAIN_SCHEDULES = Path(__file__).resolve().parents[2] / "docs" / "train_schedules.json"
-
-
-def schedule_section(out: Path) -> str:
-    """The training schedule against the earlier one, side by side on the default table
-    (``docs/train_schedules.json``, measured by ``python -m pipeline.bench.train``)."""
-    if not TRAIN_SCHEDULES.exists():
-        return not_run("python -m pipeline.bench.train")
-    result = json.loads(TRAIN_SCHEDULES.read_text())
-    lines = []
-    for name, by in result["rows"].items():
-        for label in ("old", "new"):
-            r = by[label]
-            sch = r["schedule"]
-            albedo = f"{r['worst_albedo_error']:.2%}" if r["worst_albedo_error"] is not None else "-"
-            lines.append(f"<tr><td>{html.escape(name)}</td><td>{label}: {sch['epochs']} epochs, lr {sch['lr']:g}, "
-                         f"{sch['calibration_steps']} calibration steps</td><td>{r['seconds']:.1f}</td>"
-                         f"<td>{r['relative_l1']:.2%}</td><td>{albedo}</td></tr>")
-    total = result["total"]
-    body = (f"<p>Training schedules side by side on {html.escape(result['config'])}'s table (one run, same split "
-            f"and seed; <code>make bench-train</code>): all sizes {total['old']:.0f} s before, {total['new']:.0f} s "
-            "now.</p><table><tr><th>model</th><th>schedule</th><th>seconds</th><th>held-out rel. L1</th>"
-            "<th>worst albedo error</th></tr>" + "".join(lines) + "</table>")
-    return body + img_tag(out, TRAIN_SCHEDULES.parent / "images" / "train_schedules.png",
-                          "held-out error against training time")
-
-
-EXIT_MODELS = Path(__file__).resolve().parents[2] / "docs" / "exit_models.json"
 EXIT_WORDS = {"uniform": "light leaves a fiber anywhere on its outgoing side (h uniform), whatever its path",
               "entry": "every path leaves where the light entered",
               "lobe": "each path of the ray model leaves from its own exit point, at the ray's real offset h",
@@ -285,34 +251,12 @@ EXIT_WORDS = {"uniform": "light leaves a fiber anywhere on its outgoing side (h 
                        "own offset (what Mitsuba's hair on curves renders; docs/DESIGN.md)"}
 
 
-def exit_section(exit_model: str, out: Path) -> str:
-    """Which exit model the bake used, and every exit model against exact geometry
-    (``docs/exit_models.json``, measured by ``python -m pipeline.bench.exit``)."""
-    body = (f"<p>Exit model <b>{html.escape(exit_model)}</b>: {html.escape(EXIT_WORDS.get(exit_model, ''))}. "
-            "Against exact geometry (smooth dielectric circles: Snell, Fresnel, nothing modelled), a smooth ray "
-            "fiber baked with each exit model, energy per sector of |dphi| as bake / exact:</p>")
-    if not EXIT_MODELS.exists():
-        return body + not_run("python -m pipeline.bench.exit")
-    rows = json.loads(EXIT_MODELS.read_text())["rows"]
-    head = ("<tr><th>ply</th><th>theta_i</th><th>exit</th><th>albedo</th>"
-            + "".join(f"<th>{a}-{a + 30}</th>" for a in range(0, 180, 30))
-            + "<th>90% bins within 2% + 3 se</th></tr>")
-    lines = []
-    for r in rows:
-        for m in ("uniform", "entry", "lobe"):
-            x = r[m]
-            cells = "".join(f"<td>{v:.3f}</td>" for v in x["sector_ratios"])
-            lines.append(f"<tr><td>{html.escape(r['ply'])} ({r['n_fibers']})</td><td>{r['theta_i_deg']:.0f}</td>"
-                         f"<td>{m}</td><td>{x['albedo_ratio']:.4f}</td>{cells}"
-                         f"<td>{x['bins90_ok_share']:.0%} of {x['bins90']}</td></tr>")
-    body += "<table>" + head + "".join(lines) + "</table>"
-    picture = EXIT_MODELS.parent / "images" / "exit_models.png"
-    if picture.exists():
-        body += img_tag(out, picture, "exit models against exact geometry")
-    worst = min(r["uniform"]["sector_ratios"][-1] for r in rows)
-    return body + ("<p>Mie and tabulated fibers know no offset h and bake with the uniform exit: its error above "
-                   f"(down to {worst:.3f} of exact in the forward sector) is theirs, measured on the ray model's "
-                   "smooth limit as the proxy.</p>")
+def exit_section(exit_model: str) -> str:
+    """Which exit model the bake used, in words; every exit model against exact geometry is
+    the exit bench's (docs/BENCHMARKS.md, "Exit models")."""
+    return (f"<p>Exit model <b>{html.escape(exit_model)}</b>: {html.escape(EXIT_WORDS.get(exit_model, ''))}. "
+            "Every exit model against exact geometry (smooth dielectric circles: Snell, Fresnel, nothing "
+            "modelled): <code>make bench-exit</code>, docs/BENCHMARKS.md, \"Exit models\".</p>")
 
 
 def stability_section(root: Path, failed: Path) -> str:
@@ -486,24 +430,6 @@ def sweep_section(cfg, root: Path) -> str:
             'arrangement against the Monte Carlo error: <a href="../sweep/index.html">the family page</a>.</p>')
 
 
-def img_tag(out: Path, src: Path, alt: str, copy: bool = True) -> str:
-    """An ``<img>`` for the page in ``out``: ``src`` copied beside it, or (``copy=False``,
-    ``src`` under ``out``) linked where it lies."""
-    if not src.exists():
-        return f"<p class=missing>missing picture: {html.escape(str(src))}</p>"
-    if not copy:
-        return f'<img src="{html.escape(src.relative_to(out).as_posix())}" alt="{html.escape(alt)}">'
-    dst = out / (src.parent.name + "_" + src.name if src.parent != out else src.name)
-    if src.resolve() != dst.resolve():
-        with atomic_path(dst) as tmp:
-            shutil.copyfile(src, tmp)
-    return f'<img src="{html.escape(dst.name)}" alt="{html.escape(alt)}">'
-
-
-def not_run(command: str) -> str:
-    return f"<p class=missing>Not run yet: <code>{html.escape(command)}</code>.</p>"
-
-
 def _rows_table(rows) -> str:
     head = ("<tr><th>method</th><th>backend</th><th>bytes</th><th>ns/query</th><th>rel. L1</th><th>log MAE</th>"
             "<th>worst bin</th><th>albedo error</th></tr>")
@@ -520,29 +446,3 @@ def _version(package: str) -> str:
         return "not installed"
 
 
-def html_page(name: str, sections) -> str:
-    toc = "".join(f'<li><a href="#s{k}">{html.escape(t)}</a></li>' for k, (t, _) in enumerate(sections))
-    body = "".join(f'<section id="s{k}"><h2>{html.escape(t)}</h2>{b}</section>' for k, (t, b) in enumerate(sections))
-    return f"""<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>bcsdf report: {html.escape(name)}</title>
-<style>
-body {{ font: 15px/1.45 system-ui, sans-serif; max-width: 1200px; margin: 2em auto; padding: 0 1em; color: #222; }}
-img {{ max-width: 100%; display: block; margin: 0.6em 0; border: 1px solid #ddd; }}
-table {{ border-collapse: collapse; margin: 0.8em 0; font-size: 13px; }}
-td, th {{ border: 1px solid #ccc; padding: 2px 8px; text-align: right; }}
-th {{ background: #f3f3f3; }} pre {{ background: #f7f7f7; padding: 1em; overflow: auto; font-size: 12px; }}
-.missing {{ color: #a33; }}
-</style></head><body>
-<h1>Fiber bundle scattering: {html.escape(name)}</h1>
-<ol>{toc}</ol>
-{body}
-<script>
-// self-check for headless browsers: how many pictures, how many failed to load
-window.addEventListener("load", () => {{
-  const imgs = Array.from(document.images);
-  document.body.dataset.images = imgs.length;
-  document.body.dataset.broken = imgs.filter(i => !i.complete || i.naturalWidth === 0).length;
-}});
-</script>
-</body></html>
-"""

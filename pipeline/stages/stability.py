@@ -26,17 +26,34 @@ plugin     grazing views, edge hits, a degenerate curve tangent
 from __future__ import annotations
 
 import json
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
+import torch
+import yaml
+from tqdm import tqdm
 
+import mitsuba_ext
+from mitsuba_ext.neural import DrJitMLP, OnnxMLP
+from models.bake import Baker, BakeSpec, tally_to_table
+from models.bundle import Bundle, poisson
+from models.bundle_table import BundleTable
+from models.fiber.mie import coefficients, efficiencies
+from models.fiber.patterns import PatternFiber
+from models.fiber.ray import Ap, RayFiber
 from models.io import scratch, write_text
+from models.neural import NeuralSpec, make_export_module, make_torch_model, rounding_bound
 from models.rounding import U32, U64, gamma
+from pipeline import graph
+from pipeline.config import BAKE_SECTIONS, load_config
 
-from ..metrics import write_metrics
 from ..artifacts import StageFailed, stage_dir
+from ..build import code_version
+from ..metrics import write_metrics
 
 
 @dataclass
@@ -108,7 +125,6 @@ def case(fn):
 @case
 def mie_extremes() -> list[Check]:
     """Efficiencies over the corners of the domain: finite, Q_abs >= 0, = 0 when lossless."""
-    from models.fiber.mie import efficiencies
 
     worst = {"nonfinite": 0, "neg_sca": 0.0, "neg_abs": 0.0, "lossless_abs": 0.0, "ext_limit": 0.0}
     for x in (0.1, 1.0, 10.0, 100.0, 2000.0):
@@ -155,7 +171,6 @@ def mie_against_mpmath() -> list[Check]:
         from models.fiber import mie_reference as ref
     except ImportError:  # pragma: no cover - mpmath is in the test extra
         return [Check("mie vs mpmath", "coefficients", "needs mpmath (test extra)", np.nan, 0, False)]
-    from models.fiber.mie import coefficients
 
     worst = 0.0
     for m, x, zeta in ((1.001 + 0j, 0.1, 1.0), (2.0 + 1j, 5.0, 1.0), (1.55 + 1e-6j, 20.0, 45.0), (2.0 + 0j, 3.0, 90.0)):
@@ -172,8 +187,6 @@ def mie_against_mpmath() -> list[Check]:
 # -- ray model ---------------------------------------------------------------------
 @case
 def ray_extremes() -> list[Check]:
-    from models.fiber.ray import Ap, RayFiber
-
     wl = np.array([450.0, 650.0])
     checks = []
     nodes = np.deg2rad([0.0, 45.0, 89.0, 90.0])
@@ -206,23 +219,15 @@ def ray_extremes() -> list[Check]:
 
 # -- baker -------------------------------------------------------------------------
 def _bake(bundle, fiber_table, theta_i_deg, paths, max_bounces=100_000, n_phi=24, n_theta=18):
-    import mitsuba as mi
-
-    from models.bake import Baker, BakeSpec
-
-    from . import bake as bake_stage
-
     mi.set_variant("llvm_ad_mono")
     spec = BakeSpec(np.deg2rad(theta_i_deg), [0.0], n_theta, n_phi, max_bounces=max_bounces)
     tally = Baker(bundle, fiber_table, spec).trace(0, paths, 1)
-    table = bake_stage.tally_to_table(tally, spec, fiber_table, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
+    table = tally_to_table(tally, spec, fiber_table, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
     table.meta["vertices_per_path"] = tally.vertices / paths
     return table
 
 
 def _isotropic(albedo=1.0):
-    from models.fiber.patterns import PatternFiber
-
     t = PatternFiber(np.array([550.0]), "isotropic").tabulate(np.deg2rad(np.arange(0, 91, 10.0)))
     if albedo != 1.0:
         for lobe in t.lobes:
@@ -232,8 +237,6 @@ def _isotropic(albedo=1.0):
 
 @case
 def baker_geometry() -> list[Check]:
-    from models.bundle import Bundle, poisson
-
     fiber = _isotropic()
     r = 20.0
     checks = []
@@ -324,7 +327,6 @@ def baker_dense_lossless() -> list[Check]:
 
 def _hexagonal(r, R, packing):
     """Fibers of radius ``r`` on a hexagonal lattice inside a circle ``R`` at the given packing."""
-    from models.bundle import Bundle
 
     def lattice(d):
         n = int(R / d) + 2
@@ -343,7 +345,6 @@ def _hexagonal(r, R, packing):
 @case
 def baker_float32_storage() -> list[Check]:
     """The table is stored in float32: its energy sums match the float64 tally's."""
-    from models.bundle import poisson
 
     t = _bake(poisson((100.0, 100.0), 10.0, seed=4), _isotropic(0.9), [0.0, 45.0], 50_000)
     s64 = np.einsum("abpql,pq->abl", t.values.astype(np.float64), t.solid_angle)
@@ -359,15 +360,6 @@ def baker_float32_storage() -> list[Check]:
 # -- neural ------------------------------------------------------------------------
 @case
 def neural_extremes() -> list[Check]:
-    import tempfile
-
-    import yaml
-
-    from models.bundle_table import BundleTable
-    from pipeline.stages import export as export_stage
-    from pipeline.stages import train as train_stage
-    from pipeline.config import BAKE_SECTIONS, load_config
-
     checks = []
     with tempfile.TemporaryDirectory() as tmp, scratch(tmp):
         tmp = Path(tmp)
@@ -388,8 +380,8 @@ def neural_extremes() -> list[Check]:
                     theta_i, pe, te, np.array([450.0, 550.0, 650.0]),
                     {"reductions": {"theta_i": "mirror", "phi_i": "rotation", "phi_o": "relative"},
                      "config_hash": cfg.hash(*BAKE_SECTIONS)}).save(tmp / "stiff" / "bake" / "bundle_table.npz")
-        train_stage.run(cfg, tmp)
-        export_stage.run(cfg, tmp)
+        graph.run_stage("train", cfg, tmp)
+        graph.run_stage("export", cfg, tmp)
         summary = json.loads((tmp / "stiff" / "train" / "tiny" / "summary.json").read_text())
         c = "neural: 1e5:1 targets"
         checks.append(at_most(c, "held-out relative L1", "trains without NaN", summary["relative_l1"], 1.0,
@@ -409,13 +401,6 @@ def _edge_queries():
 
 
 def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
-    import mitsuba as mi
-    import torch
-
-    from mitsuba_ext.neural import DrJitMLP, OnnxMLP
-    from models.neural import NeuralSpec, make_export_module, make_torch_model, rounding_bound
-    from models.rounding import U64
-
     q = _edge_queries()
     ckpt = torch.load(checkpoint, weights_only=True)
     spec = NeuralSpec.from_dict(ckpt["spec"])
@@ -454,13 +439,6 @@ def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
 # -- plugin ------------------------------------------------------------------------
 @case
 def plugin_extremes() -> list[Check]:
-    import tempfile
-
-    import mitsuba as mi
-
-    import mitsuba_ext
-    from models.bundle_table import BundleTable
-
     mi.set_variant("llvm_ad_rgb")
     mitsuba_ext.register()
     checks = []
@@ -508,8 +486,6 @@ def plugin_extremes() -> list[Check]:
 
 # -- the stage ---------------------------------------------------------------------
 def run_cases(names=None) -> list[Check]:
-    from tqdm import tqdm
-
     checks = []
     for name in tqdm(list(names or CASES), desc="stability", unit="case"):
         t0 = time.perf_counter()
@@ -547,7 +523,6 @@ def run(cfg, out_root="artifacts") -> Path:
                           + "\n".join(c.line() for c in failed),
                           partial={"stability.json": rows, "stability.md": markdown(checks)})
     write_text(out / "stability.json", rows)
-    from ..build import code_version
     write_text(out / "provenance.json", json.dumps({"config_hash": cfg.hash(), "code": code_version()}))
     write_text(out / "stability.md", markdown(checks))
     write_metrics(cfg, out_root, "stability", {"checks": len(checks), "passed": len(checks)})

@@ -44,14 +44,22 @@ import json
 import shutil
 from pathlib import Path
 
+import matplotlib.pyplot as plt
+import mitsuba as mi
 import numpy as np
+from tqdm import tqdm
 
+from models.bundle_table import BundleTable
 from models.io import atomic_path, write_text
 
-from .. import estimate, graph
-from ..config import FIBER_SECTIONS, sweep_members
-from ..metrics import write_curve, write_metrics
+from .. import cluster, estimate, graph
 from ..artifacts import stage_dir
+from ..baking import Bake
+from ..build import build_ply
+from ..config import FIBER_SECTIONS, sweep_members
+from ..html import html_page, img_tag
+from ..metrics import write_curve, write_metrics
+from ..plots import save_figure
 
 SEED = "bundle.seed"
 THETA_I_SHOWN = 30.0  # deg: the incidence of the slices and profiles on the family page
@@ -64,7 +72,6 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
                          "sweep: {bundle.packing: [0.3, 0.5], bundle.seed: [1, 2]}")
     if cfg.bundle is None:
         raise ValueError(f"config {cfg.name} has no 'bundle:' section: a sweep bakes bundles")
-    from ..build import build_ply
 
     expanded = sweep_members(cfg)
     members = [m for _, m in expanded]
@@ -89,8 +96,6 @@ def run(cfg, out_root="artifacts", workers=None, scheduler=None) -> Path:
 
 # -- Fibers: one tabulation per distinct fiber setting -------------------------------
 def tabulate_fibers(members, root: Path) -> None:
-    from . import fiber as fiber_stage
-
     made: dict[str, object] = {}  # fiber settings -> the member that holds their table
     for m in members:
         key = m.hash(*FIBER_SECTIONS)
@@ -104,7 +109,7 @@ def tabulate_fibers(members, root: Path) -> None:
                     with atomic_path(root / m.name / f.relative_to(root / made[key].name)) as tmp:
                         shutil.copyfile(f, tmp)
         else:
-            fiber_stage.run(m, root)
+            graph.run_stage("fiber", m, root)
             made[key] = m
         graph.stamp("fiber", m, root)
 
@@ -113,11 +118,6 @@ def tabulate_fibers(members, root: Path) -> None:
 def bake_members(todo, bundles: dict, root: Path, workers, scheduler) -> None:
     """Bake ``todo``: each member is written and stamped as soon as its last batch is in;
     interrupted, the others keep their checkpoints (saved on ``bake.checkpoint_every_s``)."""
-    import mitsuba as mi
-    from tqdm import tqdm
-
-    from .. import cluster
-    from .bake import Bake
 
     bakes = [Bake(m, root, bundles[m.name]) for m in todo]
 
@@ -186,7 +186,6 @@ def seed_spread(rows: list[dict], axes: dict) -> list[dict]:
 
 def write_family(cfg, expanded, root: Path, out_root) -> Path:
     """The family summary of the members ``expanded`` (``sweep_members(cfg)``)."""
-    from models.bundle_table import BundleTable
 
     axes, members = cfg.sweep, [m for _, m in expanded]
     rows, tables = [], []
@@ -239,11 +238,6 @@ def _numeric(values) -> bool:
 def plot_axis(rows, axes, key, path: Path) -> None:
     """Passthrough and albedo against one axis: a line per combination of the other
     axes (seeds averaged, their spread as bars; thin bars: Monte Carlo error)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plots import save_figure
 
     values = axes[key]
     xs = values if _numeric(values) else list(range(len(values)))
@@ -287,11 +281,6 @@ def _shown(table) -> int:
 def plot_profiles(rows, tables, path: Path) -> None:
     """Scattered light per radian of outgoing azimuth at one incidence (over theta_o
     and wavelength), one curve per member: where the family differs, not only by how much."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plots import save_figure
 
     fig, ax = plt.subplots(figsize=(8, 4), dpi=110)
     cmap = plt.get_cmap("viridis", max(len(rows), 2))
@@ -312,8 +301,6 @@ def plot_profiles(rows, tables, path: Path) -> None:
 
 
 def family_page(cfg, members, rows, spread, tables, root: Path) -> str:
-    from .report import html_page, img_tag
-
     axes = list(cfg.sweep)
     # (bake_seconds stays in family.json: on a cluster it is when a member finished, not its cost)
     quantities = ("n_fibers", "packing_fraction", "passthrough", "albedo", "absorbed")

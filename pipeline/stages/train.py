@@ -7,49 +7,23 @@ For every model name, writes under ``artifacts/<name>/train/<model>/``:
 * ``summary.json``  held-out errors, the noise ratio, time, parameter count, and the
                     worst albedo error before and after the energy calibration.
 
-The samples are the table *folded* by its symmetries (``models.neural.fold_table``):
-bins that the symmetric features cannot tell apart are one sample, their mean.
-:func:`choose_folds` keeps a symmetry only if the table obeys it within its noise. On
-the default table the folds (theta mirror and the circle's dphi mirror) cut the
-samples 4x and the small model's held-out error from 26% to 10% (same split); see
-docs/BENCHMARKS.md.
-
-The table's values are bin averages, so the model's *bin average* is fitted: its mean
-over ``bin_strata`` x ``bin_strata`` stratified random points of the bin (fresh every
-step); the held-out errors compare bin averages (4 x 4 points) too. Fitted and measured
-at bin centres only, models peaked unseen between the centres (3-7% more energy than the
-table), see docs/BENCHMARKS.md.
-
-The loss is a weighted MSE in log space, ``y = log(1 + S / s0)``: each sample and
-wavelength is weighted by ``1 / (sigma_y^2 + sigma_floor^2)`` where ``sigma_y`` is the
-table's own standard error carried into log space, so Monte Carlo noise is not learned
-as signal. Log-space errors bias the albedo (a few percent, worst at grazing incidence),
-so after the epochs the output layer alone is *calibrated* by L-BFGS on the whole table
-(``calibration_steps``): the same fit term plus, weighted by ``albedo_weight``, the
-squared relative error of the model's albedo ``sum S solid_angle`` per incident
-direction and wavelength against the table's scattered fraction. The small model's
-worst row goes from 2-4.6% to about 1% (docs/BENCHMARKS.md). A row's sum includes its
-held-out bins: their values are never fitted, only the row's total is the target.
-
-A random ``val_fraction`` of the samples (all wavelengths of a bin, and all its mirror
-images, together) is held out for early stopping and for the report. Same table and
-seed: same weights.
+The fitting itself (folds, bin averages, the noise-weighted log-space loss, the energy
+calibration, the held-out split) is :mod:`models.fit`; the training bench runs the same
+code. Same table, seed and threads: the same weights.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import time
 from pathlib import Path
-from typing import NamedTuple
 
+import matplotlib.pyplot as plt
 import numpy as np
+import torch
 
-from models import errors
+from models.fit import fit, held_out_metrics, prepare
 from models.io import atomic_path, write_text
-from models.neural import (NeuralSpec, bin_average, features, fold_table, make_export_module, make_torch_model,
-                           points_in_bins)
 
 from ..artifacts import load_bundle_table, stage_dir
 from ..config import TRAIN_SECTIONS
@@ -57,144 +31,17 @@ from ..metrics import folder as metrics_folder
 from ..metrics import write_curve, write_metrics
 from ..plots import save_figure
 
-
 POOR_L1 = 0.25  # a model further off than this (and than 3x the table's noise) is said to be poor
 
 
-def load_checkpoint(path) -> dict:
-    """A ``model.pt`` written by this stage, or a ``ValueError`` that names it."""
-    import torch
-
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"{path} does not exist; run `bcsdf train` with this config first")
-    try:
-        ckpt = torch.load(path, weights_only=True)
-        if not isinstance(ckpt, dict) or not {"spec", "state"} <= set(ckpt):
-            raise ValueError("no 'spec' and 'state' in it")
-        return ckpt
-    except Exception as e:  # torch raises RuntimeError, pickle and zip errors for a damaged file
-        raise ValueError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e}); "
-                         "re-run `bcsdf train`") from None
-
-
-def file_hash(path) -> str:
-    import hashlib
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
-
-
-def energy_bins(S: np.ndarray, fraction: float = 0.9) -> np.ndarray:
-    """Flat indices of the largest values of ``S`` that hold ``fraction`` of its sum."""
-    e = S.ravel()
-    order = np.argsort(e)[::-1]
-    k = int(np.searchsorted(np.cumsum(e[order]) / max(e.sum(), 1e-300), fraction)) + 1
-    return order[:k]
-
-
-def split_bins(n_bins: int, val_fraction: float, seed: int):
-    rng = np.random.default_rng(seed)
-    perm = rng.permutation(n_bins)
-    n_val = max(1, int(round(val_fraction * n_bins)))
-    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
-
-
-def choose_folds(table, relative: bool, limit: float = 1.5) -> list:
-    """The symmetry folds of the features (models/neural.py) that this table obeys.
-
-    Each candidate (``theta`` and ``dphi`` for a circle, ``theta`` and ``xz`` for an
-    ellipse) is kept only if the bins it merges agree within their noise (chi^2 per
-    degree of freedom below ``limit``). The table's own reductions (theta mirror, xz)
-    pass exactly; a circle's mirror symmetry in ``phi_o - phi_i`` is statistical.
-    """
-    folds = []
-    for fold in ("theta", "dphi") if relative else ("theta", "xz"):
-        probe = NeuralSpec(relative_phi=relative, hidden=[1], s0=1.0, y_max=1.0,
-                           wavelength=table.wavelength.tolist(), table_hash="", config_hash="",
-                           reductions=table.meta["reductions"], folds=[fold])
-        chi2 = fold_table(table, probe).chi2_per_dof
-        if chi2 < limit:
-            folds.append(fold)
-        else:
-            print(f"[train] the table does not obey the {fold!r} symmetry (merged bins differ by chi2/dof "
-                  f"{chi2:.2f} >= {limit}); the model keeps both halves")
-    return folds
-
-
-def held_out_bins(table, spec: NeuralSpec, cfg) -> np.ndarray:
-    """Flat indices (phi_i, theta_i, phi_o, theta_o) of the expanded bins held out from training."""
-    data = fold_table(table, spec)
-    _, val = split_bins(len(data.x), cfg.train.val_fraction, cfg.train.seed)
-    return np.flatnonzero(np.isin(data.bin_class, val))
-
-
-class Problem(NamedTuple):
-    """What every model size of one config is fitted to: the spec they share but for
-    their widths, the folded table, its split and the loss weights."""
-
-    base: NeuralSpec
-    data: object  # models.neural.FoldedTable
-    train_idx: np.ndarray
-    val_idx: np.ndarray
-    w: np.ndarray
-
-
-def prepare(cfg, table, table_path) -> Problem:
-    """Fold the table, choose its symmetries, split it and weight it (one for every size)."""
-    c = cfg.train
-    relative = table.meta["reductions"]["phi_o"] == "relative"
-    positive = table.values[table.values > 0]
-    s0 = float(np.mean(positive)) if positive.size else 1.0
-    y_top = float(np.log1p(table.values.max() / s0))
-    folds = choose_folds(table, relative)
-    base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
-                      wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
-                      config_hash=cfg.hash(*TRAIN_SECTIONS), reductions=table.meta["reductions"],
-                      folds=folds, passthrough=table.passthrough.tolist(), passthrough_phi_i=table.phi_i.tolist(),
-                      passthrough_theta=[] if table.passthrough_theta is None else table.passthrough_theta.tolist(),
-                      passthrough_theta_i=[] if table.passthrough_theta is None else table.theta_i.tolist(),
-                      single_share=[] if table.single is None else table.single_share().tolist())
-    data = fold_table(table, base)
-    train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
-    w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
-    w = (w / w[train_idx].mean()).astype(np.float32)
-    return Problem(base, data, train_idx, val_idx, w)
-
-
-def held_out_metrics(spec: NeuralSpec, model, data, val_idx) -> dict:
-    """Relative L1 and log MAE of the model's bin averages (4 x 4 points) on the held-out bins."""
-    import torch
-
-    module = make_export_module(spec, model).eval()
-
-    def predict(*angles):
-        with torch.no_grad():
-            return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
-    S_pred = bin_average(predict, data.cell[val_idx])  # the model's bin averages
-    S_val, E_val, n_val = data.S[val_idx], data.E[val_idx], data.count[val_idx, None]
-    core = energy_bins(S_val * n_val)
-    diff, noise = (S_pred - S_val).ravel()[core], E_val.ravel()[core]
-    known = noise > 0  # a bin without a noise estimate (a table that scatters nothing) has no ratio
-    return {
-        # over the expanded bins the held-out classes stand for
-        "relative_l1": errors.relative_l1(S_pred, S_val, n_val),
-        "log_mae": errors.log_mae(S_pred, S_val, spec.s0, n_val),
-        # rms of (model - table) / table standard error over the bins holding 90% of
-        # the held-out energy: 1 means the model is as close as the table's own noise
-        "noise_ratio": float(np.sqrt(np.mean((diff[known] / noise[known]) ** 2))) if known.any() else 0.0,
-        "table_noise_l1": float(np.sqrt(2 / np.pi) * (n_val * E_val).sum() / max((n_val * S_val).sum(), 1e-300)),
-    }
-
-
 def run(cfg, out_root="artifacts") -> Path:
-    import torch
-
     c = cfg.train
     # same table, seed and threads: the same weights. Every op here is deterministic on the
     # CPU (tests/test_neural.py trains twice and compares); torch.use_deterministic_algorithms
     # left them bit for bit as they are and cost a second a process importing torch's compiler
     torch.set_num_threads(c.threads)
     table, table_path = load_bundle_table(cfg, out_root)
-    problem = prepare(cfg, table, table_path)
+    problem = prepare(table, table_path, c, cfg.hash(*TRAIN_SECTIONS))
     base, data = problem.base, problem.data
     out = stage_dir(cfg, "train", out_root)
     headline = {}
@@ -234,224 +81,7 @@ def run(cfg, out_root="artifacts") -> Path:
     return out
 
 
-class BinFit:
-    """The training problem of one model: its folded table, split and weights, and the
-    model's *bin averages*.
-
-    The table holds bin averages, so the model's bin average is fitted: its mean, in
-    linear space, over k x k stratified random points of the bin. Fitted at the centres
-    alone, a network peaked unseen between them (3-7% too much energy); with unstratified
-    points the estimate's variance biased the fit low.
-    """
-
-    def __init__(self, spec: NeuralSpec, problem: Problem):
-        import torch
-
-        data = problem.data
-        self.spec, self.data = spec, data
-        self.Y, self.W = torch.from_numpy(data.y), torch.from_numpy(problem.w)
-        self.cell = torch.from_numpy(data.cell.astype(np.float32))
-        self.tr, self.va = torch.from_numpy(problem.train_idx), torch.from_numpy(problem.val_idx)
-        self.every = torch.arange(len(data.x))
-        # the table's albedo per (incident direction, wavelength) row; a row that scatters
-        # nothing has no relative error
-        albedo = torch.from_numpy(data.albedo.astype(np.float32))
-        self.seen = albedo > 0
-        self.albedo = albedo[self.seen]
-        self.omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
-        self.group = torch.from_numpy(data.group)
-
-    @staticmethod
-    def stratified(n, k, generator):
-        """``[n, k * k, 2]`` points, one uniform in each of the k x k strata of the unit square."""
-        import torch
-
-        strata = torch.tensor([[i / k, j / k] for i in range(k) for j in range(k)])
-        return strata + torch.rand((n, k * k, 2), generator=generator) / k
-
-    def encode(self, b, u):
-        """Features at the points ``u [len(b), K, 2]`` of bins ``b``: ``[len(b) * K, n_inputs]``."""
-        import torch
-
-        K = u.shape[1]
-        angles = points_in_bins(torch, self.cell[b].repeat_interleave(K, 0), u.reshape(-1, 2))
-        return torch.stack(features(torch, self.spec, *angles), -1)
-
-    def bin_means(self, b, y):
-        """From the raw outputs ``y`` at the points of bins ``b``: the log-space bin average
-        for the fit and the exported one, ``S``, for the energy. The exported clamp at 0 is
-        leaky for the fit (an output clamped everywhere would get no gradient and stay dead;
-        it did, for one wavelength); the energy is that of the exported S, what a renderer
-        gets (leaky negative values would count as negative energy)."""
-        import torch
-
-        y = torch.nn.functional.leaky_relu(y, 0.01).clamp(max=self.spec.y_max)
-        e = torch.expm1(y.reshape(len(b), -1, self.spec.n_outputs))  # < 0 exactly where the output is negative,
-        # so relu(e) is the clamped expm1; e's bin mean is the leaky S / s0
-        return torch.log1p(torch.clamp(e.mean(1), min=-0.5)), self.spec.s0 * torch.relu(e).mean(1)
-
-    def model_albedo(self, S):
-        """The model's albedo per scattering row (those of :attr:`albedo`) from its bin
-        values ``S`` at every bin: the sum of ``S d omega`` over each row's outgoing bins."""
-        import torch
-
-        return torch.zeros(self.seen.shape, dtype=S.dtype).index_add(0, self.group, S * self.omega)[self.seen]
-
-    def worst_albedo_error(self, S) -> float:
-        """The largest relative albedo error over the scattering rows."""
-        return float((self.model_albedo(S) / self.albedo - 1).abs().max())
-
-    def loss(self, b, y):
-        """Weighted log-space MSE: the weights carry the table's own noise."""
-        return (self.W[b] * (y - self.Y[b]) ** 2).mean()
-
-
-def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
-    """Train one MLP of ``spec``'s widths on ``problem``: :func:`fit_bins`, then :func:`calibrate`.
-
-    Returns the model, the loss history, the best validation loss, the seconds taken and
-    the worst albedo error over (incident direction, wavelength) before and after the
-    calibration (at its points; empty without calibration). ``on_epoch(epoch, seconds,
-    best_state)`` is called after every epoch (the training bench records with it).
-    """
-    import torch
-
-    torch.manual_seed(c.seed)
-    model = make_torch_model(spec)
-    p = BinFit(spec, problem)
-    t0 = time.perf_counter()
-    history, best = fit_bins(model, p, c, name, on_epoch, t0)
-    t1 = time.perf_counter()
-    calibration = calibrate(model, p, c, name) if c.calibration_steps else {}
-    if calibration:
-        calibration["calibration_seconds"] = time.perf_counter() - t1
-    return model, history, best, time.perf_counter() - t0, calibration
-
-
-def adam(model, lr: float):
-    """Phase 1's optimizer (the training bench profiles its steps with it too)."""
-    import torch
-
-    return torch.optim.Adam(model.parameters(), lr=lr, fused=True)  # one kernel for all parameters
-
-
-def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
-    """Phase 1: minibatch Adam on the bin averages, cosine learning rate, early stopping on
-    the held-out loss. Leaves ``model`` at its best held-out state; returns the history
-    ``[(train, validation)]`` per epoch and the best validation loss.
-
-    The training loss of an epoch is the mean of its minibatch losses (no second pass);
-    the held-out loss is measured on the held-out bins alone at fixed stratified points.
-    """
-    import torch
-    from tqdm import tqdm
-
-    opt = adam(model, c.lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, c.epochs)
-    gen = torch.Generator().manual_seed(c.seed)
-    fixed = p.stratified(len(p.data.x), c.bin_strata, torch.Generator().manual_seed(c.seed + 1))
-    x_val = p.encode(p.va, fixed[p.va])  # the points of every bin drawn, so a bin's points do not depend on the split
-    history, best, best_state, since = [], np.inf, None, 0
-    t0 = time.perf_counter() if t0 is None else t0
-    with tqdm(range(c.epochs), desc=f"train {name}", unit="epoch") as bar:
-        for epoch in bar:
-            perm = p.tr[torch.randperm(len(p.tr), generator=gen)]
-            total = 0.0
-            for lo in range(0, len(perm), c.batch_size):
-                b = perm[lo: lo + c.batch_size]
-                y, _ = p.bin_means(b, model(p.encode(b, p.stratified(len(b), c.bin_strata, gen))))
-                loss = p.loss(b, y)
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                total += float(loss.detach()) * len(b)
-            with torch.no_grad():
-                train_loss, val_loss = total / len(perm), float(p.loss(p.va, p.bin_means(p.va, model(x_val))[0]))
-            if not (np.isfinite(train_loss) and np.isfinite(val_loss)):
-                raise FloatingPointError(f"training {name} diverged at epoch {epoch} (loss {train_loss}); "
-                                         "lower train.lr")
-            sched.step()
-            history.append((train_loss, val_loss))
-            bar.set_postfix(train=f"{train_loss:.4g}", val=f"{val_loss:.4g}", refresh=False)
-            if val_loss < best * (1 - 1e-4):
-                best, since = val_loss, 0
-                best_state = {k: v.clone() for k, v in model.state_dict().items()}
-            else:
-                since += 1
-            if on_epoch is not None:
-                on_epoch(epoch, time.perf_counter() - t0, best_state)
-            if since >= c.patience:
-                break
-    model.load_state_dict(best_state)
-    return history, best
-
-
-CALIBRATION_STRATA = 4  # k x k points per bin in the calibration (pipeline/bench/train.py --calibration)
-
-
-def calibrate(model, p: BinFit, c, name, strata: int = CALIBRATION_STRATA) -> dict:
-    """Phase 2: energy calibration of the output layer.
-
-    Log-space errors alone bias the albedo (the small model: 2-4.6% in its worst row,
-    grazing incidence). With the hidden layers frozen, the output layer is refitted by
-    L-BFGS on the whole table at ``strata`` x ``strata`` stratified points per bin (drawn once; the
-    features are computed once, so each iteration is one small matrix product): the fit
-    term keeps the shape, the energy term pulls every row's albedo, the sum of S d omega
-    over all its outgoing bins, onto the table's. The rows include the held-out bins:
-    their values are never fitted, but the row's total is the target. Energy terms in the
-    minibatch loss instead (over the batch's share of a row, or the whole row from a cache)
-    made training oscillate and did no better after this phase (docs/BENCHMARKS.md).
-
-    Returns the worst albedo error before and after (empty if no row scatters).
-    """
-    import torch
-    from tqdm import tqdm
-
-    if not len(p.albedo):  # no row scatters
-        return {}
-
-    def energy_loss(S):
-        """Mean squared symmetric relative difference 2 (p - a) / (p + a) of the model's
-        albedo p per (incident direction, wavelength) against the table's a: ~ the
-        relative error when small, bounded by 2 when far off (a 1e5:1 table)."""
-        q = p.model_albedo(S)
-        return ((2 * (q - p.albedo) / (q + p.albedo)) ** 2).mean()
-
-    def worst_albedo_error():
-        with torch.no_grad():
-            return p.worst_albedo_error(p.bin_means(p.every, last(hidden))[1])
-
-    pts = p.stratified(len(p.data.x), strata, torch.Generator().manual_seed(c.seed + 2))
-    with torch.no_grad():
-        hidden = model[:-1](p.encode(p.every, pts))
-    last = model[-1]
-    before = worst_albedo_error()
-    opt = torch.optim.LBFGS(last.parameters(), max_iter=c.calibration_steps, history_size=20,
-                            line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
-
-    # L-BFGS evaluates at most max_eval = 1.25 max_iter times (PyTorch's default): the
-    # bar's total, so that a long calibration (a big table) shows its time left
-    bar = tqdm(total=int(1.25 * c.calibration_steps), desc=f"calibrate {name}", unit="eval")
-
-    def closure():
-        opt.zero_grad()
-        y, S = p.bin_means(p.every, last(hidden))
-        loss = p.loss(p.tr, y[p.tr]) + c.albedo_weight * energy_loss(S)
-        loss.backward()
-        bar.update()
-        return loss
-    with bar:
-        opt.step(closure)
-    if not all(torch.isfinite(q).all() for q in last.parameters()):
-        raise FloatingPointError(f"the energy calibration of {name} diverged; lower train.albedo_weight")
-    return {"worst_albedo_error_before": before, "worst_albedo_error_after": worst_albedo_error()}
-
-
 def plot_loss(history, path, name) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     h = np.asarray(history)
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
     ax.semilogy(h[:, 0], label="train")

@@ -1,0 +1,51 @@
+"""From tallies to tables: a bake's running sums as a :class:`~models.bundle_table.BundleTable`.
+
+``tally_to_table`` divides the sums by paths and bin solid angles (the table holds
+``S`` in 1/sr) and keeps their standard errors; ``bake_unreduced`` is a whole small bake
+in one call, without checkpoints or symmetry reductions, for tests and benchmarks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..bundle_table import BundleTable
+from ..fiber.base import FiberTable
+from .baker import Baker
+from .tally import BakeSpec, Tally
+
+
+def bake_unreduced(bundle, fiber: FiberTable, spec: BakeSpec, paths: int, seed: int = 1) -> BundleTable:
+    """``paths`` per incident azimuth of ``spec`` in one go (no checkpoints, no symmetry
+    reductions): the small bakes of tests and benchmarks."""
+    baker = Baker(bundle, fiber, spec)
+    tally = None
+    for a in range(len(spec.phi_i)):
+        t = baker.trace(a, paths, np.random.SeedSequence([seed, a]))
+        tally = t if tally is None else (tally.add(t) or tally)
+    return tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None,
+                                               "phi_o": "relative" if spec.relative_phi else "absolute"})
+
+
+def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: dict) -> BundleTable:
+    """The table of a bake's sums: bin means over paths per solid angle (1/sr), their
+    standard errors, and the energy balance's parts as fractions of the paths.
+    ``reductions`` records the symmetries the bake used (``BundleTable.meta``)."""
+    n = tally.paths[:, None, None, None, None]
+    omega = spec.bin_solid_angle()[None, None, :, :, None]
+    mean = tally.sum / n
+    var = np.maximum(tally.sum_sq / n - mean**2, 0.0) / n
+    p = tally.passthrough / tally.paths
+    # per theta_i where it depends on it (twisted plies: each path one theta_i); a parallel
+    # bake's is the same for every theta_i, and its table keeps the one per phi_i
+    p_theta = tally.passthrough_theta / np.maximum(tally.paths_theta, 1)
+    per_theta = not np.array_equal(p_theta, np.broadcast_to(p[:, None], p_theta.shape))
+    return BundleTable(
+        values=(mean / omega).astype(np.float32), stderr=(np.sqrt(var) / omega).astype(np.float32),
+        passthrough=p, passthrough_stderr=np.sqrt(p * (1 - p) / tally.paths),
+        passthrough_theta=p_theta if per_theta else None,
+        absorbed=tally.absorbed / tally.paths[:, None, None], lost=tally.lost / tally.paths[:, None, None],
+        single=tally.single / tally.paths[:, None, None],
+        phi_i=spec.phi_i, theta_i=spec.theta_i, phi_o_edges=spec.phi_o_edges,
+        theta_o_edges=spec.theta_o_edges, wavelength=fiber.wavelength.copy(),
+        meta={"reductions": reductions, "units": {"angles": "rad", "wavelength": "nm", "values": "1/sr"}})
