@@ -8,6 +8,9 @@ Usage, after choosing a variant at your entry point::
     import mitsuba_ext
     mitsuba_ext.register()          # now {'type': 'fiber_bundle'} and 'bundle_path' load
 
+    with mitsuba_ext.variant("llvm_ad_mono"):   # another variant for a block, then back
+        ...
+
 Python plugins derive from the active variant's classes, so call :func:`register`
 again after switching variants. The modules:
 
@@ -24,6 +27,7 @@ again after switching variants. The modules:
 =================  =================================================================
 """
 
+import contextlib
 import importlib
 
 import mitsuba as mi
@@ -50,3 +54,23 @@ def register() -> None:
         mi.register_bsdf(name, lambda props, cls=cls: cls(props))
     for name, cls in integrator.PLUGINS.items():
         mi.register_integrator(name, lambda props, cls=cls: cls(props))
+
+
+@contextlib.contextmanager
+def variant(name: str):
+    """Mitsuba's variant ``name``, with these plugins registered for it, inside the block;
+    the variant before it (and its plugins) after, where one was chosen, also when the block
+    raises::
+
+        with mitsuba_ext.variant("llvm_ad_mono"):
+            image = mi.render(mi.load_dict(scene))     # scene dicts load under this variant
+    """
+    previous = mi.variant()
+    mi.set_variant(name)
+    register()
+    try:
+        yield
+    finally:
+        if previous is not None and previous != name:
+            mi.set_variant(previous)
+            register()

@@ -6,7 +6,6 @@ cluster (``pipeline.cluster``)."""
 from __future__ import annotations
 
 import copy
-import json
 import time
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from models import bundle as bundles
 from models.bake import Baker, BakeSpec, Tally, tally_to_table
 from models.bake.twisted import TwistedBaker
 from models.bundle_table import BundleTable
-from models.io import atomic_path, clear_torn, write_text
+from models.io import atomic_path, clear_torn
 
 from . import cluster
 from .artifacts import load_fiber_table, stage_dir
@@ -25,6 +24,7 @@ from .build import batch_seed, build_ply, code_version, cross_section, make_spec
 from .config import BAKE_SECTIONS, theta_nodes
 from .metrics import write_metrics
 from .plots import save_figure, slice_nodes, spectral_image, theta_rows
+from .summaries import BakeSummary
 
 
 class Bake:
@@ -150,19 +150,19 @@ class Bake:
                    "paths": int(tally.paths.sum()),
                    "vertices": int(tally.vertices), "vertices_per_second": tally.vertices / max(elapsed, 1e-9),
                    "n_fibers": len(bundle.radii), "packing_fraction": bundle.packing_fraction,
-                   "passthrough": table.passthrough.tolist(),
-                   **{k: float(np.mean(v)) for k, v in balance.items()},
+                   **{k: float(np.mean(v)) for k, v in balance.items()},  # scattered, passthrough, ...
                    "max_abs_energy_error": float(np.max(np.abs(balance["total"] - 1))),
                    # the share of the scattered light that left after one fiber event, per wavelength
                    "single_share": table.single_share().tolist(),
                    **{f"{q}_mc_error": batch_means_error(v, self.sizes, [a for a, _ in self.work])
                       for q, v in self.batch_estimates.items()}}
-        summary["reductions"] = {"used": self.reductions, **reduction_cost(cfg, self.baker, elapsed)}
-        write_text(out / "summary.json", json.dumps(summary, indent=1))
+        summary = BakeSummary(**summary, reductions={"used": self.reductions,
+                                                     **reduction_cost(cfg, self.baker, elapsed)})
+        summary.write(out / "summary.json")
         write_metrics(cfg, self.out_root, "bake", {
-            "passthrough": float(np.mean(table.passthrough)), "albedo": summary.get("scattered", np.nan),
-            "max_abs_energy_error": summary["max_abs_energy_error"], "bake_seconds": elapsed,
-            "vertices_per_second": summary["vertices_per_second"]})
+            "passthrough": float(np.mean(table.passthrough)), "albedo": summary.scattered,
+            "max_abs_energy_error": summary.max_abs_energy_error, "bake_seconds": elapsed,
+            "vertices_per_second": summary.vertices_per_second})
         # the pictures go with the table they show: a bake that fails before this point leaves
         # the last table and its own pictures, not a new arrangement beside an old table
         bundle.plot(out / "arrangement.png")
@@ -170,10 +170,10 @@ class Bake:
         plot_balance(table, out / "energy.png")
         self.ckpt.unlink(missing_ok=True)
         print(f"[bake] {cfg.name} ({c.estimator}): {tally.paths.sum():.3g} paths, {tally.vertices:.3g} vertices "
-              f"in {elapsed:.1f} s ({summary['vertices_per_second'] / 1e6:.2f} M vertices/s); passthrough "
+              f"in {elapsed:.1f} s ({summary.vertices_per_second / 1e6:.2f} M vertices/s); passthrough "
               f"{table.passthrough.mean():.3f}; energy total {np.mean(balance['total']):.4f}; scattered after one "
-              f"fiber {summary['single_share'][0]:.0%} ({table.wavelength[0]:.0f} nm) .. "
-              f"{summary['single_share'][-1]:.0%} ({table.wavelength[-1]:.0f} nm); wrote {out}")
+              f"fiber {summary.single_share[0]:.0%} ({table.wavelength[0]:.0f} nm) .. "
+              f"{summary.single_share[-1]:.0%} ({table.wavelength[-1]:.0f} nm); wrote {out}")
         return out
 
 

@@ -34,7 +34,8 @@ from models.io import OBSTACLES, WRITE_ERRORS, confined, exclusive, journal, wri
 
 from . import estimate, graph
 from .artifacts import StageFailed, clear_failure, config_dir, failure_dir, record_failure
-from .config import ConfigError, check_variants, load_config
+from .config import ConfigError
+from .loading import check_variants, load_config
 
 EPILOG = """\
 The config's keys are documented in configs/default.yaml and pipeline/config.py.

@@ -21,7 +21,7 @@ import time
 
 import torch
 
-from .config import sweep_members
+from .loading import sweep_members
 from .graph import stamp_path
 
 # seconds per unit of work of each stage beyond its overhead, from the stamps of `make run` on a

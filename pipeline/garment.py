@@ -30,7 +30,8 @@ from models.io import atomic_path
 
 from . import closure, scenes
 from .artifacts import bundle_table_path, fiber_table_path
-from .config import Config, _memory_bytes
+from .config import Config
+from .machine import memory_bytes
 from .images import render_timed
 from .plots import LUMINANCE
 
@@ -74,7 +75,7 @@ def estimated_points(collection, c, yarn) -> int:
 def check_fits(collection, c, yarn) -> None:
     """Refuse, before building, a model whose plies would not fit in memory."""
     points = estimated_points(collection, c, yarn)
-    need, have = points * BYTES_PER_POINT, _memory_bytes()
+    need, have = points * BYTES_PER_POINT, memory_bytes()
     if need > 0.5 * have:
         raise ValueError(f"cloth: the plies would take about {points:,} control points, ~{need / 2**30:.1f} GiB, more "
                          f"than half of this machine's {have / 2**30:.0f} GiB: render fewer curves (cloth.curves), "

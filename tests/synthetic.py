@@ -10,7 +10,8 @@ import yaml
 
 from models.bundle_table import BundleTable
 from models.grid import cone_edges
-from pipeline.config import BAKE_SECTIONS, load_config
+from pipeline.config import BAKE_SECTIONS
+from pipeline.loading import load_config
 
 WL = [450.0, 550.0, 650.0]
 

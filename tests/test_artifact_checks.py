@@ -157,3 +157,29 @@ def test_onnx_graph_that_disagrees_with_its_metadata_is_refused(trained, tmp_pat
     onnx.save(model, str(tmp_path / "model.onnx"))
     with pytest.raises(ValueError, match="metadata names"):
         OnnxMLP(tmp_path / "model.onnx")
+
+
+def test_a_summary_is_written_and_read_through_its_schema(trained, tmp_path, capsys):
+    """The train stage's summary holds its schema; one from other code (a field missing, one
+    renamed) is refused by its path with the command that writes it again, also through
+    ``bcsdf report``, which reads it."""
+    import shutil
+
+    from pipeline import cli
+    from pipeline.summaries import StaleSummary, TrainSummary
+
+    cfg, root = trained
+    shutil.copytree(root / cfg.name, tmp_path / cfg.name)
+    path = tmp_path / cfg.name / "train" / "tiny" / "summary.json"
+    summary = TrainSummary.read(path)
+    assert summary.parameters > 0 and 0 <= summary.relative_l1 < 10
+    record = json.loads(path.read_text())
+    record["held_out_l1"] = record.pop("relative_l1")  # what other code might have called it
+    path.write_text(json.dumps(record))
+    with pytest.raises(StaleSummary, match=r"summary.json.*relative_l1.*bcsdf train"):
+        TrainSummary.read(path)
+    config = tmp_path / f"{cfg.name}.yaml"
+    shutil.copyfile(root / f"{cfg.name}.yaml", config)
+    assert cli.main(["--artifacts", str(tmp_path), "report", str(config), "--force"]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and "bcsdf train" in err

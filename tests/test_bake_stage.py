@@ -11,7 +11,8 @@ from models.fiber.patterns import PatternFiber
 from pipeline.stages import bake as bake_stage
 from pipeline.stages import fiber as fiber_stage
 from pipeline.artifacts import load_fiber_table
-from pipeline.config import ConfigError, load_config
+from pipeline.config import ConfigError
+from pipeline.loading import load_config
 from tests.test_cli import ROOT, bcsdf
 
 

@@ -197,7 +197,7 @@ def test_the_stage_graph_follows_dvc_yaml_and_refuses_a_broken_one(tmp_path, mon
     """``dvc.yaml`` is parsed once per version of its text: an edit is seen at once, and a
     file that is not YAML or lacks the stage is refused with what to do."""
     from pipeline import graph
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
 
     cfg = load_config(write_config(tmp_path / "tiny.yaml"))
     dvc = tmp_path / "dvc.yaml"
@@ -218,7 +218,7 @@ def test_the_estimate_follows_the_machines_pace(tmp_path, monkeypatch):
     """A stage's rate is scaled by the pace now over the pace it was measured at: its last
     run's (a stamp's probe), or the reference machine's; a stamp without one, unscaled."""
     from pipeline import estimate, graph
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
 
     cfg = load_config(ROOT / "configs" / "default.yaml")
     w = estimate.work("train", cfg)

@@ -439,7 +439,7 @@ def test_patch_cuts_runs_inside_the_sphere():
 
 
 def test_a_model_too_large_for_memory_is_refused_before_building():
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
     from pipeline.garment import check_fits, yarn_model, yarn_spec
 
     cfg = load_config(ROOT / "configs" / "glove.yaml", ["cloth.units_mm=100000"])
@@ -459,7 +459,8 @@ def test_a_model_too_large_for_memory_is_refused_before_building():
     (["cloth.exit_split=both"], "exit_split"),
 ])
 def test_bad_cloth_configs_are_refused_when_loaded(sets, says):
-    from pipeline.config import ConfigError, load_config
+    from pipeline.config import ConfigError
+    from pipeline.loading import load_config
 
     with pytest.raises(ConfigError, match=says):
         load_config(ROOT / "configs" / "glove.yaml", sets)
@@ -469,7 +470,7 @@ def test_the_cloth_scene_renders_with_the_configs_exit_model(mi_llvm):
     """``cloth.exit_split`` is what the scene's ``bundle_path`` is given (its effect on the
     picture: tests/test_plugin.py::test_light_that_scattered_once_leaves_where_it_entered)."""
     from pipeline import scenes
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
 
     for split in ("none", "emitter", "all"):
         c = load_config(ROOT / "configs" / "glove.yaml", [f"cloth.exit_split={split}"]).cloth

@@ -14,7 +14,7 @@ from models.bundle_table import BundleTable
 from pipeline.stages import bake as bake_stage
 from pipeline import cli
 from pipeline.stages import fiber as fiber_stage
-from pipeline.config import load_config
+from pipeline.loading import load_config
 from tests.test_cli import ROOT
 
 # an ellipse: 3 incident azimuths x 5 batches, so that batches finish out of order

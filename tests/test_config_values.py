@@ -3,7 +3,9 @@ where numbers belong, an unsorted spectral table, sweep values that would share 
 
 import pytest
 
-from pipeline.config import ConfigError, load_config, sweep_members
+from pipeline.config import ConfigError
+
+from pipeline.loading import load_config, sweep_members
 
 DEFAULT = "configs/default.yaml"
 

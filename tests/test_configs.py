@@ -22,7 +22,7 @@ CONFIGS = sorted(p.name for p in (ROOT / "configs").glob("*.yaml"))
 
 @pytest.mark.parametrize("name", CONFIGS)
 def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
 
     path = ROOT / "configs" / name
     cfg = load_config(path)

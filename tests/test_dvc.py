@@ -126,7 +126,7 @@ def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
         fh.write("\n# an edit\n")
     expected = {"export", "render", "cloth", "stability", "report"}  # what runs mitsuba_ext
     assert _stale(run) == expected
-    probe = ("import sys, json; from pipeline.config import load_config; from pipeline import graph; "
+    probe = ("import sys, json; from pipeline.loading import load_config; from pipeline import graph; "
              "cfg = load_config('configs/tiny.yaml'); "
              "print(json.dumps([s for s in sys.argv[1:] if not graph.up_to_date(s, cfg)[0]]))")
     r = subprocess.run([sys.executable, "-c", probe, *STAGES], cwd=repo, env=env, capture_output=True, text=True)
@@ -167,7 +167,7 @@ def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
 
 def test_shipped_configs_match_dvc_yaml():
     """Every config is a DVC stage; each spells out the sections its stages track."""
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
 
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text())
     lists = {k: v for entry in dvc["vars"] for k, v in entry.items()}

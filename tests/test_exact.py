@@ -237,7 +237,8 @@ def test_single_fiber_reproduces_its_model_with_every_exit(exit_model):
 
 
 def test_exit_models_refused_where_they_cannot_apply():
-    from pipeline.config import ConfigError, load_config
+    from pipeline.config import ConfigError
+    from pipeline.loading import load_config
 
     with pytest.raises(ValueError, match="exit"):
         BakeSpec([0.0], [0.0], exit="somewhere")

@@ -51,7 +51,8 @@ def test_a_camera_transport_ray_fiber_is_baked_with_the_curve_exit_and_refused_w
     for light); the h-resolved ``lobe`` exit, which knows light transport only, is refused in
     the config; ``fiber_ray`` refuses such a table; the closure renders it with Mitsuba's hair."""
     from pipeline.build import exit_model
-    from pipeline.config import ConfigError, load_config
+    from pipeline.config import ConfigError
+    from pipeline.loading import load_config
 
     ray = ["fiber.model=ray", "fiber.ray.transport=camera"]
     with pytest.raises(ConfigError, match="bake.exit: lobe resolves the paths of light transport"):

@@ -4,6 +4,7 @@ circle, and the layers only import downwards: ``models`` (the physics) imports n
 ``pipeline``."""
 
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -145,3 +146,11 @@ def test_imports_at_the_top_but_the_listed_seams():
     unlisted = sorted(local_imports() - set(LAZY))
     assert not unlisted, ("function-local imports of the project's modules (move them to the top, or list "
                           f"the seam in LAZY with its reason): {unlisted}")
+
+
+def test_stages_read_only_artifacts():
+    """The product's data path holds no document: no stage reads a file under docs/ (the
+    benches' records are for the documents, ``python -m pipeline.figures``)."""
+    bad = [p.name for p in (ROOT / "pipeline" / "stages").glob("*.py")
+           if re.search(r"""/\s*["']docs["']|["']docs["']\s*/|Path\(\s*["']docs""", p.read_text())]
+    assert not bad, f"stages reading docs/: {bad}"

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from pipeline.cli import main as cli
-from pipeline.config import load_config
+from pipeline.loading import load_config
 
 RAY_PLY = {
     "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},

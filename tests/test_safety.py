@@ -102,7 +102,7 @@ def test_a_stage_killed_mid_way_is_rolled_back_by_the_next_command(tmp_path):
 def test_a_checkpoint_does_not_resume_across_a_code_change(tmp_path, monkeypatch, capsys, mi_llvm):
     from models.bundle_table import BundleTable
     from pipeline import cluster
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
     from pipeline.stages import bake as bake_stage
     from pipeline.stages import fiber as fiber_stage
 

@@ -18,7 +18,7 @@ from models.bundle_table import BundleTable
 from pipeline.stages import bake as bake_stage
 from pipeline import cli
 from pipeline.stages import fiber as fiber_stage
-from pipeline.config import load_config, sweep_members
+from pipeline.loading import load_config, sweep_members
 from tests.test_cli import ROOT
 from tests.test_dvc import RUNNER, _covered, _imported
 

@@ -342,7 +342,8 @@ def test_a_twisted_ellipse_expands_by_its_half_turns(ray_fiber):
 ])
 def test_a_bad_twist_is_refused_naming_the_key(twist, message):
     from pipeline.build import build_ply
-    from pipeline.config import ConfigError, load_config
+    from pipeline.config import ConfigError
+    from pipeline.loading import load_config
 
     with pytest.raises((ConfigError, ValueError), match=message):
         build_ply(load_config("configs/default.yaml", [f"bundle.twist={twist}"]))
@@ -350,7 +351,8 @@ def test_a_bad_twist_is_refused_naming_the_key(twist, message):
 
 def test_a_twisted_ellipse_keeps_its_azimuths_and_a_twist_needs_the_fast_estimator():
     from pipeline.build import build_ply, make_spec
-    from pipeline.config import ConfigError, load_config
+    from pipeline.config import ConfigError
+    from pipeline.loading import load_config
 
     cfg = load_config("configs/thesis_ellipse.yaml", ["bundle.twist={pitch_um: 3000}"])
     ply = build_ply(cfg)  # spaced out until its fibers clear where they pass the minor axis
@@ -367,7 +369,7 @@ def test_a_twisted_ellipse_keeps_its_azimuths_and_a_twist_needs_the_fast_estimat
 
 def test_a_zhao_yarn_gives_its_lean_and_the_spec_keeps_every_theta_i_but_the_poles():
     from pipeline.build import build_ply, make_spec
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
 
     cfg = load_config("configs/default.yaml", ["bundle.twist={yarn: Cotton 1}", "bundle.radius_um=260",
                                                "bake.theta_i_deg=[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]",
@@ -392,7 +394,7 @@ def test_a_migrating_zhao_ply_is_spaced_until_its_fibers_clear(tmp_path):
     (checked here independently of the search, on a dense sampling of every pair), and a
     listed cross-section that cannot clear is refused with the amount."""
     from pipeline.build import build_bundle, build_ply
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
 
     cfg = load_config("configs/twisted_cotton1.yaml", ["bundle.twist.migration=true"])
     ply = build_ply(cfg)
@@ -435,7 +437,7 @@ def test_a_twisted_bake_resumes_and_is_the_serial_one_on_a_cluster(tmp_path):
     import yaml
 
     from models.bundle_table import BundleTable
-    from pipeline.config import load_config
+    from pipeline.loading import load_config
     from pipeline.stages import bake as bake_stage
     from pipeline.stages import fiber as fiber_stage
 

@@ -33,7 +33,7 @@ from models.bake import Baker, BundleScene, Tally, tally_to_table
 from models.fit import energy_bins
 from pipeline.bench import results
 from pipeline.build import build_bundle, make_spec
-from pipeline.config import load_config
+from pipeline.loading import load_config
 
 
 def median_rel_error(tally, spec, fiber, bins=None, fraction=0.9):

@@ -41,8 +41,8 @@ from pipeline.bench import results
 from .. import bsdfs, closure, scenes
 from ..artifacts import config_dir, stage_dir
 from ..build import build_bundle
-from ..config import load_config
-from ..config import load_config as load
+from ..loading import load_config
+from ..loading import load_config as load
 
 LAM = 550.0
 

@@ -72,7 +72,7 @@ from pipeline.artifacts import fiber_table_path, load_bundle_table
 from pipeline.bench import results
 from pipeline.bsdfs import backend_props
 from pipeline.build import build_bundle, build_ply
-from pipeline.config import load_config
+from pipeline.loading import load_config
 from pipeline.garment import build, flyaways, yarn_model, yarn_spec
 from pipeline.images import exposure_of, flip_and_psnr, to_srgb
 

@@ -33,7 +33,8 @@ from pipeline.bench import results
 
 from .. import graph
 from ..artifacts import config_dir, stage_dir
-from ..config import load_config
+from ..loading import load_config
+from ..summaries import BakeSummary
 
 
 def _bake(cfg, root, workers=None) -> tuple[float, float, float]:
@@ -43,8 +44,8 @@ def _bake(cfg, root, workers=None) -> tuple[float, float, float]:
     t0 = time.perf_counter()
     graph.run_stage("bake", cfg, root, workers=workers)
     stage = time.perf_counter() - t0
-    summary = json.loads((stage_dir(cfg, "bake", root) / "summary.json").read_text())
-    return stage, summary["bake_seconds"], summary["tracing_cpu_seconds"]
+    summary = BakeSummary.read(stage_dir(cfg, "bake", root) / "summary.json")
+    return stage, summary.bake_seconds, summary.tracing_cpu_seconds
 
 
 def main(argv=None) -> int:

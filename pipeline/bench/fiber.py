@@ -18,7 +18,7 @@ import numpy as np
 
 from models import fiber as fiber_models
 from pipeline.bench import results
-from pipeline.config import load_config
+from pipeline.loading import load_config
 
 
 def _time(fn, repeat):

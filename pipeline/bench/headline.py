@@ -17,7 +17,8 @@ import json
 from pathlib import Path
 
 from ..artifacts import config_dir, model_size
-from ..config import load_config
+from ..loading import load_config
+from ..summaries import RenderSummary, TrainSummary
 from . import results
 
 STAGES = ("fiber", "bake", "train", "export", "render", "stability", "report")
@@ -33,16 +34,16 @@ def figures(cfg, artifacts) -> tuple[list[dict], dict]:
     root = config_dir(cfg, artifacts)
     size = model_size(cfg)
     bake = read(root / "metrics" / "bake.json")
-    train = read(root / "train" / size / "summary.json")
+    train = TrainSummary.read(root / "train" / size / "summary.json")
     export = read(root / "metrics" / "export.json")
-    render = read(root / "render" / "summary.json")
+    render = RenderSummary.read(root / "render" / "summary.json")
     table_file = (root / "bake" / "bundle_table.npz").stat().st_size
     weights_file = (root / "export" / size / "weights.npz").stat().st_size
     onnx_file = (root / "export" / size / "model.onnx").stat().st_size
     expanded = next(v["bytes"] for k, v in export.items() if k.startswith("table"))
     mlp = next(v for k, v in export.items() if k.startswith(f"mlp {size}"))
-    params = train["parameters"]
-    ply = render["scenes"]["ply"]
+    params = train.parameters
+    ply = render.scenes["ply"]
     seconds = {s: read(root / ".stamps" / f"{s}.json").get("seconds") for s in STAGES
                if (root / ".stamps" / f"{s}.json").exists()}
     rows = [
@@ -55,17 +56,17 @@ def figures(cfg, artifacts) -> tuple[list[dict], dict]:
         ("sizes", f"model {size}: weights.npz / model.onnx", f"{_bytes(weights_file)} / {_bytes(onnx_file)}"),
         ("sizes", "expanded table / model parameters", f"{expanded / (4 * params):.0f}x"),
         ("sizes", "stored table / weights.npz", f"{table_file / weights_file:.0f}x"),
-        ("model", "held-out relative L1 (bin averages)", f"{train['relative_l1']:.1%}"),
-        ("model", "held-out error / the table's own noise", f"{train['noise_ratio']:.2f}"),
+        ("model", "held-out relative L1 (bin averages)", f"{train.relative_l1:.1%}"),
+        ("model", "held-out error / the table's own noise", f"{train.noise_ratio:.2f}"),
         ("model", "worst albedo error per incidence and wavelength, at the calibration's points",
-         f"{train.get('worst_albedo_error_after', float('nan')):.2%}"),
+         f"{train.worst_albedo_error_after:.2%}" if train.worst_albedo_error_after is not None else "-"),
         ("model", "worst albedo error of the exported model, each bin averaged on its own",
          f"{mlp['albedo_error']:.2%}"),
-        ("render", f"ply, FLIP of the jitted MLP against the table ({render['spp']} spp)",
+        ("render", f"ply, FLIP of the jitted MLP against the table ({render.spp} spp)",
          f"{ply['mlp']['flip']:.3f}"),
         ("render", "ply, MLP render time / table render time (warm)", f"{ply['mlp']['time_ratio']:.2f}"),
     ] + [("time", f"bcsdf {s}", f"{t:.0f} s") for s, t in seconds.items() if t is not None]
-    data = {"config": cfg.name, "model": size, "bake": bake, "train": train, "table_file_bytes": table_file,
+    data = {"config": cfg.name, "model": size, "bake": bake, "train": train.model_dump(), "table_file_bytes": table_file,
             "expanded_table_bytes": expanded, "weights_bytes": weights_file, "onnx_bytes": onnx_file,
             "stage_seconds": seconds, "render_ply": ply}
     return [{"part": a, "figure": b, "value": c} for a, b, c in rows], data

@@ -57,7 +57,7 @@ from pipeline.bench import results
 from .. import closure
 from ..artifacts import bundle_table_path, stage_dir
 from ..build import build_bundle, make_spec
-from ..config import load_config
+from ..loading import load_config
 from ..plots import save_figure
 
 GRADED = "[0, 15, 30, 45, 60, 65, 70, 75, 80, 90]"  # as many theta_i nodes as every 10 deg, with a pole node

@@ -30,7 +30,7 @@ from models.jit import to_drjit
 from pipeline.bench import results
 
 from ..artifacts import stage_dir
-from ..config import load_config
+from ..loading import load_config
 from ..error_vs_time import measure
 from ..graph import require
 

@@ -24,7 +24,7 @@ from pipeline.bench import results
 
 from .. import bsdfs, images, scenes
 from ..artifacts import stage_dir
-from ..config import load_config
+from ..loading import load_config
 from ..graph import require
 
 

@@ -37,7 +37,8 @@ from models import fit as fitting
 from models.fit import BinFit, adam, fit, held_out_metrics, prepare
 from models.neural import make_torch_model
 from pipeline.artifacts import load_bundle_table
-from pipeline.config import TRAIN_SECTIONS, load_config
+from pipeline.config import TRAIN_SECTIONS
+from pipeline.loading import load_config
 from pipeline.plots import save_figure
 
 from . import results

@@ -31,7 +31,7 @@ from models.bake import Tally
 from models.bundle import Migration, TwistedBundle
 from pipeline.bench import results
 from pipeline.build import build_bundle, build_ply, make_spec, tracer
-from pipeline.config import load_config
+from pipeline.loading import load_config
 
 from .bake import median_rel_error
 

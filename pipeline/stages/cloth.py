@@ -27,12 +27,9 @@ Outputs in ``artifacts/<name>/cloth/``.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import mitsuba as mi
-
-from models.io import write_text
 
 from .. import scenes
 from ..artifacts import model_size, stage_dir
@@ -40,6 +37,7 @@ from ..bsdfs import backend_props
 from ..garment import build, flyaway_share, flyaways, render_apart, yarn_spec
 from ..images import exposure_of, flip_and_psnr, save_images, save_png
 from ..metrics import write_metrics
+from ..summaries import ClothSummary
 
 
 def run(cfg, out_root="artifacts") -> Path:
@@ -89,7 +87,7 @@ def run(cfg, out_root="artifacts") -> Path:
             save_png(error_map, out / f"cloth_{backend}_flip.png")
             summary["backends"][backend].update(flip=mean_flip, psnr=psnr, reference=reference)
             print(f"[cloth] {backend} vs {reference}: FLIP {mean_flip:.4f}, PSNR {psnr:.1f} dB")
-    write_text(out / "summary.json", json.dumps(summary, indent=1))
+    ClothSummary(**summary).write(out / "summary.json")
     write_metrics(cfg, out_root, "cloth", {"build_seconds": info["build_seconds"],
                                             "control_points": info["control_points"],
                                             **{f"{b}_seconds": e["seconds"] for b, e in summary["backends"].items()},

@@ -12,7 +12,6 @@ Writes, under ``artifacts/<name>/fiber/``:
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -24,12 +23,12 @@ from matplotlib.colors import Normalize
 from models import fiber as fiber_models
 from models.fiber.base import FiberTable
 from models.grid import linear
-from models.io import write_text
 
 from ..artifacts import stage_dir
 from ..config import FIBER_SECTIONS
 from ..metrics import write_metrics
 from ..plots import save_figure, slice_nodes, spectral_image
+from ..summaries import FiberSummary
 
 
 def run(cfg, out_root="artifacts") -> Path:
@@ -50,13 +49,13 @@ def run(cfg, out_root="artifacts") -> Path:
     # -- Energy and extinction --------------------------------------------
     energy = table.energy()
     ext = model.extinction(table.theta_i)
-    summary = {
-        "model": cfg.fiber.model, "config_hash": cfg.hash(*FIBER_SECTIONS), "tabulate_seconds": seconds,
-        "theta_i_deg": np.rad2deg(table.theta_i).tolist(), "wavelength_nm": table.wavelength.tolist(),
-        "shape": {lobe.name: list(lobe.azimuthal.shape) for lobe in table.lobes},
-        "energy": energy.tolist(), "extinction_ratio": None if ext is None else ext.tolist(),
-    }
-    write_text(out / "summary.json", json.dumps(summary, indent=1))
+    summary = FiberSummary(
+        model=cfg.fiber.model, config_hash=cfg.hash(*FIBER_SECTIONS), tabulate_seconds=seconds,
+        theta_i_deg=np.rad2deg(table.theta_i).tolist(), wavelength_nm=table.wavelength.tolist(),
+        shape={lobe.name: list(lobe.azimuthal.shape) for lobe in table.lobes},
+        energy=energy.tolist(), extinction_ratio=None if ext is None else ext.tolist(),
+    )
+    summary.write(out / "summary.json")
     write_metrics(cfg, out_root, "fiber", {"albedo_min": energy.min(), "albedo_max": energy.max(),
                                            "tabulate_seconds": seconds})
 

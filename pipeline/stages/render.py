@@ -19,7 +19,6 @@ backends read only their exported files: no table is loaded for them.
 
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -36,7 +35,7 @@ from mitsuba_ext.frame import spectral_weights
 from models.bake import bake_unreduced
 from models.bundle_table import BundleTable
 from models.fiber.base import FiberTable
-from models.io import atomic_path, write_text
+from models.io import atomic_path
 
 from .. import closure, scenes
 from ..artifacts import config_dir, model_size, stage_dir
@@ -47,6 +46,7 @@ from ..images import exposure_of, flip_and_psnr, render_timed, save_images, save
 from ..metrics import write_metrics
 from ..plots import save_figure
 from ..scenes import FOV_DEG
+from ..summaries import RenderSummary
 
 # -- inputs ------------------------------------------------------------------------
 
@@ -62,52 +62,49 @@ def run(cfg, out_root="artifacts") -> Path:
     out = stage_dir(cfg, "render", out_root)
     out.mkdir(parents=True, exist_ok=True)
     props = {b: backend_props(cfg, out_root, b) for b in r.backends}  # refuse mismatches before rendering
-    mi.set_variant(r.variant)
-    mitsuba_ext.register()
+    with mitsuba_ext.variant(r.variant):
 
-    summary = {"config_hash": cfg.hash(*RENDER_SECTIONS), "variant": r.variant, "spp": r.spp,
-               "size": [r.width, r.height],
-               "model": model_size(cfg) if set(r.backends) - {"table"} else None, "scenes": {}}
-    bar = tqdm(total=len(r.scenes) * len(r.backends), desc="renders", unit="render")
-    for name in r.scenes:
-        images, entry = {}, {"description": scenes.describe(cfg, name)}
-        for backend in r.backends:
-            bar.update()
-            scene = scenes.named_scene(mi, cfg, name, props[backend], r.spp, out)
-            img, seconds, first = render_timed(mi, scene, backend)
-            images[backend] = img
-            entry[backend] = {"seconds": seconds, "first_seconds": first,
-                              "mean_radiance": img.mean(axis=(0, 1)).tolist()}
-            print(f"[render] {name} / {backend}: {seconds:.2f} s ({first:.2f} s with compilation)")
-        reference = "table" if "table" in images else r.backends[0]
-        exposure = exposure_of(images[reference])
-        entry["exposure"] = exposure
-        flip_maps = {}
-        for backend, img in images.items():
-            save_images(mi, img, out / f"{name}_{backend}", exposure)
-            if backend == reference:
-                continue
-            mean_flip, psnr, error_map = flip_and_psnr(images[reference], img, exposure)
-            save_png(error_map, out / f"{name}_{backend}_flip.png")
-            flip_maps[backend] = error_map
-            entry[backend].update(flip=mean_flip, psnr=psnr, reference=reference,
-                                  time_ratio=entry[backend]["seconds"] / entry[reference]["seconds"])
-            print(f"[render] {name} / {backend} vs {reference}: FLIP {mean_flip:.4f}, PSNR {psnr:.1f} dB, "
-                  f"time x{entry[backend]['time_ratio']:.2f}")
-        if "mlp" in images and "onnx" in images:
-            entry["onnx_vs_mlp_max_abs"] = float(np.abs(images["onnx"] - images["mlp"]).max())
-        side_by_side(images, flip_maps, entry, out / f"{name}_side_by_side.png", name)
-        summary["scenes"][name] = entry
-    bar.close()
+        summary = {"config_hash": cfg.hash(*RENDER_SECTIONS), "variant": r.variant, "spp": r.spp,
+                   "size": [r.width, r.height],
+                   "model": model_size(cfg) if set(r.backends) - {"table"} else None, "scenes": {}}
+        bar = tqdm(total=len(r.scenes) * len(r.backends), desc="renders", unit="render")
+        for name in r.scenes:
+            images, entry = {}, {"description": scenes.describe(cfg, name)}
+            for backend in r.backends:
+                bar.update()
+                scene = scenes.named_scene(mi, cfg, name, props[backend], r.spp, out)
+                img, seconds, first = render_timed(mi, scene, backend)
+                images[backend] = img
+                entry[backend] = {"seconds": seconds, "first_seconds": first,
+                                  "mean_radiance": img.mean(axis=(0, 1)).tolist()}
+                print(f"[render] {name} / {backend}: {seconds:.2f} s ({first:.2f} s with compilation)")
+            reference = "table" if "table" in images else r.backends[0]
+            exposure = exposure_of(images[reference])
+            entry["exposure"] = exposure
+            flip_maps = {}
+            for backend, img in images.items():
+                save_images(mi, img, out / f"{name}_{backend}", exposure)
+                if backend == reference:
+                    continue
+                mean_flip, psnr, error_map = flip_and_psnr(images[reference], img, exposure)
+                save_png(error_map, out / f"{name}_{backend}_flip.png")
+                flip_maps[backend] = error_map
+                entry[backend].update(flip=mean_flip, psnr=psnr, reference=reference,
+                                      time_ratio=entry[backend]["seconds"] / entry[reference]["seconds"])
+                print(f"[render] {name} / {backend} vs {reference}: FLIP {mean_flip:.4f}, PSNR {psnr:.1f} dB, "
+                      f"time x{entry[backend]['time_ratio']:.2f}")
+            if "mlp" in images and "onnx" in images:
+                entry["onnx_vs_mlp_max_abs"] = float(np.abs(images["onnx"] - images["mlp"]).max())
+            side_by_side(images, flip_maps, entry, out / f"{name}_side_by_side.png", name)
+            summary["scenes"][name] = entry
+        bar.close()
 
-    if r.mono_check and mi.is_spectral and "table" in props:
-        summary["mono_check"] = mono_check(mi, cfg, props["table"], out)
-        mi.set_variant(r.variant)
-        mitsuba_ext.register()
-    if r.explicit and "table" in props:
-        summary["explicit"] = explicit_check(mi, cfg, props, out_root, out)
+        if r.mono_check and mi.is_spectral and "table" in props:
+            summary["mono_check"] = mono_check(mi, cfg, props["table"], out)
+        if r.explicit and "table" in props:
+            summary["explicit"] = explicit_check(mi, cfg, props, out_root, out)
 
-    write_text(out / "summary.json", json.dumps(summary, indent=2))
+    RenderSummary(**summary).write(out / "summary.json")
     write_metrics(cfg, out_root, "render", headline(summary))
     return out
 
@@ -158,14 +155,13 @@ def mono_check(mi, cfg, table_props: dict, out: Path) -> dict:
     wl = BundleTable.load(table_props["table"]).wavelength
     spectral, t_spec, _ = render_timed(mi, scenes.ply_scene(mi, small, table_props, r.mono_check_spp))
     mono_variant = r.variant.replace("spectral", "mono")
-    mi.set_variant(mono_variant)
-    mitsuba_ext.register()
-    t0 = time.perf_counter()
-    monos = []
-    for lam in tqdm(wl, desc="mono check", unit="render"):
-        bsdf = {**table_props, "wavelength": float(lam)}
-        monos.append(np.array(mi.render(mi.load_dict(scenes.ply_scene(mi, small, bsdf, r.mono_check_spp))))[..., 0])
-    t_mono = time.perf_counter() - t0
+    with mitsuba_ext.variant(mono_variant):
+        t0 = time.perf_counter()
+        monos = []
+        for lam in tqdm(wl, desc="mono check", unit="render"):
+            bsdf = {**table_props, "wavelength": float(lam)}
+            monos.append(np.array(mi.render(mi.load_dict(scenes.ply_scene(mi, small, bsdf, r.mono_check_spp))))[..., 0])
+        t_mono = time.perf_counter() - t0
     combined = np.einsum("ck,khw->hwc", spectral_weights(wl, "rgb"), np.stack(monos)).astype(np.float32)
     h = combined.shape[0]
     band = slice(h // 2 - h // 8, h // 2 + h // 8)  # rows that see the ply
@@ -206,39 +202,36 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     result = {"fibers": len(bundle.centers), "wavelength_nm": wl}
 
     # -- far field and explicit bins, one wavelength ------------------------------------
-    mi.set_variant("llvm_ad_mono")
-    mitsuba_ext.register()
-    Rb = bundle.bounding_radius * scenes.UM
-    # off the cone's exact line: a node's cone lies on a bin edge of the table, where it jumps
-    pairs = closure.direction_pairs(cone_offsets_deg=(0.8, -1.7))
-    far = {b: closure.far_field_ratios(mi, {**props[b], "wavelength": wl, "up": closure.UP}, Rb,
-                                       closure.evaluator(mi, b, props[b].get("table") or props[b].get("model"), wl),
-                                       pairs)
-           for b in ("table", "mlp") if b in props}
-    result["far_field"] = far
-    # the explicit fibers leave their fibers as the bake did (closure compares like with like)
-    exit_model = raw.meta.get("exit", "uniform")
-    fiber_bsdf = closure.explicit_fiber(fiber_table, exit_model, wl)
-    result["exit"] = exit_model
-    # dphi ~ 20, 90, 160 deg; a twisted ply is chiral: -20 deg as well
-    phi_bins = [int(len(raw.phi_o) * f) for f in ((0.45,) if twisted else ()) + (0.55, 0.75, 0.95)]
-    nodes = [j for j, ti in enumerate(raw.theta_i) if 5 < abs(np.rad2deg(ti)) < 85][::2]
-    cases = [c for c in closure.cone_cases(raw, phi_bins, beside=False) if c[0] in nodes]
-    explicit = closure.explicit_bins(mi, ply_model, fiber_bsdf, raw, cases, lam, spp=8, resolution=32)
-    result["explicit_bins"] = explicit
-    kind = "helical fibers, " if twisted else ""
-    closure.plot(far, {f"{cfg.fiber.model} fiber, {kind}{cfg.name} ply ({len(bundle.centers)} fibers)": explicit},
-                 out / "closure.png", f"{cfg.name}: rendered against what each renderer was given ({wl:.0f} nm)")
-    within = np.mean([abs(e["ratio"] - 1) <= 0.02 + 3 * e["sigma"] for e in explicit])
-    ff = np.concatenate([[row[3] for row in rows] for rows in far.values()])
-    print(f"[render] closure: far field {ff.min():.4f} .. {ff.max():.4f} ({len(ff)} renders); explicit fibers vs "
-          f"bake {within:.0%} of {len(explicit)} bins within 3 sigma + 2%")
+    with mitsuba_ext.variant("llvm_ad_mono"):
+        Rb = bundle.bounding_radius * scenes.UM
+        # off the cone's exact line: a node's cone lies on a bin edge of the table, where it jumps
+        pairs = closure.direction_pairs(cone_offsets_deg=(0.8, -1.7))
+        far = {b: closure.far_field_ratios(mi, {**props[b], "wavelength": wl, "up": closure.UP}, Rb,
+                                           closure.evaluator(mi, b, props[b].get("table") or props[b].get("model"), wl),
+                                           pairs)
+               for b in ("table", "mlp") if b in props}
+        result["far_field"] = far
+        # the explicit fibers leave their fibers as the bake did (closure compares like with like)
+        exit_model = raw.meta.get("exit", "uniform")
+        fiber_bsdf = closure.explicit_fiber(fiber_table, exit_model, wl)
+        result["exit"] = exit_model
+        # dphi ~ 20, 90, 160 deg; a twisted ply is chiral: -20 deg as well
+        phi_bins = [int(len(raw.phi_o) * f) for f in ((0.45,) if twisted else ()) + (0.55, 0.75, 0.95)]
+        nodes = [j for j, ti in enumerate(raw.theta_i) if 5 < abs(np.rad2deg(ti)) < 85][::2]
+        cases = [c for c in closure.cone_cases(raw, phi_bins, beside=False) if c[0] in nodes]
+        explicit = closure.explicit_bins(mi, ply_model, fiber_bsdf, raw, cases, lam, spp=8, resolution=32)
+        result["explicit_bins"] = explicit
+        kind = "helical fibers, " if twisted else ""
+        closure.plot(far, {f"{cfg.fiber.model} fiber, {kind}{cfg.name} ply ({len(bundle.centers)} fibers)": explicit},
+                     out / "closure.png", f"{cfg.name}: rendered against what each renderer was given ({wl:.0f} nm)")
+        within = np.mean([abs(e["ratio"] - 1) <= 0.02 + 3 * e["sigma"] for e in explicit])
+        ff = np.concatenate([[row[3] for row in rows] for rows in far.values()])
+        print(f"[render] closure: far field {ff.min():.4f} .. {ff.max():.4f} ({len(ff)} renders); explicit fibers vs "
+              f"bake {within:.0%} of {len(explicit)} bins within 3 sigma + 2%")
 
     # -- the ply scene: explicit fibers, 16 views, against the bundle ----------------------
     # a circle's table holds every turn of its arrangement, an ellipse's its one orientation;
     # a twisted ply's views also spread over the heights of its period where a turn is no shift
-    mi.set_variant(r.variant)
-    mitsuba_ext.register()
     turns = 16
     per_turn = max(1, r.explicit_spp // turns)
     placements = closure.view_placements(ply_model, turns, scenes.UM, bundle.is_circle)
@@ -303,35 +296,32 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
     r = cfg.render
     fiber = FiberTable.load(fiber_table)
     spec, _ = make_spec(cfg, ply_model, fiber)           # the twisted table's nodes and bins
-    mi.set_variant(cfg.bake.variant)
-    t0 = time.perf_counter()
-    # a 2D path serves every theta_i node, a twisted one a single node: 1 / n_theta_i of the
-    # paths makes the parallel table about as precise as the twisted one
-    paths = max(cfg.bake.paths_per_phi_i // len(spec.theta_i), 1)
-    parallel = bake_unreduced(ply_model.bundle, fiber, spec, paths, seed=cfg.bake.seed)
-    if not ply_model.bundle.is_circle:  # phi_i over 0..90 deg: the parallel ellipse's mirrors give the rest
-        parallel.meta["reductions"] = dict(parallel.meta["reductions"], phi_i="mirror_xz")
-    t_bake = time.perf_counter() - t0
-    parallel.save(out / "parallel_table.npz")
+    with mitsuba_ext.variant(cfg.bake.variant):
+        t0 = time.perf_counter()
+        # a 2D path serves every theta_i node, a twisted one a single node: 1 / n_theta_i of the
+        # paths makes the parallel table about as precise as the twisted one
+        paths = max(cfg.bake.paths_per_phi_i // len(spec.theta_i), 1)
+        parallel = bake_unreduced(ply_model.bundle, fiber, spec, paths, seed=cfg.bake.seed)
+        if not ply_model.bundle.is_circle:  # phi_i over 0..90 deg: the parallel ellipse's mirrors give the rest
+            parallel.meta["reductions"] = dict(parallel.meta["reductions"], phi_i="mirror_xz")
+        t_bake = time.perf_counter() - t0
+        parallel.save(out / "parallel_table.npz")
     tables = {"twisted table": table_props["table"], "parallel table": out / "parallel_table.npz"}
 
     # -- the highlight: a cut through the far field, explicit helices against both lookups
-    mi.set_variant("llvm_ad_mono")
-    mitsuba_ext.register()
-    lam_nm = float(fiber.wavelength[np.argmin(np.abs(fiber.wavelength - 550.0))])
-    theta_i, dphi = np.deg2rad(30.0), np.deg2rad(90.0)
-    theta_o = np.deg2rad(np.arange(-80.0, 80.1, 4.0))
-    bsdf = closure.explicit_fiber(fiber_table, "uniform", lam_nm)
-    S_explicit, S_err = closure.theta_cut(mi, ply_model, bsdf, theta_i, dphi, theta_o)
-    cut = {"theta_i_deg": 30.0, "dphi_deg": 90.0, "wavelength_nm": lam_nm, "theta_o_deg": np.rad2deg(theta_o).tolist(),
-           "explicit helical fibers": S_explicit.tolist(), "explicit_sigma": S_err.tolist()}
-    for name, path in tables.items():
-        S = closure.evaluator(mi, "table", path, lam_nm)
-        cut[name] = [S(0.0, theta_i, dphi, to) for to in theta_o]
+    with mitsuba_ext.variant("llvm_ad_mono"):
+        lam_nm = float(fiber.wavelength[np.argmin(np.abs(fiber.wavelength - 550.0))])
+        theta_i, dphi = np.deg2rad(30.0), np.deg2rad(90.0)
+        theta_o = np.deg2rad(np.arange(-80.0, 80.1, 4.0))
+        bsdf = closure.explicit_fiber(fiber_table, "uniform", lam_nm)
+        S_explicit, S_err = closure.theta_cut(mi, ply_model, bsdf, theta_i, dphi, theta_o)
+        cut = {"theta_i_deg": 30.0, "dphi_deg": 90.0, "wavelength_nm": lam_nm, "theta_o_deg": np.rad2deg(theta_o).tolist(),
+               "explicit helical fibers": S_explicit.tolist(), "explicit_sigma": S_err.tolist()}
+        for name, path in tables.items():
+            S = closure.evaluator(mi, "table", path, lam_nm)
+            cut[name] = [S(0.0, theta_i, dphi, to) for to in theta_o]
 
     # -- the ply scene ----------------------------------------------------------------
-    mi.set_variant(r.variant)
-    mitsuba_ext.register()
     rows = scenes.ply_rows(cfg, explicit_img.shape[0])
     expo = exposure_of(explicit_img)
     images = {"explicit helical fibers": explicit_img}

@@ -31,6 +31,7 @@ from ..build import code_version
 from ..graph import stamp_path
 from ..html import html_page, img_tag, not_run
 from ..plots import save_figure, spectral_image, theta_rows
+from ..summaries import BakeSummary, ClothSummary, FiberSummary, RenderSummary, TrainSummary
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
 
@@ -44,12 +45,12 @@ def run(cfg, out_root="artifacts") -> Path:
     # -- fiber -----------------------------------------------------------------
     fiber = root / "fiber"
     if (fiber / "summary.json").exists():
-        s = json.loads((fiber / "summary.json").read_text())
-        E = np.asarray(s["energy"])
+        s = FiberSummary.read(fiber / "summary.json")
+        E = np.asarray(s.energy)
         pics = sorted(fiber.glob("theta_i_*.png"))
         chosen = [p for p in pics if p.name in ("theta_i_00.0.png", "theta_i_30.0.png", "theta_i_60.0.png")] or pics[:3]
-        body = (f"<p>Model <b>{html.escape(s['model'])}</b>, {len(s['theta_i_deg'])} incident longitudes x "
-                f"{len(s['wavelength_nm'])} wavelengths, tabulated in {s['tabulate_seconds']:.2f} s; albedo "
+        body = (f"<p>Model <b>{html.escape(s.model)}</b>, {len(s.theta_i_deg)} incident longitudes x "
+                f"{len(s.wavelength_nm)} wavelengths, tabulated in {s.tabulate_seconds:.2f} s; albedo "
                 f"{E.min():.4f} .. {E.max():.4f}.</p>")
         body += "".join(img_tag(out, p, f"fiber, {p.stem}") for p in chosen + [fiber / "energy.png"])
         sections.append(("Single-fiber model", body))
@@ -59,35 +60,33 @@ def run(cfg, out_root="artifacts") -> Path:
     # -- bake --------------------------------------------------------------------
     bake = root / "bake"
     if (bake / "summary.json").exists():
-        s = json.loads((bake / "summary.json").read_text())
-        body = (f"<p>{s['n_fibers']} fibers, packing {s['packing_fraction']:.3f}; {s['paths']:,} paths, "
-                f"{s['vertices']:,} vertices in {s['bake_seconds']:.1f} s. Energy (mean over incidence and "
-                f"wavelength): scattered {s['scattered']:.4f}, passthrough {np.mean(s['passthrough']):.4f}, "
-                f"absorbed {_f4(s['absorbed'])}, lost {_f4(s['lost'])}, total {s['total']:.4f} (largest "
-                f"deviation from 1 of any incidence and wavelength: {s['max_abs_energy_error']:.4f}).</p>")
-        if "single_share" in s:  # bakes of 2026-12-03 on
-            share, wl = s["single_share"], cfg.wavelengths.grid()
-            body += (f"<p>Of the scattered light, {share[0]:.0%} at {wl[0]:.0f} nm and {share[-1]:.0%} at "
-                     f"{wl[-1]:.0f} nm left the ply after one fiber event (the rest after several; "
-                     "<code>single</code> in the table, right panel of the energy plot).</p>")
+        s = BakeSummary.read(bake / "summary.json")
+        body = (f"<p>{s.n_fibers} fibers, packing {s.packing_fraction:.3f}; {s.paths:,} paths, "
+                f"{s.vertices:,} vertices in {s.bake_seconds:.1f} s. Energy (mean over incidence and "
+                f"wavelength): scattered {s.scattered:.4f}, passthrough {s.passthrough:.4f}, "
+                f"absorbed {_f4(s.absorbed)}, lost {_f4(s.lost)}, total {s.total:.4f} (largest "
+                f"deviation from 1 of any incidence and wavelength: {s.max_abs_energy_error:.4f}).</p>")
+        share, wl = s.single_share, cfg.wavelengths.grid()
+        body += (f"<p>Of the scattered light, {share[0]:.0%} at {wl[0]:.0f} nm and {share[-1]:.0%} at "
+                 f"{wl[-1]:.0f} nm left the ply after one fiber event (the rest after several; "
+                 "<code>single</code> in the table, right panel of the energy plot).</p>")
         b = cfg.bake
         body += (f"<p>Output bins: {b.n_phi_o} in phi_o; {b.n_theta_o} in theta_o, "
                  + (f"following the specular cone (a {b.cone_bin_deg:g}-deg bin centred on the cone of every "
                     f"theta_i node ({b.theta_i_said()}), equal bins between)"
                     if b.theta_o_layout == "cone" else "equal") + ".</p>")
-        if "reductions" in s:
-            r = s["reductions"]
-            used = ", ".join(f"{k}: {v}" for k, v in r["used"].items() if v) or "none"
-            body += (f"<p>Symmetry reductions ({html.escape(used)}): {r['reduced_incidences'][0]} x "
-                     f"{r['reduced_incidences'][1]} incidences (phi_i x theta_i), table {r['reduced_bytes'] / 1e6:.2f} MB, "
-                     f"bake {r['reduced_seconds']:.1f} s; without them {r['full_incidences'][0]} x "
-                     f"{r['full_incidences'][1]} incidences, {r['full_bytes'] / 1e6:.2f} MB and "
-                     f"{r['full_seconds']:.1f} s (the cost per azimuth measured on {r['probe_paths']:,} paths "
-                     f"through both, scaled to this bake).</p>")
+        r = s.reductions
+        used = ", ".join(f"{k}: {v}" for k, v in r.used.items() if v) or "none"
+        body += (f"<p>Symmetry reductions ({html.escape(used)}): {r.reduced_incidences[0]} x "
+                 f"{r.reduced_incidences[1]} incidences (phi_i x theta_i), table {r.reduced_bytes / 1e6:.2f} MB, "
+                 f"bake {r.reduced_seconds:.1f} s; without them {r.full_incidences[0]} x "
+                 f"{r.full_incidences[1]} incidences, {r.full_bytes / 1e6:.2f} MB and "
+                 f"{r.full_seconds:.1f} s (the cost per azimuth measured on {r.probe_paths:,} paths "
+                 f"through both, scaled to this bake).</p>")
         slices = sorted((bake / "slices").glob("*.png"))
         chosen = [p for p in slices if "theta_i_+30.0" in p.name or "theta_i_+60.0" in p.name][:4] or slices[:2]
         body += "".join(img_tag(out, p, p.stem) for p in [bake / "arrangement.png", *chosen, bake / "energy.png"])
-        body += exit_section(s.get("exit", "uniform"))
+        body += exit_section(s.exit)
         sections.append(("Bundle and baked table", body))
     else:
         sections.append(("Bundle and baked table", not_run("bcsdf bake")))
@@ -99,12 +98,12 @@ def run(cfg, out_root="artifacts") -> Path:
         for name in cfg.train.models:
             p = train / name / "summary.json"
             if p.exists():
-                m = json.loads(p.read_text())
-                calibration = (f"{m['worst_albedo_error_before']:.2%} &rarr; {m['worst_albedo_error_after']:.2%}"
-                               if "worst_albedo_error_after" in m else "-")
-                rows.append(f"<tr><td>{name}</td><td>{cfg.train.models[name]}</td><td>{m['parameters']}</td>"
-                            f"<td>{m['epochs']}</td><td>{m['train_seconds']:.1f}</td><td>{m['relative_l1']:.2%}</td>"
-                            f"<td>{m['table_noise_l1']:.2%}</td><td>{m['noise_ratio']:.2f}</td>"
+                m = TrainSummary.read(p)
+                calibration = (f"{m.worst_albedo_error_before:.2%} &rarr; {m.worst_albedo_error_after:.2%}"
+                               if m.worst_albedo_error_after is not None else "-")
+                rows.append(f"<tr><td>{name}</td><td>{cfg.train.models[name]}</td><td>{m.parameters}</td>"
+                            f"<td>{m.epochs}</td><td>{m.train_seconds:.1f}</td><td>{m.relative_l1:.2%}</td>"
+                            f"<td>{m.table_noise_l1:.2%}</td><td>{m.noise_ratio:.2f}</td>"
                             f"<td>{calibration}</td></tr>")
         body = ("<table><tr><th>model</th><th>hidden</th><th>parameters</th><th>epochs</th><th>train s</th>"
                 "<th>held-out rel. L1</th><th>table noise L1</th><th>error / table noise</th>"
@@ -165,13 +164,13 @@ def summary_section(cfg, root: Path, out_root) -> str:
     """
 
     lines = []
-    summaries = {n: json.loads((root / "train" / n / "summary.json").read_text()) for n in cfg.train.models
+    summaries = {n: TrainSummary.read(root / "train" / n / "summary.json") for n in cfg.train.models
                  if (root / "train" / n / "summary.json").exists()}
     if cfg.bundle is not None and summaries:
-        best = min(m["relative_l1"] for m in summaries.values())
-        fits = [n for n, m in summaries.items() if m["relative_l1"] <= 1.2 * best
-                and m.get("worst_albedo_error_after", 0.0) < 0.02]
-        pick = min(fits or summaries, key=lambda n: summaries[n]["parameters"])
+        best = min(m.relative_l1 for m in summaries.values())
+        fits = [n for n, m in summaries.items() if m.relative_l1 <= 1.2 * best
+                and (m.worst_albedo_error_after or 0.0) < 0.02]
+        pick = min(fits or summaries, key=lambda n: summaries[n].parameters)
         m = summaries[pick]
         cost = ""
         evt = root / "export" / "error_vs_time.json"
@@ -182,10 +181,10 @@ def summary_section(cfg, root: Path, out_root) -> str:
             if jit and lin:
                 cost = (f", {jit['ns_per_query']:.0f} ns per query in Dr.Jit ({jit['ns_per_query'] / lin['ns_per_query']:.2f}x "
                         f"the table's lookup), {lin['bytes'] / jit['bytes']:.0f}x smaller than the table")
-        albedo = m.get("worst_albedo_error_after")
+        albedo = m.worst_albedo_error_after
         lines.append(f"<p><b>Model to render with: {html.escape(pick)}</b> {cfg.train.models[pick]} "
-                     f"({m['parameters']:,} parameters): held-out relative L1 {m['relative_l1']:.1%} (the table's own "
-                     f"noise {m['table_noise_l1']:.1%})" + (f", worst albedo error {albedo:.2%}" if albedo is not None
+                     f"({m.parameters:,} parameters): held-out relative L1 {m.relative_l1:.1%} (the table's own "
+                     f"noise {m.table_noise_l1:.1%})" + (f", worst albedo error {albedo:.2%}" if albedo is not None
                                                             else "") + f"{cost}.")
         used = model_size(cfg)
         lines.append(f" The renders below use <b>{html.escape(used)}</b> (<code>render.model</code>).</p>"
@@ -304,12 +303,12 @@ def render_section(cfg, root: Path, out: Path) -> str:
         return "<p>This config has no bundle, so nothing to render.</p>"
     if not path.exists():
         return not_run("bcsdf render")
-    s = json.loads(path.read_text())
-    body = (f"<p>Mitsuba {html.escape(s['variant'])}, {s['size'][0]} x {s['size'][1]} pixels, {s['spp']} samples "
-            f"per pixel, integrator <code>bundle_path</code>; neural model: {s['model'] or '-'}. Times are of a "
+    s = RenderSummary.read(path)
+    body = (f"<p>Mitsuba {html.escape(s.variant)}, {s.size[0]} x {s.size[1]} pixels, {s.spp} samples "
+            f"per pixel, integrator <code>bundle_path</code>; neural model: {s.model or '-'}. Times are of a "
             "second render (kernels compiled); FLIP (LDR) and PSNR against the table's image.</p>")
     rows = []
-    for scene, entry in s["scenes"].items():
+    for scene, entry in s.scenes.items():
         for backend, e in entry.items():
             if not isinstance(e, dict):
                 continue
@@ -320,19 +319,19 @@ def render_section(cfg, root: Path, out: Path) -> str:
                         f"<td>{flip}</td><td>{psnr}</td></tr>")
     body += ("<table><tr><th>scene</th><th>backend</th><th>render s</th><th>time / table</th><th>FLIP</th>"
              "<th>PSNR dB</th></tr>" + "".join(rows) + "</table>")
-    for scene, entry in s["scenes"].items():
+    for scene, entry in s.scenes.items():
         if "description" in entry:
             body += f"<p><b>{html.escape(scene)}</b>: {html.escape(entry['description'])}</p>"
         body += img_tag(out, root / "render" / f"{scene}_side_by_side.png", f"{scene}: table, neural, FLIP")
-    if "mono_check" in s:
-        m = s["mono_check"]
+    if s.mono_check is not None:
+        m = s.mono_check
         body += (f"<p>Spectral variant against {m['n_wavelengths']} mono renders combined with CIE 1931 and D65 "
                  f"(left and right): mean colour of the ply {np.round(m['spectral_mean'], 4).tolist()} against "
                  f"{np.round(m['mono_combined_mean'], 4).tolist()}, largest relative difference "
                  f"{m['max_rel_diff']:.2%}.</p>")
         body += img_tag(out, root / "render" / "mono_check.png", "spectral against mono renders + CIE")
-    if "explicit" in s:
-        e = s["explicit"]
+    if s.explicit is not None:
+        e = s.explicit
         ff = {k: np.array([row[3] for row in rows]) for k, rows in e["far_field"].items()}
         body += ("<h3>Closure: does a render reproduce what it was given?</h3>"
                  f"<p>Far field (docs/DESIGN.md; one cylinder, directional light, orthographic camera, "
@@ -389,8 +388,8 @@ def cloth_section(root: Path, out: Path) -> str:
     path = root / "cloth" / "summary.json"
     if not path.exists():
         return not_run("bcsdf cloth")
-    s = json.loads(path.read_text())
-    g = s["geometry"]
+    s = ClothSummary.read(path)
+    g = s.geometry
     body = (f"<p>{g['yarn_curves']} yarn curves ({html.escape(g['curve_type'])}, {g['closed']} closed) wound into "
             f"{g['ply_curves']} plies of {g['plies']} per yarn (ply radius {g['ply_radius_mm']:.3g} mm at "
             f"{g['ply_offset_mm']:.3g} mm, pitch {g['ply_pitch_mm']:.3g} mm; yarn radius {g['yarn_radius_mm']:.3g} "
@@ -399,8 +398,8 @@ def cloth_section(root: Path, out: Path) -> str:
             f"of the file's curves. Ply table: {html.escape(g['ply_table'])}.</p>")
     if g.get("overlap_warning"):
         body += f"<p class=missing>{html.escape(g['overlap_warning'])}.</p>"
-    if "flyaways" in s:
-        f, share = s["flyaways"], s["flyaways"]["share"]
+    if s.flyaways is not None:
+        f, share = s.flyaways, s.flyaways["share"]
         body += (f"<p>Flyaways: {f['hairs']:,} hair-type flyaways of {html.escape(f['yarn'])} (Zhao et al. 2016; "
                  f"{f['hairs_per_mm']:.3g} per mm of ply, density x{f['density_scale']:g}), explicit fibers of radius "
                  f"{1000 * f['fiber_radius_mm']:.0f} um with <code>{html.escape(f['plugin'])}</code>, "
@@ -410,13 +409,13 @@ def cloth_section(root: Path, out: Path) -> str:
                  f"{share['size'][0]} x {share['size'][1]}): <b>{share['cloth_pixels']:.1%}</b> on the cloth's pixels "
                  f"({share['cloth_pixel_fraction']:.0%} of the frame), {share['frame']:.1%} of the whole frame.</p>")
     rows = "".join(f"<tr><td>{b}</td><td>{e['seconds']:.1f}</td><td>{e.get('flip', float('nan')):.4f}</td></tr>"
-                   for b, e in s["backends"].items())
-    body += (f"<p>Mitsuba {html.escape(s['variant'])}, {s['size'][0]} x {s['size'][1]} pixels, {s['spp']} samples "
+                   for b, e in s.backends.items())
+    body += (f"<p>Mitsuba {html.escape(s.variant)}, {s.size[0]} x {s.size[1]} pixels, {s.spp} samples "
              f"per pixel, sun and sky (<code>sunsky</code>), <code>bundle_path</code> (<code>exit_split</code> "
-             f"{html.escape(s.get('exit_split', 'none'))}: where a ply's singly scattered light leaves it); "
+             f"{html.escape(s.exit_split)}: where a ply's singly scattered light leaves it); "
              "times include the kernels' compilation; FLIP against the table's image.</p><table><tr><th>backend</th><th>render s</th>"
              f"<th>FLIP</th></tr>{rows}</table>")
-    body += "".join(img_tag(out, root / "cloth" / f"cloth_{b}.png", f"cloth, {b}") for b in s["backends"])
+    body += "".join(img_tag(out, root / "cloth" / f"cloth_{b}.png", f"cloth, {b}") for b in s.backends)
     return body
 
 

@@ -49,11 +49,13 @@ from models.io import scratch, write_text
 from models.neural import NeuralSpec, make_export_module, make_torch_model, rounding_bound
 from models.rounding import U32, U64, gamma
 from pipeline import graph
-from pipeline.config import BAKE_SECTIONS, load_config
+from pipeline.config import BAKE_SECTIONS
+from pipeline.loading import load_config
 
 from ..artifacts import StageFailed, stage_dir
 from ..build import code_version
 from ..metrics import write_metrics
+from ..summaries import TrainSummary
 
 
 @dataclass
@@ -219,11 +221,11 @@ def ray_extremes() -> list[Check]:
 
 # -- baker -------------------------------------------------------------------------
 def _bake(bundle, fiber_table, theta_i_deg, paths, max_bounces=100_000, n_phi=24, n_theta=18):
-    mi.set_variant("llvm_ad_mono")
-    spec = BakeSpec(np.deg2rad(theta_i_deg), [0.0], n_theta, n_phi, max_bounces=max_bounces)
-    tally = Baker(bundle, fiber_table, spec).trace(0, paths, 1)
-    table = tally_to_table(tally, spec, fiber_table, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
-    table.meta["vertices_per_path"] = tally.vertices / paths
+    with mitsuba_ext.variant("llvm_ad_mono"):
+        spec = BakeSpec(np.deg2rad(theta_i_deg), [0.0], n_theta, n_phi, max_bounces=max_bounces)
+        tally = Baker(bundle, fiber_table, spec).trace(0, paths, 1)
+        table = tally_to_table(tally, spec, fiber_table, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
+        table.meta["vertices_per_path"] = tally.vertices / paths
     return table
 
 
@@ -382,9 +384,9 @@ def neural_extremes() -> list[Check]:
                      "config_hash": cfg.hash(*BAKE_SECTIONS)}).save(tmp / "stiff" / "bake" / "bundle_table.npz")
         graph.run_stage("train", cfg, tmp)
         graph.run_stage("export", cfg, tmp)
-        summary = json.loads((tmp / "stiff" / "train" / "tiny" / "summary.json").read_text())
+        summary = TrainSummary.read(tmp / "stiff" / "train" / "tiny" / "summary.json")
         c = "neural: 1e5:1 targets"
-        checks.append(at_most(c, "held-out relative L1", "trains without NaN", summary["relative_l1"], 1.0,
+        checks.append(at_most(c, "held-out relative L1", "trains without NaN", summary.relative_l1, 1.0,
                           "a model that learned anything: off by less than the table itself"))
         checks += _backends_at_edges(tmp / "stiff" / "export" / "tiny", tmp / "stiff" / "train" / "tiny" / "model.pt")
     return checks
@@ -411,9 +413,9 @@ def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
         f32 = module(torch.from_numpy(q)).numpy().astype(np.float64)
         f64 = module.double()(torch.from_numpy(q).double()).numpy()
     onnx = OnnxMLP(export_dir / "model.onnx").eval(*q.T).astype(np.float64)
-    mi.set_variant("llvm_ad_rgb")
-    dj = DrJitMLP(export_dir / "weights.npz")
-    jit = np.stack([np.asarray(v) for v in dj.eval(*(mi.Float(c) for c in q.T))], -1).astype(np.float64)
+    with mitsuba_ext.variant("llvm_ad_rgb"):
+        dj = DrJitMLP(export_dir / "weights.npz")
+        jit = np.stack([np.asarray(v) for v in dj.eval(*(mi.Float(c) for c in q.T))], -1).astype(np.float64)
     c = "neural: inputs at and beyond the edges"
     checks = []
     for name, v in (("pytorch", f32), ("onnxruntime", onnx), ("Dr.Jit", jit)):
@@ -439,49 +441,48 @@ def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
 # -- plugin ------------------------------------------------------------------------
 @case
 def plugin_extremes() -> list[Check]:
-    mi.set_variant("llvm_ad_rgb")
-    mitsuba_ext.register()
-    checks = []
-    with tempfile.TemporaryDirectory() as tmp, scratch(tmp):
-        tmp = Path(tmp)
-        # a small ellipse-like table (absolute phi, mirror_xz) with a passthrough
-        phi_i, theta_i = np.deg2rad([0.0, 45.0, 90.0]), np.deg2rad(np.arange(0, 91, 15.0))
-        pe, te = np.linspace(-np.pi, np.pi, 37), np.linspace(-np.pi / 2, np.pi / 2, 19)
-        PI, TI, PO, TO = np.meshgrid(phi_i, theta_i, 0.5 * (pe[1:] + pe[:-1]), 0.5 * (te[1:] + te[:-1]),
-                                     indexing="ij")
-        S = (0.05 + np.exp(-((np.sin(TO) + np.sin(TI)) / 0.2) ** 2) * (1 + 0.5 * np.cos(2 * PI)))[..., None]
-        z = np.zeros((3, len(theta_i), 1))
-        BundleTable(S.astype(np.float32), 0.01 * S.astype(np.float32), np.full(3, 0.2), np.zeros(3), z, z, phi_i,
-                    theta_i, pe, te, np.array([550.0]),
-                    {"reductions": {"theta_i": "mirror", "phi_i": "mirror_xz", "phi_o": "absolute"}}
-                    ).save(tmp / "t.npz")
-        bundle = {"type": "fiber_bundle", "table": str(tmp / "t.npz"), "radius": 0.3, "twist_rate": 180.0}
-        pts = [[np.cos(a) * 0.8, -1.5 + a / 2, np.sin(a) * 0.8, 0.3] for a in np.linspace(0, 6, 10)]
-        degenerate = pts[:4] + [pts[4]] * 4 + pts[5:]
-        (tmp / "c.txt").write_text("\n".join(" ".join(f"{v:.6f}" for v in p) for p in degenerate))
-        cylinder = {"type": "cylinder", "p0": [0, -1, 0], "p1": [0, 1, 0], "radius": 0.3, "bsdf": bundle}
-        views = {
-            "plugin: grazing view along the axis": (cylinder, [0.35, 3.0, 0.0], [0, -1, 0], [0, 0, 1], 40),
-            "plugin: silhouette edge hits": (cylinder, [0.299, 0, 4], [0.299, 0, 0], [0, 1, 0], 2),
-            "plugin: curve with zero-length tangent": ({"type": "bsplinecurve", "filename": str(tmp / "c.txt"),
-                                                        "bsdf": bundle}, [0, 0.4, 5], [0, 0, 0], [0, 1, 0], 40),
-        }
-        for name, (shape, eye, target, up, fov) in views.items():
-            scene = mi.load_dict({
-                "type": "scene", "integrator": {"type": "bundle_path", "max_depth": 16},
-                "sensor": {"type": "perspective", "fov": fov,
-                           "to_world": mi.ScalarTransform4f().look_at(eye, target, up),
-                           "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}},
-                           "sampler": {"type": "independent", "sample_count": 16}},
-                "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.3}},
-                "sun": {"type": "directional", "direction": [-0.3, -1, -0.6], "irradiance": {"type": "rgb", "value": 3}},
-                "shape": shape})
-            img = np.array(mi.render(scene))
-            checks += all_finite_nonneg(name, "pixel values", [img])
-            checks.append(at_most(name, "-(max |pixel - sky|)", "the bundle is visible", -np.abs(img - 0.3).max(),
-                                  -0.01, "a visible difference: a bundle lit by a sun of 3 differs from the sky 0.3 "
-                                         "by far more than 0.01"))
-    return checks
+    with mitsuba_ext.variant("llvm_ad_rgb"):
+        checks = []
+        with tempfile.TemporaryDirectory() as tmp, scratch(tmp):
+            tmp = Path(tmp)
+            # a small ellipse-like table (absolute phi, mirror_xz) with a passthrough
+            phi_i, theta_i = np.deg2rad([0.0, 45.0, 90.0]), np.deg2rad(np.arange(0, 91, 15.0))
+            pe, te = np.linspace(-np.pi, np.pi, 37), np.linspace(-np.pi / 2, np.pi / 2, 19)
+            PI, TI, PO, TO = np.meshgrid(phi_i, theta_i, 0.5 * (pe[1:] + pe[:-1]), 0.5 * (te[1:] + te[:-1]),
+                                         indexing="ij")
+            S = (0.05 + np.exp(-((np.sin(TO) + np.sin(TI)) / 0.2) ** 2) * (1 + 0.5 * np.cos(2 * PI)))[..., None]
+            z = np.zeros((3, len(theta_i), 1))
+            BundleTable(S.astype(np.float32), 0.01 * S.astype(np.float32), np.full(3, 0.2), np.zeros(3), z, z, phi_i,
+                        theta_i, pe, te, np.array([550.0]),
+                        {"reductions": {"theta_i": "mirror", "phi_i": "mirror_xz", "phi_o": "absolute"}}
+                        ).save(tmp / "t.npz")
+            bundle = {"type": "fiber_bundle", "table": str(tmp / "t.npz"), "radius": 0.3, "twist_rate": 180.0}
+            pts = [[np.cos(a) * 0.8, -1.5 + a / 2, np.sin(a) * 0.8, 0.3] for a in np.linspace(0, 6, 10)]
+            degenerate = pts[:4] + [pts[4]] * 4 + pts[5:]
+            (tmp / "c.txt").write_text("\n".join(" ".join(f"{v:.6f}" for v in p) for p in degenerate))
+            cylinder = {"type": "cylinder", "p0": [0, -1, 0], "p1": [0, 1, 0], "radius": 0.3, "bsdf": bundle}
+            views = {
+                "plugin: grazing view along the axis": (cylinder, [0.35, 3.0, 0.0], [0, -1, 0], [0, 0, 1], 40),
+                "plugin: silhouette edge hits": (cylinder, [0.299, 0, 4], [0.299, 0, 0], [0, 1, 0], 2),
+                "plugin: curve with zero-length tangent": ({"type": "bsplinecurve", "filename": str(tmp / "c.txt"),
+                                                            "bsdf": bundle}, [0, 0.4, 5], [0, 0, 0], [0, 1, 0], 40),
+            }
+            for name, (shape, eye, target, up, fov) in views.items():
+                scene = mi.load_dict({
+                    "type": "scene", "integrator": {"type": "bundle_path", "max_depth": 16},
+                    "sensor": {"type": "perspective", "fov": fov,
+                               "to_world": mi.ScalarTransform4f().look_at(eye, target, up),
+                               "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}},
+                               "sampler": {"type": "independent", "sample_count": 16}},
+                    "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.3}},
+                    "sun": {"type": "directional", "direction": [-0.3, -1, -0.6], "irradiance": {"type": "rgb", "value": 3}},
+                    "shape": shape})
+                img = np.array(mi.render(scene))
+                checks += all_finite_nonneg(name, "pixel values", [img])
+                checks.append(at_most(name, "-(max |pixel - sky|)", "the bundle is visible", -np.abs(img - 0.3).max(),
+                                      -0.01, "a visible difference: a bundle lit by a sun of 3 differs from the sky 0.3 "
+                                             "by far more than 0.01"))
+        return checks
 
 
 # -- the stage ---------------------------------------------------------------------

@@ -56,10 +56,12 @@ from .. import cluster, estimate, graph
 from ..artifacts import stage_dir
 from ..baking import Bake
 from ..build import build_ply
-from ..config import FIBER_SECTIONS, sweep_members
+from ..config import FIBER_SECTIONS
+from ..loading import sweep_members
 from ..html import html_page, img_tag
 from ..metrics import write_curve, write_metrics
 from ..plots import save_figure
+from ..summaries import BakeSummary
 
 SEED = "bundle.seed"
 THETA_I_SHOWN = 30.0  # deg: the incidence of the slices and profiles on the family page
@@ -144,25 +146,24 @@ def bake_members(todo, bundles: dict, root: Path, workers, scheduler) -> None:
 
 
 # -- The family ----------------------------------------------------------------------
-def member_record(point: dict, table, summary: dict) -> dict:
+def member_record(point: dict, table, summary: BakeSummary) -> dict:
     """One member's row: its values and its figures with their Monte Carlo errors.
 
-    The errors are the bake's own, from its batches' estimates (``bake.batch_means_error``):
+    The errors are the bake's own, from its batches' estimates (``baking.batch_means_error``):
     paths are stratified within a batch, so the binomial error of the passthrough would
     overstate its error, and the bins' errors in quadrature would overstate the albedo's
     (bins of one path are correlated).
     """
-    def error(q):
-        e = summary.get(f"{q}_mc_error")
+    def error(e):
         return float("nan") if e is None else e
 
     return {**point,
-            "n_fibers": summary["n_fibers"], "packing_fraction": summary["packing_fraction"],
+            "n_fibers": summary.n_fibers, "packing_fraction": summary.packing_fraction,
             "passthrough": float(np.mean(table.passthrough)),
-            "passthrough_mc_error": error("passthrough"),
+            "passthrough_mc_error": error(summary.passthrough_mc_error),
             "albedo": float(np.mean(table.scattered)),
-            "albedo_mc_error": error("scattered"),
-            "absorbed": float(np.mean(table.absorbed)), "bake_seconds": summary["bake_seconds"]}
+            "albedo_mc_error": error(summary.scattered_mc_error),
+            "absorbed": float(np.mean(table.absorbed)), "bake_seconds": summary.bake_seconds}
 
 
 def seed_spread(rows: list[dict], axes: dict) -> list[dict]:
@@ -192,7 +193,7 @@ def write_family(cfg, expanded, root: Path, out_root) -> Path:
     for point, m in expanded:
         bake = root / m.name / "bake"
         table = BundleTable.load(bake / "bundle_table.npz")
-        rows.append({"member": m.name, **member_record(point, table, json.loads((bake / "summary.json").read_text()))})
+        rows.append({"member": m.name, **member_record(point, table, BakeSummary.read(bake / "summary.json"))})
         tables.append(table)
     spread = seed_spread(rows, axes) if SEED in axes and len(axes[SEED]) > 1 else []
 

@@ -15,7 +15,6 @@ code. Same table, seed and threads: the same weights.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -23,13 +22,14 @@ import numpy as np
 import torch
 
 from models.fit import fit, held_out_metrics, prepare
-from models.io import atomic_path, write_text
+from models.io import atomic_path
 
 from ..artifacts import load_bundle_table, stage_dir
 from ..config import TRAIN_SECTIONS
 from ..metrics import folder as metrics_folder
 from ..metrics import write_curve, write_metrics
 from ..plots import save_figure
+from ..summaries import TrainSummary
 
 POOR_L1 = 0.25  # a model further off than this (and than 3x the table's noise) is said to be poor
 
@@ -49,33 +49,30 @@ def run(cfg, out_root="artifacts") -> Path:
         spec = dataclasses.replace(base, hidden=list(hidden))
         model, history, best, seconds, calibration = fit(spec, problem, c, name)
 
-        metrics = {
-            "val_weighted_loss": best,
-            **held_out_metrics(spec, model, data, problem.val_idx),
-            "folds": base.folds, "fold_chi2_per_dof": data.chi2_per_dof, "samples": len(data.x),
-            "epochs": len(history), "train_seconds": seconds,
-            "parameters": int(sum(p.numel() for p in model.parameters())),
-            **calibration,
-        }
+        summary = TrainSummary(
+            val_weighted_loss=best, **held_out_metrics(spec, model, data, problem.val_idx),
+            folds=base.folds, fold_chi2_per_dof=data.chi2_per_dof, samples=len(data.x),
+            epochs=len(history), train_seconds=seconds, parameters=int(sum(p.numel() for p in model.parameters())),
+            **calibration)
         d = out / name
         with atomic_path(d / "model.pt") as tmp:
-            torch.save({"spec": spec.to_dict(), "state": model.state_dict(), "metrics": metrics}, tmp)
-        write_text(d / "summary.json", json.dumps(metrics, indent=1))
+            torch.save({"spec": spec.to_dict(), "state": model.state_dict(), "metrics": summary.model_dump()}, tmp)
+        summary.write(d / "summary.json")
         plot_loss(history, d / "loss.png", name)
         write_curve(metrics_folder(cfg, out_root) / "loss" / f"{name}.csv",
                     [{"epoch": k + 1, "train": t, "validation": v} for k, (t, v) in enumerate(history)])
-        headline[name] = {k: metrics[k] for k in ("relative_l1", "noise_ratio", "parameters", "train_seconds",
-                                                   "worst_albedo_error_after") if k in metrics}
-        line = (f"[train] {name} {hidden}: {metrics['parameters']} parameters, {len(history)} epochs in "
-                f"{seconds:.1f} s; held-out relative L1 {metrics['relative_l1']:.3%}, error / table noise "
-                f"{metrics['noise_ratio']:.2f}")
+        headline[name] = summary.model_dump(include={"relative_l1", "noise_ratio", "parameters", "train_seconds",
+                                                     "worst_albedo_error_after"}, exclude_none=True)
+        line = (f"[train] {name} {hidden}: {summary.parameters} parameters, {summary.epochs} epochs in "
+                f"{seconds:.1f} s; held-out relative L1 {summary.relative_l1:.3%}, error / table noise "
+                f"{summary.noise_ratio:.2f}")
         if calibration:
-            line += (f"; worst albedo error {calibration['worst_albedo_error_before']:.2%} -> "
-                     f"{calibration['worst_albedo_error_after']:.2%} by the calibration")
+            line += (f"; worst albedo error {summary.worst_albedo_error_before:.2%} -> "
+                     f"{summary.worst_albedo_error_after:.2%} by the calibration")
         print(line)
-        if metrics["relative_l1"] > max(POOR_L1, 3 * metrics["table_noise_l1"]):
-            print(f"[train] warning: {name} is {metrics['relative_l1']:.0%} off on the held-out bins (the table's own "
-                  f"noise: {metrics['table_noise_l1']:.0%}): not worth rendering; train longer (train.epochs), "
+        if summary.relative_l1 > max(POOR_L1, 3 * summary.table_noise_l1):
+            print(f"[train] warning: {name} is {summary.relative_l1:.0%} off on the held-out bins (the table's own "
+                  f"noise: {summary.table_noise_l1:.0%}): not worth rendering; train longer (train.epochs), "
                   "a wider model, or bake more paths (bake.paths_per_phi_i)")
     write_metrics(cfg, out_root, "train", headline)
     return out
