@@ -10,6 +10,8 @@ Usage, after choosing a variant at your entry point::
 
     with mitsuba_ext.variant("llvm_ad_mono"):   # another variant for a block, then back
         ...
+    with mitsuba_ext.evaluated_mode():          # what the onnx backend renders in
+        image = mi.render(scene)
 
 Python plugins derive from the active variant's classes, so call :func:`register`
 again after switching variants. The modules:
@@ -30,6 +32,7 @@ again after switching variants. The modules:
 import contextlib
 import importlib
 
+import drjit as dr
 import mitsuba as mi
 
 
@@ -74,3 +77,23 @@ def variant(name: str):
         if previous is not None and previous != name:
             mi.set_variant(previous)
             register()
+
+
+@contextlib.contextmanager
+def evaluated_mode():
+    """Dr.Jit's evaluated mode inside the block (symbolic loops and calls off), as the
+    ``onnx`` backend needs: onnxruntime computes outside Dr.Jit's traced kernels. The flags
+    as they were after it."""
+    flags = dr.flag(dr.JitFlag.SymbolicLoops), dr.flag(dr.JitFlag.SymbolicCalls)
+    dr.set_flag(dr.JitFlag.SymbolicLoops, False)
+    dr.set_flag(dr.JitFlag.SymbolicCalls, False)
+    try:
+        yield
+    finally:
+        dr.set_flag(dr.JitFlag.SymbolicLoops, flags[0])
+        dr.set_flag(dr.JitFlag.SymbolicCalls, flags[1])
+
+
+def needs_evaluated_mode(scene) -> bool:
+    """Whether a loaded scene has a BSDF that evaluates through onnxruntime."""
+    return any(getattr(getattr(shape.bsdf(), "backend", None), "name", None) == "onnx" for shape in scene.shapes())

@@ -159,9 +159,9 @@ class OnnxBackend(_NeuralBackend):
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         if dr.flag(dr.JitFlag.SymbolicScope):  # inside a recorded loop or call: no numpy here
-            raise RuntimeError("the onnx backend needs Dr.Jit's evaluated mode: call "
-                               "dr.set_flag(dr.JitFlag.SymbolicLoops, False) and "
-                               "dr.set_flag(dr.JitFlag.SymbolicCalls, False) before rendering")
+            raise RuntimeError("the onnx backend needs Dr.Jit's evaluated mode: render inside "
+                               "`with mitsuba_ext.evaluated_mode():` (bcsdf render-scene does so itself), "
+                               "or use the mlp backend, the same model in the megakernel")
         n = dr.width(phi_i)
         args = [a if dr.width(a) == n else a + dr.zeros(self.Float, n) for a in (phi_i, theta_i, phi_o, theta_o)]
         dr.eval(*args)

@@ -17,7 +17,7 @@ import numpy as np
 from mitsuba_ext.backends import load_backend
 from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, resolve_path,
                                spectral_weights, split_uniform)
-from mitsuba_ext.params import boolean, number, vector3
+from mitsuba_ext.params import boolean, jit_variant_only, number, vector3
 from models.fiber import lobes
 from models.fiber.base import FiberTable
 from models.fiber.lobes import LobeSampler
@@ -32,6 +32,10 @@ VARIANT = mi.variant()  # the variant these classes derive from
 
 class CurveBSDF(mi.BSDF):
     """What both plugins share: the curve frame, spectra, inside hits, attributes."""
+
+    def __init__(self, props):
+        jit_variant_only(self.plugin)
+        super().__init__(props)
 
     def _init_curve(self, props, wavelength):
         def get(name, default):
@@ -228,8 +232,9 @@ class FiberBundleBSDF(CurveBSDF):
 
     **Supported**: ``cylinder`` and ``bsplinecurve`` shapes whose radius is the
     bundle's bounding radius (``bundle_path`` warns once about any other shape:
-    the frame follows a tangent only these two have); every Mitsuba variant (the
-    ``onnx`` backend in evaluated mode only); ``path`` and ``bundle_path``
+    the frame follows a tangent only these two have); every JIT variant, ``llvm_*``
+    and ``cuda_*`` (the ``onnx`` backend in evaluated mode only; ``scalar_*`` is refused
+    at load: the lookups are vectorized Dr.Jit code); ``path`` and ``bundle_path``
     integrators (only ``bundle_path`` crosses bundles with their passthrough in
     shadow rays and leaves them from the displaced exit point).
     **Which direction is incident.** The table's ``S(w_i -> w_o)`` has ``w_i`` on the

@@ -13,7 +13,7 @@ import mitsuba as mi
 
 from mitsuba_ext.crossing import bundle_axis, check_bundles, displaced_exit, far_side, mis_weight, offset_ray
 from mitsuba_ext.frame import LinearCurves
-from mitsuba_ext.params import boolean, choice, integer, number
+from mitsuba_ext.params import boolean, choice, integer, jit_variant_only, number
 
 if mi.variant() is None:
     raise ImportError("mitsuba_ext.integrator: choose a Mitsuba variant first (mi.set_variant), then "
@@ -143,6 +143,7 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
     """
 
     def __init__(self, props):
+        jit_variant_only("bundle_path")
         super().__init__(props)
         max_depth = integer("bundle_path", "max_depth", props.get("max_depth", -1), lo=-1)  # -1: no limit
         self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth

@@ -26,10 +26,14 @@ import numpy as np
 
 from models.jit import to_drjit
 from models.neural import NeuralSpec, features, stable_expm1
+from models.queries import directions
 
 
 def load_weights(path):
     """``(spec, [(W, b), ...])`` from a ``weights.npz`` written by ``bcsdf export``."""
+    if str(path).endswith(".onnx"):  # np.load would advise unpickling it
+        raise ValueError(f"{path}: an ONNX graph, not the plain weights the Dr.Jit evaluator reads; give its "
+                         "weights.npz (beside it), or evaluate the graph with OnnxMLP (backend 'onnx')")
     try:
         with np.load(path, allow_pickle=False) as z:
             spec = NeuralSpec.from_dict(json.loads(str(z["spec"])))
@@ -38,7 +42,9 @@ def load_weights(path):
                 k = len(layers)
                 layers.append((z[f"W{k}"].astype(np.float32), z[f"b{k}"].astype(np.float32)))
     except (OSError, EOFError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
-        raise ValueError(f"{path}: not a readable model weights file ({e}); re-run `bcsdf export`") from e
+        # numpy's words for a file that is no .npz archive advise unpickling it: not for a user
+        why = "not a .npz archive of arrays" if "pickle" in str(e) else str(e)
+        raise ValueError(f"{path}: not a readable model weights file ({why}); re-run `bcsdf export`") from e
     widths = [spec.n_inputs] + list(spec.hidden) + [spec.n_outputs]
     if [W.shape for W, _ in layers] != list(zip(widths[1:], widths[:-1])):
         raise ValueError(f"{path}: weight shapes {[W.shape for W, _ in layers]} do not match the metadata")
@@ -87,7 +93,9 @@ class OnnxMLP:
                              f"metadata names {len(self.spec.wavelength)} wavelengths; re-run `bcsdf export`")
 
     def eval(self, phi_i, theta_i, phi_o, theta_o) -> np.ndarray:
-        angles = np.stack(np.broadcast_arrays(phi_i, theta_i, phi_o, theta_o), -1).astype(np.float32)
+        """``S`` at every table wavelength, ``[..., n_lambda]`` (radians in, checked:
+        :func:`models.queries.directions`)."""
+        angles = np.stack(directions(phi_i, theta_i, phi_o, theta_o), -1).astype(np.float32)
         return self.session.run(None, {"angles": angles.reshape(-1, 4)})[0].reshape(angles.shape[:-1] + (-1,))
 
 
@@ -150,13 +158,15 @@ class DrJitMLP:
         Dr.Jit arrays in (any float type, e.g. ``mi.Float``): a list of ``n_lambda``
         arrays of that type, traced into the caller's kernel. numpy arrays (or floats)
         in: a numpy array ``[..., n_lambda]``, computed with the active Mitsuba
-        variant's ``Float`` (Dr.Jit's LLVM backend if none is set).
+        variant's ``Float`` (Dr.Jit's LLVM backend if none is set); numpy arguments are
+        checked (:func:`models.queries.directions`), traced ones are the caller's to check.
         """
         args = (phi_i, theta_i, phi_o, theta_o)
         if not any(dr.is_array_v(a) for a in args):
             Float = _default_float()
-            shape = np.broadcast_shapes(*(np.shape(a) for a in args))
-            flat = [to_drjit(Float, np.broadcast_to(np.asarray(a, np.float32), shape)) for a in args]
+            checked = directions(*args)
+            shape = checked[0].shape
+            flat = [to_drjit(Float, np.ascontiguousarray(a, np.float32)) for a in checked]
             return np.stack([np.asarray(s) for s in self.eval(*flat)], -1).reshape(shape + (-1,))
         Float = type(next(a for a in args if dr.is_array_v(a)))
         x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numbers
 
+import mitsuba as mi
 import numpy as np
 
 
@@ -76,3 +77,12 @@ def vector3(plugin: str, name: str, value) -> np.ndarray:
     if v.shape != (3,) or not np.all(np.isfinite(v)):
         _refuse(plugin, name, value, "a 3-vector of finite numbers, e.g. [0, 0, 1]")
     return v
+
+
+def jit_variant_only(plugin: str) -> None:
+    """The plugins are vectorized Dr.Jit code: a ``scalar_*`` variant is refused at load,
+    naming the variant to use instead."""
+    variant = mi.variant() or ""
+    if variant.startswith("scalar"):
+        raise ValueError(f"{plugin}: runs in Mitsuba's JIT variants (llvm_*, cuda_*), not {variant}: it is vectorized "
+                         f"Dr.Jit code; render with {variant.replace('scalar', 'llvm_ad')}")

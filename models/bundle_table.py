@@ -51,6 +51,7 @@ import numpy as np
 
 from .grid import TIE, Cells, bin_solid_angle, cell, linear
 from .io import atomic_path, check_axis
+from .queries import directions
 
 FORMAT = "bcsdf.bundle_table/2"  # /2: values and stderr stored in half precision (see BundleTable.save)
 READABLE = ("bcsdf.bundle_table/1", FORMAT)  # /1: float32, read as before
@@ -423,8 +424,7 @@ def lookup(table: BundleTable, phi_i, theta_i, phi_o, theta_o, mode: str = "line
         raise ValueError("lookup needs an expanded table: BundleTable.load(path, expand=True)")
     if mode not in ("nearest", "linear"):
         raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")
-    phi_i, theta_i, phi_o, theta_o = np.broadcast_arrays(*(np.asarray(a, np.float64)
-                                                           for a in (phi_i, theta_i, phi_o, theta_o)))
+    phi_i, theta_i, phi_o, theta_o = directions(phi_i, theta_i, phi_o, theta_o)  # checked: radians, finite
     if reductions["phi_o"] == "relative":
         phi_o = phi_o - phi_i
     reader = _NumpyReader(table, mode == "nearest", slopes, phi_i.shape)

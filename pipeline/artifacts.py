@@ -45,7 +45,7 @@ def load_fiber_table(cfg, out_root="artifacts"):
 
     path = fiber_table_path(cfg, out_root)
     if not path.exists():
-        raise ValueError(f"{path} does not exist; run `bcsdf fiber {cfg.name}` (or `bcsdf run`) first")
+        raise ValueError(f"{path} does not exist; run `{cfg.command('fiber')}` (or `bcsdf run`) first")
     table = FiberTable.load(path)
     if table.meta.get("config_hash") != cfg.hash(*FIBER_SECTIONS):
         raise ValueError(f"{path} was made from different fiber settings than this config; "

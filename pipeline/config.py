@@ -15,7 +15,7 @@ import typing
 from typing import Annotated, Any, Literal, Optional, Union
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, field_validator, model_validator
 
 from models.grid import cone_bin_counts, cone_edges, cone_nodes
 
@@ -571,6 +571,8 @@ MAX_MEMBERS = 1000
 class Config(Strict):
     # a folder name under artifacts/: no separators, and not '.' or '..'
     name: Optional[str] = Field(None, pattern=r"^[A-Za-z0-9_.-]+$", max_length=100)
+    # how the user named this config on the command line (its file and --set), for advice
+    _source: str = PrivateAttr(default="CONFIG")
     wavelengths: Wavelengths = Wavelengths()
     fiber: Fiber
     tabulate: Tabulate = Tabulate()
@@ -678,6 +680,10 @@ class Config(Strict):
             raise ValueError(f"bake.paths_per_phi_i / bake.batch_paths makes {batches:,} batches (at most "
                              "1,000,000): raise bake.batch_paths or lower bake.paths_per_phi_i")
         return self
+
+    def command(self, stage: str) -> str:
+        """``bcsdf STAGE ...`` naming this config as the user did (file and ``--set``)."""
+        return f"bcsdf {stage} {self._source}"
 
     def hash(self, *sections: str) -> str:
         """Hash of the named sections (all of them by default), for artifact provenance."""

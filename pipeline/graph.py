@@ -28,6 +28,7 @@ import yaml
 from models.io import write_text
 
 from .artifacts import config_dir
+from .loading import PATH_KEYS
 
 ROOT = Path(__file__).resolve().parents[1]
 DVC_YAML = ROOT / "dvc.yaml"
@@ -119,7 +120,26 @@ def fingerprint(stage: str, cfg, root="artifacts") -> str:
     h = hashlib.sha256(json.dumps({k: settings.get(k) for k in s["params"]}, sort_keys=True).encode())
     h.update(digest(s["code"], ROOT).encode())
     h.update(digest(s["inputs"], Path(root)).encode())
+    for path in named_files(settings, s["params"]):  # their bytes, wherever they lie
+        h.update(hashlib.sha256(path.read_bytes()).digest() if path.is_file() else b"missing")
     return h.hexdigest()[:24]
+
+
+def named_files(settings: dict, sections) -> list[Path]:
+    """The files a config names in ``sections`` (``bundle.file``, ``fiber.table.path``,
+    ``cloth.model``): part of a stage's identity by their content, not by their name, so that
+    a user's own file rewritten in place makes the stage stale (DVC sees only the files
+    dvc.yaml lists: those under data/)."""
+    found = []
+    for key in PATH_KEYS:
+        node, parts = settings, key.split(".")
+        if parts[0] not in sections:
+            continue
+        for part in parts:
+            node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, str) and node:
+            found.append(Path(node))
+    return found
 
 
 def stamp_path(stage: str, cfg, root="artifacts") -> Path:

@@ -4,6 +4,7 @@ stages, ``render-scene`` and the benches."""
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import flip_evaluator as flip
 import matplotlib.pyplot as plt
 import numpy as np
 
+import mitsuba_ext
 from models.io import atomic_path
 
 
@@ -20,12 +22,8 @@ def render_timed(mi, scene, backend: str = "table", warm: bool = True,
     """``(image, seconds, first_seconds)`` of a scene dict or a loaded scene: the second of
     two renders (seeds ``seed`` and ``seed + 1``) is timed (warm kernels); ``warm=False``:
     one render, timed with its compilation if its kernel is new."""
-    evaluated = backend == "onnx"  # onnxruntime needs Dr.Jit's evaluated mode
-    flags = dr.flag(dr.JitFlag.SymbolicLoops), dr.flag(dr.JitFlag.SymbolicCalls)
-    if evaluated:
-        dr.set_flag(dr.JitFlag.SymbolicLoops, False)
-        dr.set_flag(dr.JitFlag.SymbolicCalls, False)
-    try:
+    # onnxruntime computes outside Dr.Jit's traced kernels: the onnx backend renders in evaluated mode
+    with mitsuba_ext.evaluated_mode() if backend == "onnx" else contextlib.nullcontext():
         scene = mi.load_dict(scene) if isinstance(scene, dict) else scene
         t0 = time.perf_counter()
         img = mi.render(scene, seed=seed)
@@ -38,9 +36,6 @@ def render_timed(mi, scene, backend: str = "table", warm: bool = True,
             dr.eval(img)
             dr.sync_thread()
             seconds = time.perf_counter() - t0
-    finally:
-        dr.set_flag(dr.JitFlag.SymbolicLoops, flags[0])
-        dr.set_flag(dr.JitFlag.SymbolicCalls, flags[1])
     image = np.array(img, dtype=np.float32)[..., :3]
     if not np.all(np.isfinite(image)):
         raise FloatingPointError(f"render ({backend}) produced {np.sum(~np.isfinite(image))} non-finite values")

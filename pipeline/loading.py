@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import shlex
 from pathlib import Path
 
 import yaml
@@ -190,13 +191,17 @@ def load_config(path, overrides=()) -> Config:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of keys at the top level")
     data = apply_overrides(data, overrides)
+    where = f"{path} with --set {' '.join(overrides)}" if overrides else str(path)
+    if "name" in data and data["name"] is None:  # `name:` left empty, or --set name=null
+        raise ConfigError(f"{where}: name is empty; give the artifacts folder a name (letters, digits, _ . -), "
+                          f"or leave the key out to use the file's ({path.stem!r})")
     data.setdefault("name", path.stem)
     _resolve_paths(data, path.parent)
-    where = f"{path} with --set {' '.join(overrides)}" if overrides else str(path)
     try:
         cfg = Config.model_validate(data)
     except ValidationError as e:
         raise ConfigError(f"{where}: invalid config\n{_format_errors(e)}") from None
+    cfg._source = " ".join([shlex.quote(str(path))] + [f"--set {shlex.quote(o)}" for o in overrides])
     try:  # a sweep's members are refused here, before anything runs
         configs = [cfg] + [m for _, m in sweep_members(cfg)]
     except ConfigError as e:

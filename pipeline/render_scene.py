@@ -11,6 +11,8 @@ image with NaN or Inf.
 
 from __future__ import annotations
 
+import contextlib
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,10 +26,28 @@ from models.io import atomic_path
 from pipeline.images import exposure_of, save_png, to_srgb
 
 
+def output_paths(out) -> tuple[Path, Path]:
+    """The EXR and PNG that ``-o OUT`` names, checked before any rendering: not a folder, and
+    in a folder this process can write into (made if missing)."""
+    out = Path(out)
+    exr, png = out.with_suffix(".exr"), out.with_suffix(".png")
+    for p in (out, exr, png):
+        if p.is_dir():
+            raise ValueError(f"-o {out}: {p} is a folder; give the image's file name, e.g. -o {out / 'scene.exr'}")
+    try:
+        exr.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=exr.parent):
+            pass
+    except OSError as e:
+        raise ValueError(f"-o {out}: cannot write into {exr.parent} ({e.strerror}); choose another folder") from None
+    return exr, png
+
+
 def render_scene(scene_path, out, spp=None, variant="llvm_ad_spectral", defines=()) -> dict:
     scene_path = Path(scene_path)
     if not scene_path.is_file():
         raise FileNotFoundError(f"{scene_path}: no such scene file")
+    exr, png = output_paths(out)
     params = {}
     for item in defines:
         name, sep, value = item.partition("=")
@@ -51,20 +71,19 @@ def render_scene(scene_path, out, spp=None, variant="llvm_ad_spectral", defines=
     if problem:
         raise ValueError(f"{scene_path}: {problem}")
     t0 = time.perf_counter()
-    img = mi.render(scene, spp=int(spp) if spp else 0)
-    dr.eval(img)
-    dr.sync_thread()
+    with mitsuba_ext.evaluated_mode() if mitsuba_ext.needs_evaluated_mode(scene) else contextlib.nullcontext():
+        img = mi.render(scene, spp=int(spp) if spp else 0)
+        dr.eval(img)
+        dr.sync_thread()
     seconds = time.perf_counter() - t0
     image = np.array(img, dtype=np.float32)
     if not np.all(np.isfinite(image)):
         raise FloatingPointError(f"{scene_path}: the render holds {np.sum(~np.isfinite(image))} NaN or Inf values")
-    out = Path(out)
-
-    with atomic_path(out.with_suffix(".exr")) as tmp:
+    with atomic_path(exr) as tmp:
         mi.Bitmap(image).write(str(tmp), mi.Bitmap.FileFormat.OpenEXR)
     rgb = image[..., :3] if image.ndim == 3 and image.shape[-1] >= 3 else np.repeat(image.reshape(
         image.shape[:2] + (-1,))[..., :1], 3, -1)
-    save_png(to_srgb(rgb, exposure_of(rgb)), out.with_suffix(".png"))
-    print(f"[render-scene] {scene_path} -> {out.with_suffix('.exr')} and .png, {image.shape[1]} x {image.shape[0]}, "
+    save_png(to_srgb(rgb, exposure_of(rgb)), png)
+    print(f"[render-scene] {scene_path} -> {exr} and .png, {image.shape[1]} x {image.shape[0]}, "
           f"{seconds:.1f} s ({variant})")
     return {"seconds": seconds, "shape": list(image.shape)}

@@ -183,3 +183,18 @@ def test_a_summary_is_written_and_read_through_its_schema(trained, tmp_path, cap
     assert cli.main(["--artifacts", str(tmp_path), "report", str(config), "--force"]) == 2
     err = capsys.readouterr().err
     assert str(path) in err and "bcsdf train" in err
+
+
+def test_the_jitted_evaluator_given_an_onnx_graph_says_which_file_it_reads(trained):
+    from mitsuba_ext.neural import DrJitMLP
+
+    cfg, root = trained
+    onnx = root / cfg.name / "export" / "tiny" / "model.onnx"
+    with pytest.raises(ValueError, match="ONNX graph.*weights.npz") as e:
+        DrJitMLP(onnx)
+    assert "pickle" not in str(e.value)
+    renamed = onnx.parent / "graph.bin"  # the same bytes under another name: still no numpy advice
+    renamed.write_bytes(onnx.read_bytes())
+    with pytest.raises(ValueError, match="not a readable model weights file") as e:
+        DrJitMLP(renamed)
+    assert "pickle" not in str(e.value)

@@ -98,10 +98,14 @@ def test_bounce_cap_zero_refused(tmp_path):
 
 
 def test_bake_without_fiber_table_says_what_to_run(tmp_path):
-    cfg = config(tmp_path, name="nofiber")
-    (tmp_path / "nofiber.yaml").write_text((tmp_path / "nofiber.yaml").read_text())
-    r = bcsdf("--artifacts", str(tmp_path / "empty"), "bake", str(tmp_path / "nofiber.yaml"), cwd=ROOT)
-    assert r.returncode == 2 and "bcsdf fiber" in r.stderr
+    """The advice names the config as the user did, its ``--set`` included: a command that
+    runs (``--set name=...`` renames the folder, not the file)."""
+    config(tmp_path, name="nofiber")
+    path = tmp_path / "nofiber.yaml"
+    r = bcsdf("--artifacts", str(tmp_path / "empty"), "bake", str(path), cwd=ROOT)
+    assert r.returncode == 2 and f"bcsdf fiber {path}`" in r.stderr, r.stderr
+    r = bcsdf("--artifacts", str(tmp_path / "empty"), "bake", str(path), "--set", "name=trial", cwd=ROOT)
+    assert r.returncode == 2 and f"bcsdf fiber {path} --set name=trial`" in r.stderr, r.stderr
 
 
 @pytest.mark.parametrize("estimator", ["fast", "thesis"])

@@ -164,7 +164,7 @@ def test_a_failed_stage_keeps_its_diagnosis_and_the_report_says_so(tmp_path, mon
     """A stability check that fails: exit 2 with the failing rows printed; the table is kept
     under failed/stability/ while the last good outputs stay; the report, still written by
     `bcsdf run`, says 'stability failed', and a later success clears the record."""
-    from pipeline import cli, graph
+    from pipeline import cli
     from pipeline.stages import stability
 
     cfg = write_config(tmp_path / "tiny.yaml")

@@ -65,6 +65,7 @@ def test_reads_what_the_format_says_and_writes_it_back(tmp_path):
     ("curve count", bcc_bytes(n_curves=2), "promises 2 curves"),
     ("point count", bcc_bytes(n_points=5), "promises 1 curves and 5 points"),
     ("nan", bcc_bytes(curves=((False, [[0, 0, 0], [np.nan, 0, 0], [2, 0, 0], [3, 0, 0]]),)), "non-finite"),
+    ("no curves", bcc_bytes(curves=()), "holds no curves"),
 ])
 def test_malformed_files_are_refused_with_the_reason(tmp_path, name, data, says):
     path = tmp_path / "bad.bcc"

@@ -143,3 +143,22 @@ def test_another_config_of_the_same_name_is_refused_until_forced(tmp_path, capsy
     assert cli.main(["--artifacts", str(art), "fiber", str(first)]) == 0   # its own config runs on
     assert cli.main(["--artifacts", str(art), "fiber", "--force", str(second)]) == 0
     assert cli.main(["--artifacts", str(art), "fiber", str(second)]) == 0   # now its owner
+
+
+def test_a_file_the_config_names_is_part_of_the_stage_by_its_content(tmp_path):
+    """A user's own fiber arrangement (``bundle.file``, outside data/) rewritten in place
+    makes the bake stale, though the config's text is unchanged; the fiber stage, which does
+    not read it, stays as it was."""
+    from pipeline import graph
+    from pipeline.loading import load_config
+
+    csv = tmp_path / "mine" / "fibers.csv"
+    csv.parent.mkdir()
+    csv.write_text("x_um,z_um,r_um\n0,0,3\n10,0,3\n")
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump({**BASE, "bundle": {"arrangement": "file", "file": "mine/fibers.csv",
+                                                        "shape": "circle", "radius_um": 20.0}}))
+    before = {s: graph.fingerprint(s, load_config(path), tmp_path) for s in ("fiber", "bake")}
+    csv.write_text("x_um,z_um,r_um\n0,0,3\n-10,0,3\n")  # the same name, another arrangement
+    after = {s: graph.fingerprint(s, load_config(path), tmp_path) for s in ("fiber", "bake")}
+    assert after["bake"] != before["bake"] and after["fiber"] == before["fiber"]

@@ -73,6 +73,7 @@ def test_glove_scene_renders_plies_with_an_mlp(mi_llvm, tmp_path, trained, capsy
     ([str(ROOT / "scenes" / "ply.xml"), "-D", "table=/nowhere/table.npz"], "not found"),
     ([str(ROOT / "scenes" / "ply.xml"), "--spp", "0"], "at least 1"),
     ([str(ROOT / "scenes" / "ply.xml"), "--variant", "cuda_nothing"], "not available"),
+    ([str(ROOT / "scenes" / "ply.xml"), "--variant", "scalar_rgb"], "JIT variants"),
 ])
 def test_bad_scene_input_is_refused_with_the_reason(mi_llvm, tmp_path, capsys, args, says):
     rc = cli.main(["render-scene", *args, "-o", str(tmp_path / "x.exr")])
@@ -142,3 +143,34 @@ def test_readme_render_example_runs_as_written(trained, tmp_path, monkeypatch):
     assert (tmp_path / "artifacts" / "my_ply.png").stat().st_size > 1000
     ply, sky = img[70:90, 100:220].mean(), img[:20].mean()
     assert abs(ply / sky - 1) > 0.5, (ply, sky)
+
+
+@pytest.mark.parametrize("where,says", [("folder", "is a folder"), ("under a file", "cannot write into")])
+def test_an_output_that_cannot_be_written_is_refused_before_rendering(mi_llvm, tmp_path, capsys, where, says):
+    """``-o`` naming a folder, or a file under a file: refused before the scene loads (the
+    scene's default table does not even exist here), nothing written beside it."""
+    (tmp_path / "a_file").write_text("")
+    out = tmp_path if where == "folder" else tmp_path / "a_file" / "x.exr"
+    before = sorted(tmp_path.iterdir())
+    rc = cli.main(["render-scene", str(ROOT / "scenes" / "ply.xml"), "-o", str(out), "-D", "table=/nowhere.npz"])
+    err = capsys.readouterr().err
+    assert rc == 2 and says in err and "Traceback" not in err, err
+    assert sorted(tmp_path.iterdir()) == before
+
+
+def test_an_onnx_bundle_in_an_xml_scene_renders(mi_llvm, tmp_path, trained, capsys):
+    """The onnx backend needs Dr.Jit's evaluated mode: render-scene sets it itself."""
+    cfg, root = trained
+    size = next(iter(cfg.train.models))
+    text = (ROOT / "scenes" / "ply.xml").read_text()
+    old = '<string name="backend" value="table"/>\n            <string name="table" value="$table"/>'
+    assert old in text
+    onnx = root / cfg.name / "export" / size / "model.onnx"
+    scene = tmp_path / "onnx.xml"
+    scene.write_text(text.replace(old, '<string name="backend" value="onnx"/>\n            '
+                                       f'<string name="model" value="{onnx}"/>'))
+    out = tmp_path / "onnx.exr"
+    rc = cli.main(["render-scene", str(scene), "-o", str(out), "--spp", "1", "-D", "width=16", "-D", "height=8"])
+    assert rc == 0, capsys.readouterr().err
+    img = exr(out)
+    assert np.all(np.isfinite(img)) and img.mean() > 0

@@ -98,6 +98,9 @@ def read_bcc(path) -> CurveCollection:
         curves.append(Curve(points, closed=n < 0))
     if total != n_points:
         raise BCCError(f"{path}: the curves hold {total} points, the header says {n_points}")
+    if not curves:
+        raise BCCError(f"{path}: holds no curves (a valid header that counts 0); a yarn-level model needs at least "
+                       "one yarn")
     return CurveCollection(curves, TYPES[code], up)
 
 

@@ -33,6 +33,7 @@ import numpy as np
 
 from ..grid import linear
 from ..io import atomic_path, check_axis
+from ..queries import check_theta, directions, wavelengths
 from .longitudinal import Longitudinal
 from .reciprocal import half_angle, scale_at
 
@@ -84,11 +85,13 @@ class FiberTable:
     def eval(self, *, phi_i, theta_i, phi_o, theta_o, wavelength) -> np.ndarray:
         """``f`` at arbitrary arguments (broadcast), by multilinear interpolation of N.
 
-        theta outside [-pi/2, pi/2] is an error; wavelengths outside the table are
-        held at the nearest tabulated wavelength.
+        Radians and nanometres (:mod:`models.queries`): theta outside [-pi/2, pi/2], a
+        wavelength outside the table's range or a value that is not a finite number is a
+        ``ValueError`` naming the argument.
         """
+        phi_i, theta_i, phi_o, theta_o = directions(phi_i, theta_i, phi_o, theta_o)
         theta_i, phi_i, theta_o, phi_o, wavelength = np.broadcast_arrays(
-            *(np.asarray(a, dtype=np.float64) for a in (theta_i, phi_i, theta_o, phi_o, wavelength)))
+            theta_i, phi_i, theta_o, phi_o, wavelengths(wavelength, self.wavelength))
         f = self.eval_spectrum(theta_i, theta_o, phi_o - phi_i)  # [..., n_lambda]
         l0, l1, w = linear(self.wavelength, wavelength)
         take = lambda idx: np.take_along_axis(f, idx[..., None], axis=-1)[..., 0]  # noqa: E731
@@ -229,12 +232,6 @@ def _trapezoid_cos_weights(theta: np.ndarray) -> np.ndarray:
     w[:-1] += d / 2
     w[1:] += d / 2
     return w * np.cos(theta)
-
-
-def check_theta(theta: np.ndarray, name: str) -> None:
-    if np.any(~np.isfinite(theta)) or np.any(np.abs(theta) > np.pi / 2 + 1e-12):
-        raise ValueError(f"{name} must lie in [-pi/2, pi/2] radians (got values up to "
-                         f"{np.nanmax(np.abs(theta)):.4g}); angles are radians, not degrees")
 
 
 def sphere_quadrature(n_theta: int = 256, n_phi: int = 512):

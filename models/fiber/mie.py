@@ -39,7 +39,8 @@ import numpy as np
 from scipy import special
 from tqdm import tqdm
 
-from .base import FiberModel, FiberTable, Lobe, check_theta
+from ..queries import check_theta
+from .base import FiberModel, FiberTable, Lobe
 from .longitudinal import Longitudinal
 from .reciprocal import half_angle, scale_at, symmetric_scale
 

@@ -36,8 +36,9 @@ import numpy as np
 from scipy import special
 from tqdm import tqdm
 
+from ..queries import check_theta
 from . import lobes
-from .base import FiberModel, FiberTable, Lobe, check_theta
+from .base import FiberModel, FiberTable, Lobe
 from .lobes import P_MAX, logistic_scale, longitudinal_variance, tilt_shifts  # noqa: F401 (this model's API)
 from .longitudinal import Longitudinal
 

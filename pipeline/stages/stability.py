@@ -7,7 +7,8 @@ finite and non-negative values, energy within bounds, symmetry, and agreement wi
 independent reference or a higher-precision run to a stated tolerance. The result is
 a table (case, quantity, invariant, value, limit, pass) written to
 ``artifacts/<name>/stability/`` as JSON and Markdown, and shown in the report. The
-cases do not depend on the config (it names the output folder); each one is also a
+cases do not depend on the config (it names the output folder): they run once per code
+and machine, and other configs reuse the rows (:func:`shared_result`). Each case is also a
 test (``tests/test_stability.py``).
 
 =========  ==================================================================
@@ -25,7 +26,9 @@ plugin     grazing views, edge hits, a degenerate curve tangent
 
 from __future__ import annotations
 
+import hashlib
 import json
+import platform
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -412,7 +415,9 @@ def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
     with torch.no_grad():
         f32 = module(torch.from_numpy(q)).numpy().astype(np.float64)
         f64 = module.double()(torch.from_numpy(q).double()).numpy()
-    onnx = OnnxMLP(export_dir / "model.onnx").eval(*q.T).astype(np.float64)
+    # the graph itself, as another renderer runs it (OnnxMLP.eval refuses a theta beyond pi/2;
+    # the graph, like the traced Dr.Jit code, clamps it)
+    onnx = OnnxMLP(export_dir / "model.onnx").session.run(None, {"angles": q})[0].astype(np.float64)
     with mitsuba_ext.variant("llvm_ad_rgb"):
         dj = DrJitMLP(export_dir / "weights.npz")
         jit = np.stack([np.asarray(v) for v in dj.eval(*(mi.Float(c) for c in q.T))], -1).astype(np.float64)
@@ -510,12 +515,31 @@ def markdown(checks) -> str:
     return "\n".join(md) + "\n"
 
 
+def shared_result(cfg, out_root="artifacts") -> Path:
+    """Where the checks of this code on this machine are kept for every config: the cases do
+    not read the config, so a second config's stage reuses the first's rows. The key is the
+    digest of the stage's code (its deps in dvc.yaml) and of the machine's arithmetic (CPU,
+    torch's kernel set, the libraries' versions) and of the set of cases: another kernel set
+    runs them again."""
+    code = graph.digest(graph.spec("stability", cfg)["code"], graph.ROOT)
+    arithmetic = json.dumps([platform.machine(), platform.processor(), torch.backends.cpu.get_cpu_capability(),
+                             torch.__version__, mi.__version__, np.__version__])
+    cases = json.dumps(sorted(CASES))  # the cases this process runs (a test may pick others)
+    key = hashlib.sha256((code + arithmetic + cases).encode()).hexdigest()[:16]
+    return Path(out_root) / ".shared" / "stability" / f"{key}.json"
+
+
 def run(cfg, out_root="artifacts") -> Path:
-    """Run every case; write the table. A failed check raises :class:`StageFailed` with the
-    table as its partial result (kept under ``failed/stability/``), after printing the
-    failing rows."""
+    """Run every case (or reuse the rows of this code on this machine, :func:`shared_result`);
+    write the table. A failed check raises :class:`StageFailed` with the table as its partial
+    result (kept under ``failed/stability/``), after printing the failing rows."""
     out = stage_dir(cfg, "stability", out_root)
-    checks = run_cases()
+    shared = shared_result(cfg, out_root)
+    try:
+        checks = [Check(**row) for row in json.loads(shared.read_text())]
+        print(f"[stability] these checks already ran with this code on this machine ({shared}): reused")
+    except (OSError, ValueError, TypeError):  # none yet (or unreadable): run them
+        checks = run_cases()
     rows = json.dumps([asdict(c) for c in checks], indent=1)
     failed = [c for c in checks if not c.passed]
     print(f"[stability] {len(checks) - len(failed)}/{len(checks)} checks passed")
@@ -523,6 +547,7 @@ def run(cfg, out_root="artifacts") -> Path:
         raise StageFailed(f"{len(failed)} of {len(checks)} stability checks failed:\n"
                           + "\n".join(c.line() for c in failed),
                           partial={"stability.json": rows, "stability.md": markdown(checks)})
+    write_text(shared, rows)  # only rows that passed are kept for other configs
     write_text(out / "stability.json", rows)
     write_text(out / "provenance.json", json.dumps({"config_hash": cfg.hash(), "code": code_version()}))
     write_text(out / "stability.md", markdown(checks))
