@@ -7,7 +7,7 @@ SIZES = --set name=default_sizes --set 'train.models={small: [32, 32], medium: [
         --set train.epochs=500 --set render.model=small
 
 
-.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-render bench-closure bench-cluster bench-exit bench-hair bench-twisted figures bench-highlight bench-cloth cloth stability clean
+.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-encoding bench-render bench-closure bench-cluster bench-exit bench-hair bench-twisted figures bench-highlight bench-cloth cloth stability clean
 setup:
 	./scripts/setup.sh
 
@@ -38,6 +38,11 @@ bench-neural: run-sizes
 
 bench-train: run-sizes
 	.venv/bin/python -m pipeline.bench.train --config configs/default.yaml $(SIZES)
+
+# the plain MLP against feature lines (models/lines.py) on the default table; AVX2 kernels
+# as on most users' machines
+bench-encoding: run
+	ATEN_CPU_CAPABILITY=avx2 .venv/bin/python -m pipeline.bench.encoding --config configs/default.yaml
 
 bench-render: run-sizes
 	.venv/bin/python -m pipeline.bench.render configs/default.yaml $(SIZES)

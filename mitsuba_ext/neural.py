@@ -24,13 +24,15 @@ import drjit.nn as nn
 import mitsuba as mi
 import numpy as np
 
+from models import lines as fl
 from models.jit import to_drjit
 from models.neural import NeuralSpec, features, stable_expm1
 from models.queries import directions
 
 
 def load_weights(path):
-    """``(spec, [(W, b), ...])`` from a ``weights.npz`` written by ``bcsdf export``."""
+    """``(spec, [(W, b), ...], lines)`` from a ``weights.npz`` written by ``bcsdf export``;
+    ``lines`` the feature lines' nodes ``[n_k, C]`` (``L0, L1, L2``; none for a plain MLP)."""
     if str(path).endswith(".onnx"):  # np.load would advise unpickling it
         raise ValueError(f"{path}: an ONNX graph, not the plain weights the Dr.Jit evaluator reads; give its "
                          "weights.npz (beside it), or evaluate the graph with OnnxMLP (backend 'onnx')")
@@ -41,6 +43,7 @@ def load_weights(path):
             while f"W{len(layers)}" in z:
                 k = len(layers)
                 layers.append((z[f"W{k}"].astype(np.float32), z[f"b{k}"].astype(np.float32)))
+            lines = [z[f"L{k}"].astype(np.float32) for k in range(3)] if spec.lines else []
     except (OSError, EOFError, KeyError, ValueError, json.JSONDecodeError, zipfile.BadZipFile) as e:
         # numpy's words for a file that is no .npz archive advise unpickling it: not for a user
         why = "not a .npz archive of arrays" if "pickle" in str(e) else str(e)
@@ -48,9 +51,11 @@ def load_weights(path):
     widths = [spec.n_inputs] + list(spec.hidden) + [spec.n_outputs]
     if [W.shape for W, _ in layers] != list(zip(widths[1:], widths[:-1])):
         raise ValueError(f"{path}: weight shapes {[W.shape for W, _ in layers]} do not match the metadata")
-    if not all(np.all(np.isfinite(W)) and np.all(np.isfinite(b)) for W, b in layers):
+    if [L.shape for L in lines] != [(n, spec.line_channels) for n in spec.lines]:
+        raise ValueError(f"{path}: feature line shapes {[L.shape for L in lines]} do not match the metadata")
+    if not all(np.all(np.isfinite(a)) for a in [*lines, *(a for layer in layers for a in layer)]):
         raise ValueError(f"{path}: weights hold NaN or Inf")
-    return spec, layers
+    return spec, layers, lines
 
 
 def check_compatible(spec: NeuralSpec, *, table_hash=None, wavelength=None, relative_phi=None) -> None:
@@ -137,7 +142,9 @@ class DrJitMLP:
     def __init__(self, path, form: str = "auto"):
         if form not in self.FORMS:
             raise ValueError(f"form={form!r}: choose one of {', '.join(self.FORMS)}")
-        self.spec, self.layers = load_weights(path)
+        self.spec, self.layers, self.lines = load_weights(path)
+        self._stored = [fl.stored(L, w).ravel() for L, w in zip(self.lines, fl.periodic(self.spec.folds))]
+        self._nodes = {}  # Float type -> the lines' nodes as flat arrays of that type
         self.form = form
         # Python floats become literals in the traced kernel
         self._layers = [(W.astype(float).tolist(), b.astype(float).tolist()) for W, b in self.layers]
@@ -170,9 +177,28 @@ class DrJitMLP:
             return np.stack([np.asarray(s) for s in self.eval(*flat)], -1).reshape(shape + (-1,))
         Float = type(next(a for a in args if dr.is_array_v(a)))
         x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o)
+        if self.spec.lines:
+            x = x[:-3] + self._line_products(Float, x[-3:])
         y = self._matvec(Float, x) if self.cooperative(Float) else self._literal(x)
         s0, y_max = self.spec.s0, self.spec.y_max
         return [s0 * stable_expm1(dr, dr.clip(v, 0.0, y_max)) for v in y]
+
+    def _line_products(self, Float, coords):
+        """``A_c B_c D_c`` at the line coordinates: a gather and a lerp per line and channel,
+        the arithmetic of models/lines.py's PyTorch module."""
+        if Float not in self._nodes:
+            self._nodes[Float] = [Float(a) for a in self._stored]
+        C, UInt = self.spec.line_channels, dr.uint32_array_t(Float)
+        product = None
+        for nodes, coord, n, wraps in zip(self._nodes[Float], coords, self.spec.lines, fl.periodic(self.spec.folds)):
+            i0, t = fl.node_position(dr, coord, n, wraps)
+            first = UInt(i0) * C
+            v = []
+            for c in range(C):
+                a, b = dr.gather(Float, nodes, first + c), dr.gather(Float, nodes, first + (C + c))
+                v.append(a + t * (b - a))
+            product = v if product is None else [p * q for p, q in zip(product, v)]
+        return product
 
     def _literal(self, x):
         for k, (W, b) in enumerate(self._layers):
@@ -200,4 +226,4 @@ class DrJitMLP:
 
     @property
     def nbytes(self) -> int:
-        return sum(W.nbytes + b.nbytes for W, b in self.layers)
+        return sum(W.nbytes + b.nbytes for W, b in self.layers) + sum(L.nbytes for L in self.lines)

@@ -130,7 +130,8 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
                       folds=folds, passthrough=table.passthrough.tolist(), passthrough_phi_i=table.phi_i.tolist(),
                       passthrough_theta=[] if table.passthrough_theta is None else table.passthrough_theta.tolist(),
                       passthrough_theta_i=[] if table.passthrough_theta is None else table.theta_i.tolist(),
-                      single_share=[] if table.single is None else table.single_share().tolist())
+                      single_share=[] if table.single is None else table.single_share().tolist(),
+                      lines=list(c.line_nodes), line_channels=c.line_channels if c.line_nodes else 0)
     data = fold_table(table, base)
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)

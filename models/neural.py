@@ -50,9 +50,11 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from . import lines as fl
 from . import rounding as rd
 
-FORMAT = "bcsdf.neural/2"
+FORMAT = "bcsdf.neural/3"  # /3: feature lines (models/lines.py)
+READABLE = ("bcsdf.neural/2", FORMAT)  # /2: a plain MLP, read as one without lines
 FOLDS = ("theta", "dphi", "xz")
 
 
@@ -78,6 +80,10 @@ class NeuralSpec:
     # per wavelength: the share of the scattered light that left after one fiber event (the
     # table's ``single_share``; empty for tables without it), for the renderer's exit choice
     single_share: list = field(default_factory=list)
+    # feature lines (models/lines.py): node counts of the t, x and d lines, and channels per
+    # line; empty and 0: a plain MLP on the features
+    lines: list = field(default_factory=list)
+    line_channels: int = 0
     format: str = FORMAT
 
     def __post_init__(self):
@@ -102,14 +108,26 @@ class NeuralSpec:
         q = np.asarray(self.single_share, float)
         if q.size and (q.shape != wl.shape or not np.all(np.isfinite(q)) or np.any((q < 0) | (q > 1 + 1e-6))):
             raise ValueError("model metadata: single_share must be empty or hold a share in [0, 1] per wavelength")
+        if (self.lines or self.line_channels) and not (
+                len(self.lines) == 3 and all(isinstance(n, int) and n >= 2 for n in self.lines)
+                and isinstance(self.line_channels, int) and self.line_channels >= 1):
+            raise ValueError(f"model metadata: lines {self.lines} x {self.line_channels} channels; feature lines "
+                             "need three node counts >= 2 and at least one channel (or none of either)")
         bad = [f for f in self.folds if f not in FOLDS]
         if bad or ("dphi" in self.folds and not self.relative_phi) or ("xz" in self.folds and self.relative_phi):
             raise ValueError(f"folds {self.folds} do not fit a {'relative' if self.relative_phi else 'absolute'}"
                              f"-azimuth model (known: {FOLDS})")
 
     @property
+    def n_features(self) -> int:
+        """How many arrays :func:`features` returns (the line coordinates last)."""
+        return 3 + ("theta" in self.folds) + (2 if self.relative_phi else 4) + (3 if self.lines else 0)
+
+    @property
     def n_inputs(self) -> int:
-        return 3 + ("theta" in self.folds) + (2 if self.relative_phi else 4)
+        """The first layer's width: the features, the line coordinates replaced by the
+        ``line_channels`` products of the lines."""
+        return self.n_features - (3 - self.line_channels if self.lines else 0)
 
     @property
     def n_outputs(self) -> int:
@@ -120,13 +138,15 @@ class NeuralSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> "NeuralSpec":
-        if d.get("format") != FORMAT:
+        if d.get("format") not in READABLE:
             raise ValueError(f"model format {d.get('format')!r}, expected {FORMAT!r}; re-run `bcsdf train`")
-        return cls(**d)
+        return cls(**{**d, "format": FORMAT})
 
 
 def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> list:
-    """The encoded inputs as a list of ``spec.n_inputs`` arrays; ``lib`` is numpy, torch or drjit."""
+    """The encoded inputs as a list of ``spec.n_features`` arrays; ``lib`` is numpy, torch,
+    drjit or :data:`models.rounding.BOUNDED`. With feature lines, their three coordinates
+    (:func:`models.lines.coordinates`) come last."""
     clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
     half_pi = float(np.pi / 2)
     ti = clip(theta_i, -half_pi, half_pi)
@@ -136,18 +156,20 @@ def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> list:
         out = [lib.abs(sin_ti), cos_ti, c * lib.abs(x), (c * sin_ti) * x]
     else:
         out = [sin_ti, cos_ti, c * x]
+    d = phi_o - phi_i
     if spec.relative_phi:
-        d = phi_o - phi_i
         sin_d = lib.sin(d)
-        return out + [lib.cos(d), lib.abs(sin_d) if "dphi" in spec.folds else sin_d]
-    ci, si, co, so = lib.cos(phi_i), lib.sin(phi_i), lib.cos(phi_o), lib.sin(phi_o)
-    if "xz" in spec.folds:
-        return out + [lib.abs(ci), lib.abs(si), ci * co, si * so]
-    return out + [ci, si, co, so]
+        out += [lib.cos(d), lib.abs(sin_d) if "dphi" in spec.folds else sin_d]
+    else:
+        ci, si, co, so = lib.cos(phi_i), lib.sin(phi_i), lib.cos(phi_o), lib.sin(phi_o)
+        out += [lib.abs(ci), lib.abs(si), ci * co, si * so] if "xz" in spec.folds else [ci, si, co, so]
+    if spec.lines:
+        out += fl.coordinates(lib, spec.folds, ti, x, d)
+    return out
 
 
 def encode_numpy(spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> np.ndarray:
-    """Feature matrix [n, n_inputs] (float32) of the encoding above."""
+    """Feature matrix [n, n_features] (float32) of the encoding above."""
     args = (np.asarray(a, np.float64) for a in (phi_i, theta_i, phi_o, theta_o))
     return np.stack(np.broadcast_arrays(*features(np, spec, *args)), -1).astype(np.float32)
 
@@ -283,7 +305,7 @@ def stable_expm1(lib, y):
     return where(y < 1e-2, series, lib.exp(y) - 1.0)
 
 
-def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int = 4096):
+def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int = 4096, lines=()):
     """``(S, err)``: the exported model at ``angles [n, 4]`` (exact, float64) and a bound on
     how far an evaluation of it in floating point (unit roundoff ``u``, float32 by
     default) can be from that, per query and wavelength.
@@ -291,7 +313,8 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
     The same encoding (:func:`features`) and output transform (:func:`stable_expm1`) the
     backends run, evaluated in :mod:`models.rounding`'s bounded arithmetic, the layers
     ``[(W, b), ...]`` with Higham's dot-product bound carried by the network's Jacobian
-    (:func:`models.rounding.relu_mlp`). Two float32 evaluations (PyTorch and
+    (:func:`models.rounding.relu_mlp`), the feature ``lines`` (``[n_k, C]`` each) sampled by
+    :func:`models.lines.bounded_sample`. Two float32 evaluations (PyTorch and
     onnxruntime, say) differ by at most the sum of their bounds.
     """
 
@@ -300,18 +323,32 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
     S, err = [], []
     for start in range(0, len(angles), chunk):
         a = [rd.Bounded.exact(c, u) for c in angles[start:start + chunk].T]
-        y = rd.relu_mlp(rd.stack(features(rd.BOUNDED, spec, *a), u), layers)
+        x = features(rd.BOUNDED, spec, *a)
+        if spec.lines:
+            x = x[:-3] + line_products(spec, lines, x[-3:])
+        y = rd.relu_mlp(rd.stack(x, u), layers)
         out = spec.s0 * stable_expm1(rd.BOUNDED, rd.clip(y, 0.0, spec.y_max))
         S.append(out.value)
         err.append(out.err)
     return np.concatenate(S), np.concatenate(err)
 
 
+def line_products(spec: NeuralSpec, lines, coords) -> list:
+    """The ``line_channels`` products ``A_c B_c D_c`` of the lines ``[n_k, C]`` at the
+    bounded coordinates ``coords`` (the last three features), in bounded arithmetic."""
+    channels = [fl.bounded_sample(line, c, wraps) for line, c, wraps in zip(lines, coords, fl.periodic(spec.folds))]
+    return [a * b * d for a, b, d in zip(*channels)]
+
+
 def make_torch_model(spec: NeuralSpec):
-    """The PyTorch module: encoded features -> log-space spectrum (no transform)."""
+    """The PyTorch module: encoded features -> log-space spectrum (no transform). With
+    feature lines, its first element (:func:`models.lines.torch_lines`) turns the line
+    coordinates into the lines' products."""
     import torch
 
     layers, width = [], spec.n_inputs
+    if spec.lines:
+        layers.append(fl.torch_lines(spec.lines, spec.line_channels, fl.periodic(spec.folds)))
     for h in spec.hidden:
         layers += [torch.nn.Linear(width, h), torch.nn.ReLU()]
         width = h

@@ -100,6 +100,15 @@ class Bounded:
 
     __rmul__ = __mul__
 
+    def __truediv__(self, other):
+        o = self._lift(other)
+        if np.any(np.abs(o.value) <= o.err):
+            raise ValueError("a divisor's error interval holds 0: no bound")
+        q = self.value / o.value
+        # first order, the divisor's interval kept off zero: |d(a/b)| <= (e_a + |q| e_b) / (|b| - e_b)
+        err = (self.err + np.abs(q) * o.err) / (np.abs(o.value) - o.err)
+        return self._rounded(q, err)
+
     def __lt__(self, other):
         o = self._lift(other)
         d = self.value - o.value
@@ -135,6 +144,13 @@ def cos(x: Bounded) -> Bounded:
 
 def exp(x: Bounded) -> Bounded:
     return _elementary(x, np.exp, lambda x: np.exp(x.value + x.err))
+
+
+def floor(x: Bounded) -> Bounded:
+    """An integer, exact. Where ``x``'s error reaches an integer the floor may differ by
+    one; the only use (wrapping an azimuth by 2 pi, models/lines.py) feeds a periodic or
+    mirrored line whose values agree across that seam."""
+    return Bounded(np.floor(x.value), 0.0, x.u)
 
 
 def absolute(x: Bounded) -> Bounded:
@@ -216,4 +232,5 @@ def stack(columns, u: float = U32) -> Bounded:
 
 
 # The array module of bounded arithmetic, for formulas written with an array-module parameter.
-BOUNDED = SimpleNamespace(sin=sin, cos=cos, exp=exp, abs=absolute, clip=clip, where=where, maximum=maximum)
+BOUNDED = SimpleNamespace(sin=sin, cos=cos, exp=exp, abs=absolute, clip=clip, where=where, maximum=maximum,
+                          floor=floor)

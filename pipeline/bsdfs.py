@@ -27,7 +27,7 @@ def backend_props(cfg, out_root, backend: str) -> dict:
     weights = root / "export" / size / "weights.npz"
     if not weights.exists():
         raise ValueError(f"{weights} does not exist; run `bcsdf export` with this config first")
-    spec, _ = load_weights(weights)
+    spec, _, _ = load_weights(weights)
     if spec.config_hash != cfg.hash(*TRAIN_SECTIONS):
         raise ValueError(f"{weights} was trained with different settings than this config; "
                          "re-run `bcsdf train` and `bcsdf export`")

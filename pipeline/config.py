@@ -422,6 +422,17 @@ class TrainCfg(Strict):
                                    description="L-BFGS iterations of the output layer's energy calibration (0: none)")
     seed: int = Field(0, ge=0, le=2**32 - 1)
     threads: int = Field(2, ge=1, le=256)
+    line_nodes: list[Annotated[int, Field(ge=2, le=4096)]] = Field(
+        default_factory=list, description="feature lines (models/lines.py): nodes of the theta_i, cone-distance and "
+                                          "azimuth lines, e.g. [16, 32, 24]; [] for a plain MLP")
+    line_channels: int = Field(8, ge=1, le=256, description="channels of each feature line")
+
+    @field_validator("line_nodes")
+    @classmethod
+    def _three_lines(cls, v):
+        if v and len(v) != 3:
+            raise ValueError(f"line_nodes needs three node counts (theta_i, cone distance, azimuth), got {v}")
+        return v
 
     @field_validator("models")
     @classmethod

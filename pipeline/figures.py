@@ -45,7 +45,9 @@ def block_text(name: str) -> str:
     """The body of the block ``name``: its record's tables under who measured them, where."""
     record = results.load(name)
     if record is None:
-        return f"*Not measured yet: `python -m pipeline.bench.{name}` records it.*\n"
+        bench, _, option = name.partition("-")  # train-calibration: pipeline.bench.train --calibration
+        how = f"python -m pipeline.bench.{bench}" + (f" --{option} ..." if option else "")
+        return f"*Not measured yet: `{how}` records it.*\n"
     return (f"*Measured by `{record['command']}` on {record['date']}, {record['machine']}.*\n\n"
             f"{record['markdown']}\n")
 

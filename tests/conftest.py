@@ -76,6 +76,21 @@ def trained(tmp_path_factory):
     return cfg, tmp
 
 
+@pytest.fixture(scope="session")
+def trained_lines(tmp_path_factory):
+    """The same two sizes with feature lines (models/lines.py), trained and exported."""
+    from pipeline.stages import export as export_stage
+    from pipeline.stages import train as train_stage
+    from tests.synthetic import make_config, synthetic_table
+
+    tmp = tmp_path_factory.mktemp("lines")
+    cfg = make_config(tmp, line_nodes=[8, 16, 12], line_channels=4)
+    synthetic_table(cfg, tmp / "n" / "bake" / "bundle_table.npz", passthrough=0.3)
+    train_stage.run(cfg, tmp)
+    export_stage.run(cfg, tmp)
+    return cfg, tmp
+
+
 @pytest.fixture
 def mono(mi_llvm):
     """Mitsuba's mono variant with the plugins registered (the closure tests' one wavelength)."""

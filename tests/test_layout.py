@@ -154,3 +154,14 @@ def test_stages_read_only_artifacts():
     bad = [p.name for p in (ROOT / "pipeline" / "stages").glob("*.py")
            if re.search(r"""/\s*["']docs["']|["']docs["']\s*/|Path\(\s*["']docs""", p.read_text())]
     assert not bad, f"stages reading docs/: {bad}"
+
+
+def test_every_bench_imports_and_has_a_main():
+    """A bench whose imports broke when code moved fails here, not on the day someone runs it."""
+    import importlib
+
+    names = [p.stem for p in (ROOT / "pipeline" / "bench").glob("*.py") if p.stem not in ("__init__", "results")]
+    assert "encoding" in names
+    for name in names:
+        module = importlib.import_module(f"pipeline.bench.{name}")
+        assert callable(getattr(module, "main", None)), f"pipeline.bench.{name} has no main()"

@@ -56,13 +56,16 @@ def onnx_graph(path, A):
 
 @pytest.mark.parametrize("form", ["literal", "cooperative"])
 @pytest.mark.parametrize("name", ["tiny", "wide"])
-def test_backends_agree_with_pytorch(trained, mi_llvm, name, form):
-    """onnxruntime and both Dr.Jit formulations (literal weights, cooperative vectors)."""
+@pytest.mark.parametrize("models", ["trained", "trained_lines"])
+def test_backends_agree_with_pytorch(request, mi_llvm, models, name, form):
+    """onnxruntime and both Dr.Jit formulations (literal weights, cooperative vectors), for
+    the plain MLP and the MLP with feature lines."""
     import drjit as dr
 
     from mitsuba_ext.neural import DrJitMLP, OnnxMLP
 
-    cfg, tmp = trained
+    cfg, tmp = request.getfixturevalue(models)
+    assert bool(cfg.train.line_nodes) == (models == "trained_lines")
     spec, torch_eval = reference(tmp, name)
     A = query_set(beyond=True)
     ref = torch_eval(A)
@@ -74,7 +77,7 @@ def test_backends_agree_with_pytorch(trained, mi_llvm, name, form):
     drjit_out = np.stack([o.numpy() for o in out], -1).astype(np.float64)
     # float32 rounding, derived: each float32 evaluation lies within rounding_bound of the
     # model's exact value (Higham's dot-product bound layer by layer, models/rounding.py)
-    tol = 2 * rounding_bound(spec, mlp.layers, A)[1]
+    tol = 2 * rounding_bound(spec, mlp.layers, A, lines=mlp.lines)[1]
     inside = slice(0, -len(BEYOND))  # the numpy entry points: theta within the domain
     api_out = OnnxMLP(tmp / "n" / "export" / name / "model.onnx").eval(*A[inside].T).astype(np.float64)
     numpy_out = mlp.eval(*A[inside].T).astype(np.float64)  # numpy in: numpy [n, n_lambda] out
@@ -120,7 +123,7 @@ def test_mismatched_models_are_refused(trained, tmp_path):
     from mitsuba_ext.neural import OnnxMLP, check_compatible, load_weights
 
     cfg, tmp = trained
-    spec, _ = load_weights(tmp / "n" / "export" / "tiny" / "weights.npz")
+    spec, _, _ = load_weights(tmp / "n" / "export" / "tiny" / "weights.npz")
     check_compatible(spec, table_hash=spec.table_hash, wavelength=WL, relative_phi=True)
     with pytest.raises(ValueError, match="trained on table"):
         check_compatible(spec, table_hash="0123456789abcdef")
@@ -155,7 +158,7 @@ def test_absolute_phi_encoding_for_ellipses(tmp_path, mi_llvm):
     mlp = DrJitMLP(tmp_path / "e" / "export" / "tiny" / "weights.npz")
     out = mlp.eval(*(mi_llvm.Float(a) for a in A.T))
     dr.eval(out)
-    tol = 2 * rounding_bound(mlp.spec, mlp.layers, A)[1]  # two float32 evaluations
+    tol = 2 * rounding_bound(mlp.spec, mlp.layers, A, lines=mlp.lines)[1]  # two float32 evaluations
     assert np.all(np.abs(np.stack([o.numpy() for o in out], -1) - on.eval(*A.T)) <= tol)
 
 
@@ -368,3 +371,76 @@ def test_every_evaluator_checks_its_arguments_alike(trained, mi_llvm):
         fiber.eval(phi_i=0.0, theta_i=0.5, phi_o=2.0, theta_o=-0.4, wavelength=5500.0)
     with pytest.raises(ValueError, match="theta_i.*radians"):
         fiber.eval(phi_i=0.0, theta_i=45.0, phi_o=2.0, theta_o=-0.4, wavelength=550.0)
+
+
+@pytest.mark.parametrize("wraps", [False, True])
+def test_feature_lines_interpolate_linearly_between_their_nodes(mi_llvm, wraps):
+    """A line sampled by PyTorch (the ONNX graph's code) and by Dr.Jit's gathers is the
+    piecewise-linear interpolant of its nodes: numpy.interp, with the period for the
+    azimuth line, an independent implementation."""
+    import drjit as dr
+    import torch
+
+    from models import lines as fl
+
+    n, C = 7, 3
+    module = fl.torch_lines([n, n, n], C, (False, False, wraps), torch.Generator().manual_seed(3))
+    nodes = module.lines[2].detach().numpy().astype(np.float64)
+    u = np.concatenate([np.random.default_rng(0).uniform(0, 1, 500), [0.0, 1.0, 0.5, 1 / 6, 1 - 1e-7]])
+    if wraps:  # n nodes over a period, node n = node 0
+        grid, values = np.arange(n + 1) / n, np.concatenate([nodes, nodes[:1]])
+    else:
+        grid, values = np.arange(n) / (n - 1), nodes
+    expected = np.stack([np.interp(u, grid, values[:, c]) for c in range(C)], -1)
+    z = torch.from_numpy(np.stack([np.zeros_like(u), np.full_like(u, 0.3), np.full_like(u, 0.3), u], -1).astype(np.float32))
+    with torch.no_grad():
+        others = [np.interp(0.3, np.arange(n) / (n - 1), module.lines[k].numpy()[:, c]) for k in (0, 1) for c in range(C)]
+        got = module(z).numpy()[:, 1:] / (np.array(others[:C]) * np.array(others[C:]))
+    assert np.allclose(got, expected, rtol=1e-5, atol=1e-6)
+    # Dr.Jit: the same gathers and lerp as DrJitMLP
+    flat = mi_llvm.Float(fl.stored(nodes.astype(np.float32), wraps).ravel())
+    i0, t = fl.node_position(dr, mi_llvm.Float(u.astype(np.float32)), n, wraps)
+    first = mi_llvm.UInt32(i0) * C
+    for c in range(C):
+        a, b = dr.gather(mi_llvm.Float, flat, first + c), dr.gather(mi_llvm.Float, flat, first + C + c)
+        assert np.allclose((a + t * (b - a)).numpy(), expected[:, c], rtol=1e-5, atol=1e-6)
+
+
+def test_feature_line_coordinates_obey_the_folds_and_the_period():
+    """The coordinates a folded model's lines see are invariant under the fold's symmetry
+    (theta: (theta_i, x) -> (-theta_i, -x); dphi: d -> -d) and under d -> d + 2 pi, and lie in [0, 1]."""
+    from models import lines as fl
+
+    rng = np.random.default_rng(2)
+    ti, x, d = rng.uniform(-1.5, 1.5, 1000), rng.uniform(-3, 3, 1000), rng.uniform(-9, 9, 1000)
+    for folds in ([], ["theta"], ["theta", "dphi"]):
+        c = np.array(fl.coordinates(np, folds, ti, x, d))
+        assert np.all((c >= 0) & (c <= 1))
+        assert np.allclose(c, fl.coordinates(np, folds, ti, x, d + 2 * np.pi), atol=1e-9)
+        mirrored = np.array(fl.coordinates(np, folds, -ti, -x, d))
+        assert np.allclose(c[:2], mirrored[:2]) == ("theta" in folds)
+        assert np.allclose(c[2], fl.coordinates(np, folds, ti, x, -d)[2]) == ("dphi" in folds)
+    # near the cone the x-line's nodes are dense: the first node step is knee / (n - 1) or so
+    c0 = fl.coordinates(np, ["theta"], 0.3, np.array([0.0, 0.01]), 0.0)[1]
+    assert 0.01 / fl.KNEE * 0.9 < c0[1] - c0[0] < 0.01 / fl.KNEE * 1.1
+
+
+def test_a_plain_model_of_the_previous_format_still_loads(trained, tmp_path):
+    """A /2 model (no feature lines) reads as a plain MLP; an unknown format is refused by name."""
+    import json
+
+    from mitsuba_ext.neural import DrJitMLP
+
+    cfg, tmp = trained
+    src = tmp / "n" / "export" / "tiny" / "weights.npz"
+    with np.load(src) as z:
+        arrays = {k: z[k] for k in z.files}
+    spec = json.loads(str(arrays.pop("spec")))
+    for key in ("lines", "line_channels"):
+        spec.pop(key)
+    old = tmp_path / "old.npz"
+    np.savez(old, spec=np.array(json.dumps({**spec, "format": "bcsdf.neural/2"})), **arrays)
+    assert not DrJitMLP(old).spec.lines
+    np.savez(old, spec=np.array(json.dumps({**spec, "format": "bcsdf.neural/9"})), **arrays)
+    with pytest.raises(ValueError, match="neural/9"):
+        DrJitMLP(old)

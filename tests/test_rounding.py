@@ -7,17 +7,22 @@ import pytest
 from models import rounding as rd
 from models.neural import NeuralSpec, make_export_module, make_torch_model, rounding_bound
 
-def _model(seed, hidden=(64, 64, 64), relative=True, folds=("theta", "dphi")):
+def _model(seed, hidden=(64, 64, 64), relative=True, folds=("theta", "dphi"), lines=()):
     import torch
 
     spec = NeuralSpec(relative_phi=relative, hidden=list(hidden), s0=0.05, y_max=12.0, wavelength=[450.0, 550.0, 650.0],
-                      table_hash="", config_hash="", reductions={}, folds=list(folds))
+                      table_hash="", config_hash="", reductions={}, folds=list(folds),
+                      lines=list(lines), line_channels=6 if lines else 0)
     torch.manual_seed(seed)
     mlp = make_torch_model(spec)
     with torch.no_grad():  # outputs spread over the transform's range: small, large, clamped
         mlp[-1].bias.add_(1.5)
+        if lines:  # nodes far from 1, of both signs: products that matter
+            for line in mlp[0].lines:
+                line.mul_(3).sub_(2)
     layers = [(m.weight.detach().numpy(), m.bias.detach().numpy()) for m in mlp if isinstance(m, torch.nn.Linear)]
-    return spec, make_export_module(spec, mlp).eval(), layers
+    nodes = [line.detach().numpy() for line in mlp[0].lines] if lines else []
+    return spec, make_export_module(spec, mlp).eval(), layers, nodes
 
 
 def _queries(n=20_000, seed=0):
@@ -28,15 +33,16 @@ def _queries(n=20_000, seed=0):
     return np.concatenate([q, edges]).astype(np.float32)
 
 
-@pytest.mark.parametrize("relative", [True, False])
-def test_float32_and_float64_lie_within_their_bounds(relative):
+@pytest.mark.parametrize("lines", [(), (8, 16, 12)])
+@pytest.mark.parametrize("relative,folds", [(True, ("theta", "dphi")), (False, ("theta", "xz")), (True, ())])
+def test_float32_and_float64_lie_within_their_bounds(relative, folds, lines):
+    """Plain MLPs and MLPs with feature lines (periodic azimuth line: no folds)."""
     import torch
 
-    folds = ("theta", "dphi") if relative else ("theta", "xz")
-    spec, module, layers = _model(1, relative=relative, folds=folds)
+    spec, module, layers, nodes = _model(1, relative=relative, folds=folds, lines=lines)
     q = _queries()
-    exact, b32 = rounding_bound(spec, layers, q)
-    _, b64 = rounding_bound(spec, layers, q, u=rd.U64)
+    exact, b32 = rounding_bound(spec, layers, q, lines=nodes)
+    _, b64 = rounding_bound(spec, layers, q, u=rd.U64, lines=nodes)
     with torch.no_grad():
         f32 = module(torch.from_numpy(q)).numpy().astype(np.float64)
         f64 = module.double()(torch.from_numpy(q).double()).numpy()
@@ -51,7 +57,7 @@ def test_a_lower_precision_breaks_the_float32_bound():
     the float32 check tells a lower precision somewhere in a backend apart."""
     import torch
 
-    spec, module, layers = _model(2)
+    spec, module, layers, _ = _model(2)
     q = _queries(5000)
     exact, b32 = rounding_bound(spec, layers, q)
     with torch.no_grad():

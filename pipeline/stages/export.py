@@ -8,7 +8,8 @@ Writes under ``artifacts/<name>/export/<model>/``:
   (``bcsdf_spec``) holds the encoding, output transform, wavelengths, table hash and
   symmetry reductions. Runs on onnxruntime alone.
 * ``weights.npz``  the same network as arrays ``W0, b0, W1, b1, ...`` (float32, ``W``
-  shaped [out, in]) with the same metadata, for :class:`mitsuba_ext.neural.DrJitMLP`.
+  shaped [out, in]), the feature lines' nodes ``L0, L1, L2`` ([n_k, C], models/lines.py)
+  where the model has them, with the same metadata, for :class:`mitsuba_ext.neural.DrJitMLP`.
 """
 
 from __future__ import annotations
@@ -61,7 +62,8 @@ def run(cfg, out_root="artifacts") -> Path:
 
         # -- plain weights -------------------------------------------------------
         linears = [m for m in mlp if isinstance(m, torch.nn.Linear)]
-        arrays = {}
+        arrays = {f"L{k}": line.detach().numpy().astype(np.float32)
+                  for k, line in enumerate(mlp[0].lines)} if spec.lines else {}
         for k, lin in enumerate(linears):
             arrays[f"W{k}"] = lin.weight.detach().numpy().astype(np.float32)
             arrays[f"b{k}"] = lin.bias.detach().numpy().astype(np.float32)

@@ -427,8 +427,8 @@ def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
         checks += all_finite_nonneg(c, f"S ({name})", [v])
     # each evaluation against the exact value of the same model (the exported weights, the
     # checkpoint's float32 values): the bounds of models.rounding
-    _, b32 = rounding_bound(spec, dj.layers, q)
-    _, b64 = rounding_bound(spec, dj.layers, q, u=U64)
+    _, b32 = rounding_bound(spec, dj.layers, q, lines=dj.lines)
+    _, b64 = rounding_bound(spec, dj.layers, q, u=U64, lines=dj.lines)
     how = ("Higham gamma_(n+1) (|W||x| + |b|) of every layer carried to the output by the network's Jacobian, "
            "elementary functions within 2 ulp, per query and wavelength (models/rounding.py)")
     checks.append(within_bound("neural: float32 against float64", "|f32 - f64| (PyTorch)", np.abs(f32 - f64),
