@@ -39,10 +39,13 @@ bench-neural: run-sizes
 bench-train: run-sizes
 	.venv/bin/python -m pipeline.bench.train --config configs/default.yaml $(SIZES)
 
-# the plain MLP against feature lines (models/lines.py) on the default table; AVX2 kernels
-# as on most users' machines
+# the plain MLP against feature lines (models/lines.py) on the default table, and against an
+# independent bake (another seed, 8x the paths) as the truth; AVX2 kernels as on most users' machines
+REF = --set name=default_ref --set bake.seed=7 --set bake.paths_per_phi_i=16000000
 bench-encoding: run
-	ATEN_CPU_CAPABILITY=avx2 .venv/bin/python -m pipeline.bench.encoding --config configs/default.yaml
+	.venv/bin/bcsdf fiber configs/default.yaml $(REF)
+	.venv/bin/bcsdf bake configs/default.yaml $(REF)
+	ATEN_CPU_CAPABILITY=avx2 .venv/bin/python -m pipeline.bench.encoding --config configs/default.yaml --reference default_ref
 
 bench-render: run-sizes
 	.venv/bin/python -m pipeline.bench.render configs/default.yaml $(SIZES)

@@ -33,3 +33,24 @@ def albedo_error(albedo, reference) -> float:
     """Largest relative error of the scattered fraction over incidences and wavelengths."""
     albedo, reference = np.asarray(albedo, np.float64), np.asarray(reference, np.float64)
     return float(np.max(np.abs(albedo - reference) / np.maximum(reference, 1e-12)))
+
+
+def core_l1(pred, true, omega, fraction: float = 0.9) -> float:
+    """Relative L1 over the bins that hold ``fraction`` of each row's energy in ``true``.
+
+    ``pred`` and ``true`` are ``[rows, bins]`` (a row: one incident direction and wavelength;
+    its bins: the outgoing directions), ``omega [bins]`` the bins' solid angles. A row's
+    energy is ``sum S omega``; its core is the smallest set of its bins, largest first,
+    holding ``fraction`` of it; the figure is ``sum |pred - true| omega / sum true omega``
+    over every row's core, pooled (so rows weigh as their energy). The bins left out are the
+    floor, where a relative error says little and the light is ~``1 - fraction``."""
+    pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
+    e = true * np.asarray(omega, np.float64)
+    order = np.argsort(-e, axis=1)
+    sorted_e = np.take_along_axis(e, order, 1)
+    before = np.cumsum(sorted_e, 1) - sorted_e  # energy of the larger bins
+    keep_sorted = before < fraction * sorted_e.sum(1, keepdims=True)
+    keep = np.zeros_like(keep_sorted)
+    np.put_along_axis(keep, order, keep_sorted, 1)
+    d = np.abs(pred - true) * np.asarray(omega, np.float64)
+    return float(d[keep].sum() / max(e[keep].sum(), 1e-300))

@@ -6,7 +6,8 @@ degrees wide) over a smooth floor of multiple scattering. A ReLU network given t
 parameters and training time go to. Feature lines hand the network the ridge instead:
 three learned curves of ``C`` channels each, one per coordinate of the ridge,
 
-* ``t``: the incident longitude, ``sin theta_i``;
+* ``t``: the incident longitude ``theta_i / (pi / 2)`` (uniform in angle: most of the
+  light is scattered at grazing incidence, where ``sin theta_i`` crowds its nodes);
 * ``x``: the distance from the cone, ``theta_o + theta_i``, on a knee scale
   ``|x| / (|x| + knee)`` whose nodes are dense near the cone (spacing about
   ``knee / n`` there) and sparse in the floor;
@@ -45,7 +46,7 @@ def coordinates(lib, folds, ti, x, d) -> list:
     two_pi = float(2 * np.pi)
     knee = KNEE
     norm = float(np.pi / (np.pi + knee))
-    s = lib.sin(ti)
+    s = ti * float(2 / np.pi)  # the angle, not its sine: the energy is at grazing incidence, where sines crowd
     w = d - two_pi * lib.floor((d + float(np.pi)) * float(1 / (2 * np.pi)))  # d wrapped to [-pi, pi)
     r = lib.abs(x)
     if "theta" in folds:

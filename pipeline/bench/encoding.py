@@ -9,9 +9,17 @@ process (``ATEN_CPU_CAPABILITY=avx2`` for a machine without AVX-512).
 
 Per row: parameters and their float32 bytes, training seconds, held-out relative L1 (bin
 averages, the ``summary.json`` metric), the error in units of the table's noise, the
-table's own noise on those bins, and the worst albedo error after the calibration. Prints
-one table, recorded as ``benchmarks/encoding.json``; ``--quick`` trains a tenth of the
-epochs (a smoke run, not recorded).
+table's own noise on those bins, and the worst albedo error after the calibration.
+
+``--reference NAME``: the artifacts of an **independent bake** of the same config (another
+seed, more paths; e.g. ``bcsdf bake configs/default.yaml --set name=default_ref --set
+bake.seed=7 --set bake.paths_per_phi_i=16000000``, fiber first) as the truth: each model's
+bin averages over *every* bin (4 x 4 points) against it, :func:`models.errors.core_l1` (the
+bins holding 90% of each incident direction and wavelength's energy), and its albedo against
+the reference's scattered fraction; the training table itself is the first row (its noise).
+
+Prints one table, recorded as ``benchmarks/encoding.json``; ``--quick`` trains a tenth of
+the epochs (a smoke run, not recorded).
 """
 
 from __future__ import annotations
@@ -20,10 +28,14 @@ import argparse
 import dataclasses
 import os
 
+import numpy as np
 import torch
 
+from models import errors
+from models.bundle_table import BundleTable
 from models.fit import fit, held_out_metrics, prepare
-from pipeline.artifacts import load_bundle_table
+from models.neural import bin_average, make_export_module, table_cells
+from pipeline.artifacts import bundle_table_path, load_bundle_table
 from pipeline.config import TRAIN_SECTIONS
 from pipeline.loading import load_config
 
@@ -36,7 +48,27 @@ LINES = [("plain", [], 0, None),
          ("lines 12/32/24 x 8, [16, 16]", [12, 32, 24], 8, [16, 16])]
 
 
-def measure(cfg, table, table_path, label, nodes, channels, hidden, quick=False) -> dict:
+def against(reference, S) -> dict:
+    """``S`` (the expanded table's shape) against the reference table: core L1, worst albedo."""
+    n_l = S.shape[-1]
+    rows = lambda a: np.moveaxis(a, -1, 2).reshape(-1, a.shape[2] * a.shape[3])  # [(phi_i, theta_i, lambda), bins]
+    omega = reference.solid_angle.ravel()
+    albedo = (S * reference.solid_angle[None, None, :, :, None]).sum((2, 3))
+    return {"truth_core_l1": errors.core_l1(rows(S), rows(reference.values), omega),
+            "truth_albedo": errors.albedo_error(albedo.reshape(-1, n_l), reference.scattered.reshape(-1, n_l))}
+
+
+def model_bins(spec, model, table) -> np.ndarray:
+    """The model's average over every bin of the expanded table (4 x 4 points), in its shape."""
+    module = make_export_module(spec, model).eval()
+
+    def predict(*angles):
+        with torch.no_grad():
+            return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
+    return bin_average(predict, table_cells(table)).reshape(table.values.shape)
+
+
+def measure(cfg, table, table_path, label, nodes, channels, hidden, quick=False, reference=None) -> dict:
     update = {"line_nodes": nodes, "line_channels": max(channels, 1)}
     if quick:
         update.update(epochs=max(2, cfg.train.epochs // 10), calibration_steps=max(1, cfg.train.calibration_steps // 10))
@@ -47,10 +79,22 @@ def measure(cfg, table, table_path, label, nodes, channels, hidden, quick=False)
     model, history, _, seconds, calibration = fit(spec, problem, c, label)
     m = held_out_metrics(spec, model, problem.data, problem.val_idx)
     parameters = int(sum(p.numel() for p in model.parameters()))
-    return {"encoding": label, "hidden": str(list(hidden)), "parameters": parameters, "bytes": 4 * parameters,
+    truth = against(reference, model_bins(spec, model, table)) if reference is not None else {}
+    return {**{"encoding": label, "hidden": str(list(hidden)), "parameters": parameters, "bytes": 4 * parameters,
             "epochs": len(history), "train_s": seconds, "relative_l1": m["relative_l1"],
             "error_over_noise": m["noise_ratio"], "table_noise_l1": m["table_noise_l1"],
-            "worst_albedo": calibration.get("worst_albedo_error_after")}
+            "worst_albedo": calibration.get("worst_albedo_error_after")}, **truth}
+
+
+def parse_lines(text: str) -> tuple:
+    """``24/32/24x8`` -> a :data:`LINES` entry (the config's hidden widths)."""
+    try:
+        nodes, channels = text.split("x")
+        counts = [int(n) for n in nodes.split("/")]
+        assert len(counts) == 3 and min(counts) >= 2 and int(channels) >= 1
+    except (ValueError, AssertionError):
+        raise argparse.ArgumentTypeError(f"{text!r}: give three node counts and the channels, e.g. 24/32/24x8")
+    return (f"lines {nodes} x {channels}", counts, int(channels), None)
 
 
 def main(argv=None):
@@ -58,6 +102,11 @@ def main(argv=None):
     parser.add_argument("--config", default="configs/default.yaml")
     parser.add_argument("--artifacts", default="artifacts")
     parser.add_argument("--quick", action="store_true", help="a tenth of the epochs: a smoke run")
+    parser.add_argument("--lines", nargs="+", metavar="T/X/DxC", type=parse_lines,
+                        help="instead of the built-in variants: line encodings to compare with the plain MLP, "
+                             "e.g. 24/32/24x8 (nodes of the theta_i, cone-distance and azimuth lines, channels)")
+    parser.add_argument("--reference", metavar="NAME",
+                        help="artifacts name of an independent bake of the config: the truth (see above)")
     parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
                         help="change a config key, as `bcsdf run --set`")
     args = parser.parse_args(argv)
@@ -65,10 +114,25 @@ def main(argv=None):
     cfg = load_config(args.config, args.overrides)
     torch.set_num_threads(cfg.train.threads)
     table, table_path = load_bundle_table(cfg, args.artifacts)
-    rows = [measure(cfg, table, table_path, *variant, quick=args.quick) for variant in LINES]
+    reference = None
+    if args.reference:
+        path = bundle_table_path(cfg.model_copy(update={"name": args.reference}), args.artifacts)
+        if not path.exists():
+            raise SystemExit(f"{path} does not exist: bake the reference first (see --help)")
+        reference = BundleTable.load(path, expand=True)
+        if reference.meta.get("config_hash") == table.meta.get("config_hash"):
+            raise SystemExit(f"{args.reference} was baked with the very settings of {cfg.name}: not independent "
+                             "(give it another bake.seed)")
+        if reference.values.shape != table.values.shape:
+            raise SystemExit(f"{args.reference}: its table {reference.values.shape} has another grid than "
+                             f"{cfg.name}'s {table.values.shape}; bake it from the same config")
+    rows = [{"encoding": "the training table", "bytes": int(table.values.size * 4),
+             **against(reference, table.values.astype(np.float64))}] if reference is not None else []
+    variants = [LINES[0], *args.lines] if args.lines else LINES
+    rows += [measure(cfg, table, table_path, *variant, quick=args.quick, reference=reference) for variant in variants]
     table_md = results.rows_table(rows)
     print(f"{cfg.name}: {cfg.train.epochs} epochs, torch {torch.backends.cpu.get_cpu_capability()} kernels\n{table_md}")
-    if not args.quick:
+    if not args.quick and not args.lines:  # the record is of the built-in variants
         results.save("encoding", table_md, {"rows": rows})
     return 0
 
