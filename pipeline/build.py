@@ -14,10 +14,12 @@ import numpy as np
 
 from models import bundle as bundles
 from models.bake import Baker, BakeSpec
+from models.bake import twisted
 from models.bake.twisted import TwistedBaker
 from models.fiber.base import FiberTable
 
 from .config import theta_nodes
+from .machine import memory_bytes
 
 
 def build_bundle(cfg, gap: float | None = None) -> bundles.Bundle:
@@ -73,8 +75,23 @@ def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
 def tracer(ply, fiber: FiberTable, spec: BakeSpec):
     """The bake's tracer for this ply: the 2D one for parallel fibers, the 3D one for a twist."""
     if isinstance(ply, bundles.TwistedBundle):
+        check_scene_fits(ply)
         return TwistedBaker(ply, fiber, spec)
     return Baker(ply, fiber, spec)
+
+
+def check_scene_fits(ply) -> None:
+    """Refuse, before building it, a twisted ply whose Mitsuba scene would not fit in memory
+    (a short pitch leans the fibers towards the ply's cross-section, and the period's
+    margins then hold ever more cylinders)."""
+    twisted.check_geometry(ply)
+    cylinders = twisted.segments_per_fiber(ply) * len(ply.bundle.radii)
+    need, have = cylinders * twisted.BYTES_PER_CYLINDER, memory_bytes()
+    if need > 0.5 * have:
+        raise ValueError(f"bundle.twist: a pitch of {ply.pitch:g} um leans the outer fibers "
+                         f"{np.degrees(ply.max_lean):.1f} deg; one period would take {cylinders:,} cylinders, "
+                         f"~{need / 2**30:.1f} GiB, more than half of this machine's {have / 2**30:.0f} GiB: "
+                         "lengthen the pitch")
 
 
 def cross_section(ply) -> bundles.Bundle:

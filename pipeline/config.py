@@ -192,7 +192,9 @@ class TwistCfg(Strict):
     as is an elliptical one's (``shape: ellipse``: the ellipse stays, its fibers turn through it).
     """
 
-    pitch_um: Optional[float] = Field(None, description="signed pitch (um); > 0 right-handed")
+    pitch_um: Optional[float] = Field(None, description="signed pitch (um); > 0 right-handed. Bounded at the bake "
+                                      "by the geometry: at most where float32 cylinders misplace the fibers by 1% "
+                                      "of a radius (~5e6 radii), at least where one period's cylinders fit in memory")
     yarn: Optional[str] = None
     migration: Union[bool, MigrationCfg] = False
 

@@ -349,6 +349,24 @@ def test_a_bad_twist_is_refused_naming_the_key(twist, message):
         build_ply(load_config("configs/default.yaml", [f"bundle.twist={twist}"]))
 
 
+@pytest.mark.parametrize("pitch,message", [(1e15, "straight to that precision"), (1e9, "straight to that precision"),
+                                           (-1.5, "lengthen the pitch"), (1.0, "lengthen the pitch")])
+def test_a_pitch_its_cylinders_cannot_hold_is_refused_before_building(monkeypatch, pitch, message):
+    """Too long a pitch: Mitsuba's float32 cylinder frames misplace the fibers (a pitch of
+    1e15 um baked passthrough 0.161 against the parallel ply's 0.099); too short: the period's
+    cylinders outgrow memory (pitch 1 um ran out of memory building them). Both said before
+    anything is built; a pitch of 1 mm to 1 m passes."""
+    from pipeline import build
+    from pipeline.loading import load_config
+
+    monkeypatch.setattr(build, "memory_bytes", lambda: 16 * 2**30)  # the same answer on every machine
+    for ok in (1000.0, -3000.0, 1e6):
+        build.check_scene_fits(build.build_ply(load_config("configs/default.yaml", [f"bundle.twist={{pitch_um: {ok}}}"])))
+    ply = build.build_ply(load_config("configs/default.yaml", [f"bundle.twist={{pitch_um: {pitch}}}"]))
+    with pytest.raises(ValueError, match=message):
+        build.check_scene_fits(ply)
+
+
 def test_a_twisted_ellipse_keeps_its_azimuths_and_a_twist_needs_the_fast_estimator():
     from pipeline.build import build_ply, make_spec
     from pipeline.config import ConfigError

@@ -49,6 +49,32 @@ from .tally import BakeSpec, Tally, output_bin
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
 SEGMENTS = 128          # cylinders per turn of a helix
 MAX_WRAPS = 10_000      # crossings of the period's ends one path may make (steep rays make many)
+# Mitsuba builds a cylinder's frame from p0 and p1 in float32, orthonormal to rounding
+# (u = 2^-24 per entry), and places a point a distance s along it through three-term products:
+# within about 4 u s of where it belongs. A segment longer than PLACEMENT_TOLERANCE x the
+# smallest fiber radius / (4 u) misplaces its own fibers' surfaces by more than that share of
+# a radius (the tolerance: the order of the chord error above). Past it the ply is straight to
+# float32 precision, and the parallel bake is the exact one.
+PLACEMENT_TOLERANCE = 0.01
+BYTES_PER_CYLINDER = 19_000  # Mitsuba's cylinder shape and its dict, measured at 20000 of them
+
+
+def segments_per_fiber(ply: TwistedBundle, segments: int = SEGMENTS) -> int:
+    """How many cylinders one fiber of the period is built of (before building them)."""
+    r_max = float(ply.bundle.radii.max())
+    margin = r_max / np.cos(ply.max_lean) + r_max  # see TwistedScene
+    return int(np.ceil(segments * (ply.period + 2 * margin) / ply.turn_length))
+
+
+def check_geometry(ply: TwistedBundle, segments: int = SEGMENTS) -> None:
+    """Refuse a pitch too long for the float32 cylinders (see PLACEMENT_TOLERANCE)."""
+    r_min = float(ply.bundle.radii.min())
+    longest = PLACEMENT_TOLERANCE * r_min / (4 * 2.0**-24) * segments  # pitch whose segments reach the bound
+    if ply.turn_length > longest:
+        raise ValueError(f"bundle.twist: a pitch of {ply.pitch:g} um is longer than {longest:.3g} um, where "
+                         f"Mitsuba's float32 cylinders ({segments} per turn) misplace the fibers by over "
+                         f"{PLACEMENT_TOLERANCE:.0%} of their {r_min:g} um radius; such a ply is straight to that "
+                         "precision: leave bundle.twist out (the parallel bake)")
 
 
 class TwistedScene:
@@ -57,12 +83,13 @@ class TwistedScene:
 
     def __init__(self, ply: TwistedBundle, segments: int = SEGMENTS):
         b = ply.bundle
+        check_geometry(ply, segments)
         self.ply, self.period = ply, ply.period
         r_max = float(b.radii.max())
         # a margin so that every fiber's surface inside the period is whole: a tube leaning
         # by `lean` reaches r / cos(lean) along the axis past its centre line's end
         margin = r_max / np.cos(ply.max_lean) + r_max
-        n_seg = int(np.ceil(segments * (self.period + 2 * margin) / ply.turn_length))
+        n_seg = segments_per_fiber(ply, segments)
         y = np.linspace(-margin, self.period + margin, n_seg + 1)
         c = ply.centers_at(y)                                     # [n_seg + 1, fibers, 2]
         shapes, fiber_of, axis = {}, [], []
