@@ -139,14 +139,19 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     return Problem(base, data, train_idx, val_idx, w)
 
 
-def held_out_metrics(spec: NeuralSpec, model, data, val_idx) -> dict:
-    """Relative L1 and log MAE of the model's bin averages (4 x 4 points) on the held-out bins."""
+def model_bin_averages(spec: NeuralSpec, model, cell) -> np.ndarray:
+    """The model's (exported transform's) average over each bin of ``cell`` (4 x 4 points), float64."""
     module = make_export_module(spec, model).eval()
 
     def predict(*angles):
         with torch.no_grad():
             return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
-    S_pred = bin_average(predict, data.cell[val_idx])  # the model's bin averages
+    return bin_average(predict, cell)
+
+
+def held_out_metrics(spec: NeuralSpec, model, data, val_idx) -> dict:
+    """Relative L1 and log MAE of the model's bin averages (4 x 4 points) on the held-out bins."""
+    S_pred = model_bin_averages(spec, model, data.cell[val_idx])
     S_val, E_val, n_val = data.S[val_idx], data.E[val_idx], data.count[val_idx, None]
     core = energy_bins(S_val * n_val)
     diff, noise = (S_pred - S_val).ravel()[core], E_val.ravel()[core]

@@ -36,7 +36,7 @@ import numpy as np
 
 from . import rounding as rd
 
-AXES = ("t", "x", "d")
+KNEE = 0.25  # radians: half the x-line's nodes lie within about 0.25 rad (14 deg) of the cone
 
 
 def coordinates(lib, folds, ti, x, d) -> list:
@@ -45,7 +45,7 @@ def coordinates(lib, folds, ti, x, d) -> list:
     :data:`models.rounding.BOUNDED`. The azimuth coordinate is periodic unless folded."""
     two_pi = float(2 * np.pi)
     knee = KNEE
-    norm = float(np.pi / (np.pi + knee))
+    norm = float(np.pi / (np.pi + knee))  # |x| = pi maps to 1
     s = ti * float(2 / np.pi)  # the angle, not its sine: the energy is at grazing incidence, where sines crowd
     w = d - two_pi * lib.floor((d + float(np.pi)) * float(1 / (2 * np.pi)))  # d wrapped to [-pi, pi)
     r = lib.abs(x)
@@ -58,9 +58,6 @@ def coordinates(lib, folds, ti, x, d) -> list:
     else:
         d_c = w * float(1 / two_pi) + 0.5
     return [t_c, x_c, d_c]
-
-
-KNEE = 0.25  # radians: half the x-line's nodes lie within about 0.25 rad (14 deg) of the cone
 
 
 def periodic(folds) -> tuple:
@@ -92,9 +89,8 @@ def bounded_sample(line: np.ndarray, coord: rd.Bounded, wraps: bool) -> list:
     n = len(line)
     nodes = stored(np.asarray(line, np.float64), wraps)
     scale = float(n if wraps else n - 1)
-    p = np.clip(coord.value, 0.0, 1.0) * scale
-    i0 = np.clip(np.floor(p), 0, n - 1 if wraps else n - 2).astype(np.int64)
-    t = p - i0
+    i0, t = node_position(np, coord.value, n, wraps)  # the backends' index arithmetic, in float64
+    p, i0 = i0 + t, i0.astype(np.int64)
     a, b = nodes[i0], nodes[i0 + 1]  # [m, C]
     slopes = np.abs(np.diff(nodes, axis=0))  # per segment
     near = np.maximum(slopes[i0], np.maximum(slopes[np.maximum(i0 - 1, 0)], slopes[np.minimum(i0 + 1, len(slopes) - 1)]))

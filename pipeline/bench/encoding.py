@@ -33,8 +33,8 @@ import torch
 
 from models import errors
 from models.bundle_table import BundleTable
-from models.fit import fit, held_out_metrics, prepare
-from models.neural import bin_average, make_export_module, table_cells
+from models.fit import fit, held_out_metrics, model_bin_averages, prepare
+from models.neural import table_cells
 from pipeline.artifacts import bundle_table_path, load_bundle_table
 from pipeline.config import TRAIN_SECTIONS
 from pipeline.loading import load_config
@@ -58,16 +58,6 @@ def against(reference, S) -> dict:
             "truth_albedo": errors.albedo_error(albedo.reshape(-1, n_l), reference.scattered.reshape(-1, n_l))}
 
 
-def model_bins(spec, model, table) -> np.ndarray:
-    """The model's average over every bin of the expanded table (4 x 4 points), in its shape."""
-    module = make_export_module(spec, model).eval()
-
-    def predict(*angles):
-        with torch.no_grad():
-            return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
-    return bin_average(predict, table_cells(table)).reshape(table.values.shape)
-
-
 def measure(cfg, table, table_path, label, nodes, channels, hidden, quick=False, reference=None) -> dict:
     update = {"line_nodes": nodes, "line_channels": max(channels, 1)}
     if quick:
@@ -79,7 +69,8 @@ def measure(cfg, table, table_path, label, nodes, channels, hidden, quick=False,
     model, history, _, seconds, calibration = fit(spec, problem, c, label)
     m = held_out_metrics(spec, model, problem.data, problem.val_idx)
     parameters = int(sum(p.numel() for p in model.parameters()))
-    truth = against(reference, model_bins(spec, model, table)) if reference is not None else {}
+    truth = ({} if reference is None else
+             against(reference, model_bin_averages(spec, model, table_cells(table)).reshape(table.values.shape)))
     return {**{"encoding": label, "hidden": str(list(hidden)), "parameters": parameters, "bytes": 4 * parameters,
             "epochs": len(history), "train_s": seconds, "relative_l1": m["relative_l1"],
             "error_over_noise": m["noise_ratio"], "table_noise_l1": m["table_noise_l1"],
