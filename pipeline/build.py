@@ -22,6 +22,11 @@ from .config import theta_nodes
 from .machine import memory_bytes
 
 
+# A ply spaced out to clear its turning fibers keeps at least this share of the packing asked
+# for; below it, spacing makes another ply rather than clearing this one.
+KEPT_PACKING = 0.5
+
+
 def build_bundle(cfg, gap: float | None = None) -> bundles.Bundle:
     """The cross-section (of a twisted ply: at height 0, spaced so that its leaning fibers
     clear). ``gap``: a Poisson arrangement's gap (um) instead of :func:`_poisson_gap`'s."""
@@ -52,7 +57,11 @@ def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
     Migrating fibers (``bundle.twist.migration``) and the fibers of an elliptical ply pass
     each other closer than the cross-section shows; a Poisson cross-section is spaced out
     until they clear (its gap grown by each try's overlap), a listed one is refused with the
-    amount."""
+    amount. Spacing thins the ply: where it would keep under :data:`KEPT_PACKING` of the
+    packing asked for (``bundle.packing``, or the Poisson arrangement's at ``bundle.gap_um``),
+    the ply built would be another one, and it is refused (fibers of radius ``r`` migrating
+    to ``r_min`` of their distance from the axis clear each other only in radial runs that
+    shrink by ``r_min`` per fiber, so the packing that clears falls steeply with ``r_min``)."""
     bundle = build_bundle(cfg)
     twist = cfg.bundle.twist
     if twist is None:
@@ -60,16 +69,43 @@ def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
     pitch, migration = twist.pitch(bundle.bounding_radius), twist.migration_model(cfg.bundle.seed)
     if (migration is None and bundle.is_circle) or cfg.bundle.arrangement != "poisson":
         return bundles.TwistedBundle(bundle, pitch, migration)
-    gap = bundle_gap = _poisson_gap(cfg)
+    asked, gap = bundle, _poisson_gap(cfg)
+    why = (f"migration (r_min {migration.r_min:g}, s {migration.s:g})" if migration is not None
+           else "the ellipse's fibers passing each other")
     for _ in range(40):
         ply = bundles.TwistedBundle(bundle, pitch, migration, checked=False)
         overlap = -ply.closest_approach()[0]
-        if overlap <= 0:
-            return ply  # checked: its closest approach is a gap
+        if overlap <= 0:  # checked: its closest approach is a gap
+            kept = ply.bundle.packing_fraction / asked.packing_fraction
+            if kept < KEPT_PACKING:
+                raise ValueError(
+                    f"bundle.twist: for {why} to clear, the Poisson cross-section had to be spaced out from "
+                    f"{len(asked.radii)} fibers (packing {asked.packing_fraction:.3f}) to {len(ply.bundle.radii)} "
+                    f"({ply.bundle.packing_fraction:.3f}), under {KEPT_PACKING:.0%} of the packing asked for: "
+                    + ("migrate less (r_min nearer 1), or " if migration is not None else "")
+                    + f"ask for the sparser ply itself (bundle.packing: {ply.bundle.packing_fraction:.2f})")
+            return ply
         gap += overlap + 0.01 * cfg.fiber.radius_um
-        bundle = build_bundle(cfg, gap)
-    raise ValueError(f"bundle.twist: no Poisson cross-section with gaps from {bundle_gap:.3g} to {gap:.3g} "
-                     "um clears its turning fibers; migrate less (r_min nearer 1) or lengthen the pitch")
+        try:
+            bundle = build_bundle(cfg, gap)
+        except ValueError as e:  # the packing asked for does not fit at the wider gap
+            raise ValueError(f"bundle.twist: for {why} to clear, the Poisson cross-section needs gaps of "
+                             f"{gap:.3g} um, at which it cannot hold the packing asked for ({e}); "
+                             + ("migrate less (r_min nearer 1) or " if migration is not None else "")
+                             + "lower bundle.packing") from None
+    raise ValueError(f"bundle.twist: no Poisson cross-section with gaps from {_poisson_gap(cfg):.3g} to {gap:.3g} "
+                     f"um clears {why}; migrate less (r_min nearer 1) or lengthen the pitch")
+
+
+def describe(ply) -> str:
+    """What was built, in one line: the fibers, their packing, the twist."""
+    b = cross_section(ply)
+    text = f"{len(b.radii)} fibers, packing {b.packing_fraction:.3f}"
+    if isinstance(ply, bundles.TwistedBundle):
+        text += f", pitch {ply.pitch:g} um (outer fibers lean {np.degrees(ply.max_lean):.1f} deg)"
+        if ply.migration is not None:
+            text += f", migrating to r_min {ply.migration.r_min:g}"
+    return text
 
 
 def tracer(ply, fiber: FiberTable, spec: BakeSpec):

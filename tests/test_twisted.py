@@ -14,6 +14,7 @@
 """
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -500,3 +501,20 @@ def test_helix_curves_follow_the_helix():
         assert np.abs(pts[:, [0, 2]] - on).max() < 1e-3
         assert np.isclose(pts[0, 1], -3000.0) and np.isclose(pts[-1, 1], 3000.0)  # the length asked
 
+
+
+def test_migration_that_would_thin_the_ply_to_another_is_refused_with_the_packing_to_ask_for():
+    """Fibers migrating nearly to the axis clear each other only in a ply spaced out to a few
+    fibers: that ply is refused with what was asked and what would be built, and asking for
+    the sparser packing it names builds it (checked against the cross-section's own count)."""
+    from pipeline.build import build_ply
+    from pipeline.loading import load_config
+
+    hostile = ["bundle.twist.migration={r_min: 0.01, s: 0.95}"]
+    with pytest.raises(ValueError, match=r"spaced out from \d+ fibers .* to \d+ .*bundle\.packing: (0\.\d+)") as e:
+        build_ply(load_config("configs/twisted_cotton1.yaml", hostile))
+    packing = re.search(r"bundle\.packing: (0\.\d+)", str(e.value)).group(1)
+    ply = build_ply(load_config("configs/twisted_cotton1.yaml", hostile + [f"bundle.packing={packing}"]))
+    b = ply.bundle
+    assert len(b.radii) == round(float(packing) * b.semi_axes[0] * b.semi_axes[1] / b.radii[0] ** 2)
+    assert ply.closest_approach()[0] >= 0.0

@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from .. import cluster
 from ..baking import Bake
+from ..build import describe
 
 
 def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None) -> Path:
@@ -39,6 +40,7 @@ def run(cfg, out_root="artifacts", stop_after=None, workers=None, scheduler=None
         raise ValueError("this config has no 'bundle:' section; add one to bake")
     mi.set_variant(cfg.bake.variant)
     bake = Bake(cfg, out_root)
+    print(f"bake: {describe(bake.ply)}", flush=True)  # what was built, to set against what was asked
     with cluster.client(workers, scheduler) as dask_client, \
             tqdm(total=bake.total_paths, initial=bake.total_paths - bake.paths_left, unit="path", unit_scale=True,
                  desc=f"bake {cfg.bake.estimator}") as bar:
