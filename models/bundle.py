@@ -155,13 +155,13 @@ def poisson(semi_axes, r, gap=0.0, packing=None, seed=0, name="poisson") -> Bund
     centers = centers[distance_inside_ellipse(centers, a, b) >= r]
     if len(centers) == 0:
         raise ValueError(f"bundle {name}: the sampling region is empty (no fiber of radius {r} um with gap "
-                         f"{gap} um fits in semi-axes ({a}, {b}) um)")
+                         f"{gap:.3g} um fits in semi-axes ({a:g}, {b:g}) um)")
     if packing is not None:
         n_target = int(round(packing * a * b / r**2))
         achieved = len(centers) * r**2 / (a * b)
         if n_target > len(centers):
             raise ValueError(f"bundle {name}: packing {packing} is not reachable with Poisson-disk sampling "
-                             f"(at most {achieved:.3f} with gap {gap} um); lower it or the gap")
+                             f"(at most {achieved:.3f} with gap {gap:.3g} um); lower it or the gap")
         rng = np.random.default_rng(seed + 1)
         centers = centers[np.sort(rng.choice(len(centers), n_target, replace=False))]
     return Bundle(centers, r, (a, b), name)

@@ -34,9 +34,27 @@ def build_bundle(cfg, gap: float | None = None) -> bundles.Bundle:
     if b.arrangement == "zhao2016":
         return bundles.zhao2016(b.yarn, r, seed=b.seed, name=f"{cfg.name} ({b.yarn})")
     if b.arrangement == "file":
-        return bundles.from_file(b.file, b.semi_axes(), name=cfg.name)
+        bundle = bundles.from_file(b.file, b.semi_axes(), name=cfg.name)
+        check_radii(bundle, r, b.file)
+        return bundle
     gap = _poisson_gap(cfg) if gap is None else gap
     return bundles.poisson(b.semi_axes(), r, gap=gap, packing=b.packing, seed=b.seed, name=cfg.name)
+
+
+# How far a listed fiber's radius may differ from the fiber table's: the table's absorption
+# follows the chord (proportional to the radius), so 1% of radius moves it by 1% of itself,
+# below the bake's own Monte Carlo noise; a fiber further off would scatter as another fiber.
+RADIUS_TOLERANCE = 0.01
+
+
+def check_radii(bundle: bundles.Bundle, r: float, source) -> None:
+    """Refuse listed fibers whose radii differ from the one the fiber table was made for."""
+    off = np.abs(bundle.radii / r - 1.0) > RADIUS_TOLERANCE
+    if np.any(off):
+        raise ValueError(f"bundle.file {source}: {off.sum()} of {len(off)} fibers have radii other than fiber.radius_um "
+                         f"= {r:g} um (from {bundle.radii.min():g} to {bundle.radii.max():g} um); the bake scatters "
+                         "every fiber with the one fiber table made at that radius: list fibers of one radius and "
+                         "set fiber.radius_um to it")
 
 
 def _poisson_gap(cfg) -> float:
@@ -62,8 +80,17 @@ def build_ply(cfg) -> bundles.Bundle | bundles.TwistedBundle:
     the ply built would be another one, and it is refused (fibers of radius ``r`` migrating
     to ``r_min`` of their distance from the axis clear each other only in radial runs that
     shrink by ``r_min`` per fiber, so the packing that clears falls steeply with ``r_min``)."""
-    bundle = build_bundle(cfg)
     twist = cfg.bundle.twist
+    try:
+        bundle = build_bundle(cfg)
+    except ValueError as e:
+        if twist is None or cfg.bundle.arrangement != "poisson" or _poisson_gap(cfg) <= cfg.bundle.gap_um:
+            raise
+        r = cfg.fiber.radius_um
+        raise ValueError(f"bundle.twist: fibers leaning with the twist clear each other only {2 * r:g} um / cos(lean) "
+                         f"apart, so the Poisson cross-section's gaps are widened from bundle.gap_um = {cfg.bundle.gap_um:g} to "
+                         f"{_poisson_gap(cfg):.3g} um, and then {str(e).partition(': ')[2]}; lengthen the pitch (less lean) or "
+                         "enlarge the bundle") from None
     if twist is None:
         return bundle
     pitch, migration = twist.pitch(bundle.bounding_radius), twist.migration_model(cfg.bundle.seed)

@@ -63,23 +63,52 @@ def yarn_spec(c):
 # bytes a ply control point costs once Mitsuba holds it (curve, BVH, file parsing), with a
 # margin: the glove's 1.38 M points took ~270 MB above a bare scene (docs/BENCHMARKS.md, "Cloth")
 BYTES_PER_POINT = 800
+# the build's peak per control point of the model's own curves (8 samples a segment, their
+# frames, the B-spline fit): 2.7-4.2 kB measured on one curve of 1e5-4e5 points, 1 and 3 plies
+BYTES_PER_MODEL_POINT = 4500
+# placing one flyaway (its draws, samples, the piercing test): ~720 B measured on the glove;
+# each of its control points in Mitsuba: 103 B (linearcurve), 136 B (bsplinecurve) measured
+# on 2e5 six-point hairs, with a margin
+BYTES_PER_HAIR = 800
+BYTES_PER_HAIR_POINT = 200
+POINTS_PER_HAIR = {"linearcurve": 6, "bsplinecurve": 12}   # models.cloth.flyaways.hair_flyaways
 
 
 def estimated_points(collection, c, yarn) -> int:
     """Ply control points the model will make, from its centre lines' lengths (before building)."""
-    length = sum(float(np.linalg.norm(np.diff(cv.points, axis=0), axis=1).sum()) for cv in collection.curves)
-    length *= c.units_mm
+    length = centre_length(collection, c)
     return int(yarn.K * max(length / abs(yarn.pitch) * 16, length / (0.25 * yarn.radius)))
 
 
+def centre_length(collection, c) -> float:
+    """The centre lines' length in millimetres."""
+    return c.units_mm * sum(float(np.linalg.norm(np.diff(cv.points, axis=0), axis=1).sum()) for cv in collection.curves)
+
+
+def estimated_hairs(c, yarn, length: float) -> int:
+    """Flyaways the model will grow: Zhao's density per millimetre of ply times the plies'
+    length (``K`` helices about ``length`` of centre line; the hairs that would pierce a
+    neighbour, left out later, are counted)."""
+    if c.flyaways is None:
+        return 0
+    spec = HairSpec.from_zhao(zhao2016_row(c.flyaways.yarn or c.yarn), yarn.r_ply, c.flyaways.density_scale)
+    helix = np.hypot(1.0, 2 * np.pi * yarn.R / abs(yarn.pitch))
+    return int(spec.density * yarn.K * length * helix)
+
+
 def check_fits(collection, c, yarn) -> None:
-    """Refuse, before building, a model whose plies would not fit in memory."""
+    """Refuse, before building, a model whose plies and flyaways would not fit in memory."""
     points = estimated_points(collection, c, yarn)
-    need, have = points * BYTES_PER_POINT, memory_bytes()
+    model_points = sum(len(cv.points) for cv in collection.curves)
+    hairs = estimated_hairs(c, yarn, centre_length(collection, c))
+    per_hair = BYTES_PER_HAIR + POINTS_PER_HAIR[c.flyaways.curve] * BYTES_PER_HAIR_POINT if hairs else 0
+    need, have = points * BYTES_PER_POINT + model_points * BYTES_PER_MODEL_POINT + hairs * per_hair, memory_bytes()
     if need > 0.5 * have:
-        raise ValueError(f"cloth: the plies would take about {points:,} control points, ~{need / 2**30:.1f} GiB, more "
-                         f"than half of this machine's {have / 2**30:.0f} GiB: render fewer curves (cloth.curves), "
-                         "a larger cloth.ply_pitch_mm, or a smaller model")
+        raise ValueError(f"cloth: the model's {model_points:,} control points would make about {points:,} ply "
+                         f"control points" + (f" and {hairs:,} flyaways" if hairs else "")
+                         + f", ~{need / 2**30:.1f} GiB, more than half of this machine's {have / 2**30:.0f} GiB: "
+                         "render fewer curves (cloth.curves), a larger cloth.ply_pitch_mm, "
+                         + ("a smaller cloth.flyaways.density_scale, " if hairs else "") + "or a smaller model")
 
 
 def ply_table(cfg, yarn) -> str:

@@ -16,6 +16,25 @@ import numpy as np
 import mitsuba_ext
 from models.io import atomic_path
 
+from .machine import memory_bytes
+
+
+def check_film(film, where: str) -> None:
+    """Refuse, before rendering, a film that Dr.Jit cannot hold or that would not fit in
+    memory. Its image block holds ``channels + 2`` float32 a pixel (alpha and the filter's
+    weight beside the colour); Dr.Jit's arrays hold fewer than 2^32 entries. In memory, a pixel
+    costs that block, the developed image and numpy's copy (float32 each) and the PNG's
+    float64 sRGB: ``4 (c + 2) + 2 * 4 c + 8 * 4`` bytes."""
+    width, height = (int(v) for v in film.crop_size())
+    c = int(film.base_channels_count())
+    pixels = width * height
+    entries, need, have = pixels * (c + 2), pixels * (4 * (c + 2) + 8 * c + 32), memory_bytes()
+    if entries >= 2**32 or need > 0.5 * have:
+        raise ValueError(f"{where}: a film of {width} x {height} pixels takes {entries:,} values in Dr.Jit's image block "
+                         f"(at most {2**32 - 1:,}) and ~{need / 2**30:.1f} GiB with its copies (this machine has "
+                         f"{have / 2**30:.0f} GiB): render a smaller film, or a crop of it (the film's crop_width, "
+                         "crop_height)")
+
 
 def render_timed(mi, scene, backend: str = "table", warm: bool = True,
                  seed: int = 0) -> tuple[np.ndarray, float, float]:

@@ -23,7 +23,7 @@ import numpy as np
 import mitsuba_ext
 from mitsuba_ext.crossing import check_integrator
 from models.io import atomic_path
-from pipeline.images import exposure_of, save_png, to_srgb
+from pipeline.images import check_film, exposure_of, save_png, to_srgb
 
 
 def output_paths(out) -> tuple[Path, Path]:
@@ -70,6 +70,8 @@ def render_scene(scene_path, out, spp=None, variant="llvm_ad_spectral", defines=
     problem = check_integrator(scene)
     if problem:
         raise ValueError(f"{scene_path}: {problem}")
+    for sensor in scene.sensors():
+        check_film(sensor.film(), str(scene_path))
     t0 = time.perf_counter()
     with mitsuba_ext.evaluated_mode() if mitsuba_ext.needs_evaluated_mode(scene) else contextlib.nullcontext():
         img = mi.render(scene, spp=int(spp) if spp else 0)

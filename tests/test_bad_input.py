@@ -54,6 +54,11 @@ def csv_with_nan(tmp):
     return config(tmp, bundle={"arrangement": "file", "file": "fibers.csv", "shape": "circle", "radius_um": 20.0})
 
 
+def csv_of_other_radii(tmp):
+    (tmp / "fibers.csv").write_text("x_um,z_um,r_um\n-10,0,1\n0,0,3\n10,0,5\n")  # the fiber table's is 3 um
+    return config(tmp, bundle={"arrangement": "file", "file": "fibers.csv", "shape": "circle", "radius_um": 20.0})
+
+
 def fiber_table_at_other_wavelengths(tmp):
     from models.fiber.base import FiberTable
 
@@ -115,6 +120,8 @@ CASES = {
     "--artifacts is a file": (lambda tmp: ["--artifacts", str(tmp / "tiny.yaml"), "fiber", str(config(tmp))],
                               ["is a file", "--artifacts"]),
     "NaN radius in a CSV": (lambda tmp: ["bake", str(csv_with_nan(tmp))], ["fibers.csv", "row 3", "radius > 0"]),
+    "CSV radii not the fiber's": (lambda tmp: ["bake", str(csv_of_other_radii(tmp))],
+                                  ["fibers.csv", "2 of 3 fibers", "fiber.radius_um = 3 um", "one radius"]),
     "table fiber at other wavelengths": (lambda tmp: ["fiber", str(fiber_table_at_other_wavelengths(tmp))],
                                          ["measured.npz", "wavelengths", "800"]),
 }

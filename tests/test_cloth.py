@@ -233,12 +233,34 @@ def test_swatch_yarns_stay_a_diameter_apart_and_interpenetration_is_measured():
               for c in sw.curves]
     near = nearest_other(passes, [False] * 4, along_min=4 * r)
     assert near.min() >= 2 * r * 0.999, near.min()
-    g = build_plies(sw, 1.0, YarnSpec(3, 0.4, 0.5, 6.0))
-    assert g.overlapping == 0 and g.overlap_warning(YarnSpec(3, 0.4, 0.5, 6.0)) is None
-    # the same swatch with a yarn twice as thick interpenetrates, and says by how much
+    g = build_plies(sw, 1.0, YarnSpec(3, 0.45, 0.55, 6.0))  # a yarn of radius r: the swatch's own
+    assert g.overlapping == 0 and g.folded == 0 and g.overlap_warning(YarnSpec(3, 0.45, 0.55, 6.0)) is None
+    # the same swatch with a yarn 1.8x as thick interpenetrates and folds at the loops' heads (the
+    # closed form bends to 1.09 r there, Z / 2 and the sin 2t term's curvature at t = 0), and says
+    # by how much
     thick = YarnSpec(3, 0.8, 1.0, 6.0)
     g = build_plies(sw, 1.0, thick)
-    assert g.overlapping > 0 and "interpenetrate" in g.overlap_warning(thick)
+    assert g.overlapping > 0 and 0 < g.folded < 0.5
+    assert "interpenetrate" in g.overlap_warning(thick) and "folds through itself" in g.overlap_warning(thick)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e-6], ids=["thick yarn", "tiny model"])
+def test_a_yarn_thicker_than_its_centre_lines_bend_is_refused_before_winding(scale):
+    """A yarn radius beyond the centre lines' median bend radius folds the yarn through itself
+    along most of its length (a blob, not a yarn, whatever the nearest-pass count says):
+    refused with the radius that fits, whether the yarn is too thick or the model too small."""
+    sw = stockinette(2, 3, r=1.0)
+    with pytest.raises(ValueError, match=r"yarn_radius_mm: .*median bend radius .*cloth\.units_mm"):
+        build_plies(sw, scale, YarnSpec(3, 400.0, 500.0, 600.0))
+
+
+def test_nearest_other_pass_is_found_however_many_samples_a_diameter_holds():
+    """Two parallel straight yarns 3 apart, sampled 100 times a unit: the nearest sample of
+    the other yarn lies behind hundreds of the yarn's own, and is still found."""
+    x = np.linspace(0.0, 10.0, 1001)
+    a = np.stack([x, 0 * x, 0 * x], -1)
+    near = nearest_other([a, a + [0.0, 3.0, 0.0]], [False, False], along_min=4.0, within=8.0)
+    assert np.allclose(near, 3.0)
 
 
 def test_degenerate_centre_lines_are_refused():
@@ -250,6 +272,15 @@ def test_degenerate_centre_lines_are_refused():
                               "catmull_rom")
     with pytest.raises(ValueError, match="coincident"):
         build_plies(doubled, 1.0, yarn)
+    # a yarn listed twice, or one that turns back over itself, is no yarn radius's fault
+    sw = stockinette(2, 2, r=1.0)
+    twice = CurveCollection(sw.curves + [Curve(sw.curves[1].points.copy(), False)], sw.kind)
+    with pytest.raises(ValueError, match=r"curves 1 and 2 coincide .*no yarn radius separates them"):
+        build_plies(twice, 1.0, YarnSpec(3, 0.4, 0.5, 6.0))
+    t = np.linspace(0.0, 4 * np.pi, 64, endpoint=False)  # a loop of radius 10 drawn twice round
+    twice_round = CurveCollection([Curve(10 * np.stack([np.cos(t), np.sin(t), 0 * t], -1), True)], "catmull_rom")
+    with pytest.raises(ValueError, match=r"curve 0 runs back over itself"):
+        build_plies(twice_round, 1.0, YarnSpec(1, 1.0, 0.0, 1.0))
 
 
 # -- flyaways -------------------------------------------------------------------------------
@@ -439,12 +470,21 @@ def test_patch_cuts_runs_inside_the_sphere():
     assert len(piece.curves[0].points) == np.sum(np.linalg.norm(circle(40) - [10, 0, 0], axis=1) <= 5.0)
 
 
-def test_a_model_too_large_for_memory_is_refused_before_building():
+def test_a_model_too_large_for_memory_is_refused_before_building(monkeypatch):
+    """On a 16 GiB machine (users' laptops): the glove with its flyaways fits; 1e5 times its
+    size, or 100 times Zhao's flyaway density, does not, and says so before building."""
+    from pipeline import garment
     from pipeline.loading import load_config
     from pipeline.garment import check_fits, yarn_model, yarn_spec
 
+    monkeypatch.setattr(garment, "memory_bytes", lambda: 16 * 2**30)
+
     cfg = load_config(ROOT / "configs" / "glove.yaml", ["cloth.units_mm=100000"])
     with pytest.raises(ValueError, match="more than half of this machine"):
+        check_fits(yarn_model(cfg.cloth), cfg.cloth, yarn_spec(cfg.cloth))
+    # Zhao's flyaway density times 100 (the largest allowed): some 1e8 hairs
+    cfg = load_config(ROOT / "configs" / "glove.yaml", ["cloth.flyaways.density_scale=100"])
+    with pytest.raises(ValueError, match=r"flyaways, .*cloth\.flyaways\.density_scale"):
         check_fits(yarn_model(cfg.cloth), cfg.cloth, yarn_spec(cfg.cloth))
     cfg = load_config(ROOT / "configs" / "glove.yaml")
     check_fits(yarn_model(cfg.cloth), cfg.cloth, yarn_spec(cfg.cloth))  # the glove itself fits

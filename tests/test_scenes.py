@@ -52,6 +52,18 @@ def test_a_bundle_under_another_integrator_is_refused(mi_llvm, tmp_path, capsys)
     assert not (tmp_path / "x.exr").exists()
 
 
+def test_a_film_too_large_to_hold_is_refused_before_rendering(mi_llvm, tmp_path, capsys):
+    """200000 x 100000 pixels: more values than a Dr.Jit array holds (2^32), said with the size."""
+    from tests.synthetic import make_config, synthetic_table
+
+    synthetic_table(make_config(tmp_path), tmp_path / "table.npz", passthrough=0.2)
+    rc = cli.main(["render-scene", str(ROOT / "scenes" / "ply.xml"), "-o", str(tmp_path / "x.exr"), "--spp", "1",
+                   "-D", f"table={tmp_path / 'table.npz'}", "-D", "width=200000", "-D", "height=100000"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "200000 x 100000 pixels" in err and "smaller film" in err and "Traceback" not in err, err
+    assert not (tmp_path / "x.exr").exists()
+
+
 def test_glove_scene_renders_plies_with_an_mlp(mi_llvm, tmp_path, trained, capsys):
     from models.cloth.knit import stockinette
     from models.cloth.yarn import YarnSpec, build_plies, write_curves

@@ -518,3 +518,12 @@ def test_migration_that_would_thin_the_ply_to_another_is_refused_with_the_packin
     b = ply.bundle
     assert len(b.radii) == round(float(packing) * b.semi_axes[0] * b.semi_axes[1] / b.radii[0] ** 2)
     assert ply.closest_approach()[0] >= 0.0
+
+
+def test_a_twisted_cross_section_that_cannot_hold_its_leaning_fibers_names_the_twist_not_a_gap():
+    """The gap a twist needs is the twist's doing (the user set none): the refusal says so."""
+    from pipeline.build import build_ply
+    from pipeline.loading import load_config
+
+    with pytest.raises(ValueError, match=r"bundle\.twist: .*widened from bundle\.gap_um = 0 to .*lengthen the pitch"):
+        build_ply(load_config("configs/twisted_cotton1.yaml", ["bundle.shape=ellipse", "bundle.semi_axes_um=[200, 25]"]))

@@ -8,8 +8,8 @@ Each course (row) of plain knit is one yarn, the published closed-form loop curv
 the loop's legs outwards, ``cos t`` takes the yarn down and up through the row below
 (rows ``D`` apart overlap by ``H - D``), ``cos 2t`` takes it through the fabric's
 thickness so that neighbouring rows interlock. Sizes are in yarn radii ``r``; the defaults
-(a loose knit) keep every two yarns at least a yarn diameter apart, centre to centre
-(``tests/test_cloth.py`` checks it).
+(a loose knit) keep every two yarns at least a yarn diameter apart, centre to centre, and
+bend no yarn tighter than its radius once interpolated (``tests/test_cloth.py`` checks both).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from .bcc import Curve, CurveCollection
 
 
 def stockinette(courses: int = 4, wales: int = 6, r: float = 1.0, W: float = 12.0, H: float = 10.0,
-                D: float = 8.0, Z: float = 4.0, a: float = 0.3, per_loop: int = 16) -> CurveCollection:
+                D: float = 8.0, Z: float = 3.5, a: float = 0.3, per_loop: int = 32) -> CurveCollection:
     """``courses`` open yarns of ``wales`` loops each, as uniform Catmull-Rom control points
     (``r``: the yarn radius in the model's units; the other sizes in units of ``r``)."""
     if courses < 1 or wales < 1:

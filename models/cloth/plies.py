@@ -152,21 +152,51 @@ def wind_plies(frames: Frames, K: int, R: float, pitch: float, samples_per_turn:
     return plies, float(pitch)
 
 
-def nearest_other(curves: list[np.ndarray], closed: list[bool], along_min: float, k: int = 32) -> np.ndarray:
+def nearest_other(curves: list[np.ndarray], closed: list[bool], along_min: float, within: float | None = None,
+                  k: int = 32) -> np.ndarray:
     """For every sample of ``curves`` (concatenated), the distance to the nearest sample of
-    another curve, or of its own curve more than ``along_min`` away along it (``inf`` if none
-    is among its ``k`` nearest): where yarns touch or interpenetrate."""
+    another curve, or of its own curve more than ``along_min`` away along it: where yarns
+    touch or interpenetrate. ``inf`` where there is none nearer than ``within`` (default:
+    ``along_min``).
 
+    A sample whose ``k`` nearest all lie on its own pass, the farthest of them nearer than
+    ``within``, is asked again with 4x as many, until it is decided (a thick yarn's pass
+    holds many samples within a diameter)."""
+
+    within = along_min if within is None else within
     pts = np.concatenate(curves)
     owner = np.concatenate([np.full(len(c), i) for i, c in enumerate(curves)])
     s = np.concatenate([np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
                         for c in curves])
     length = np.array([float(np.linalg.norm(np.diff(np.concatenate([c, c[:1]]) if cl else c, axis=0),
                                             axis=1).sum()) for c, cl in zip(curves, closed)])
-    d, j = cKDTree(pts).query(pts, k=min(k, len(pts)))
-    same = owner[j] == owner[:, None]
-    gap = np.abs(s[j] - s[:, None])
-    loop = np.array(closed)[owner][:, None]
-    gap = np.where(loop, np.minimum(gap, length[owner][:, None] - gap), gap)
-    other = ~same | (gap > along_min)
-    return np.where(other, d, np.inf).min(axis=1)
+    loop = np.array(closed)[owner]
+    tree, out, todo = cKDTree(pts), np.full(len(pts), np.inf), np.arange(len(pts))
+    while len(todo):
+        kk = min(k, len(pts))
+        for c0 in range(0, len(todo), max(1, 2**22 // kk)):  # blocks: [block, kk] stays small
+            at = todo[c0:c0 + max(1, 2**22 // kk)]
+            d, j = tree.query(pts[at], k=kk, distance_upper_bound=within)
+            found = np.isfinite(d)
+            j = np.where(found, j, 0)
+            gap = np.abs(s[j] - s[at, None])
+            gap = np.where(loop[at, None], np.minimum(gap, length[owner[at]][:, None] - gap), gap)
+            other = found & ((owner[j] != owner[at, None]) | (gap > along_min))
+            out[at] = np.where(other, d, np.inf).min(axis=1)
+            # undecided: every one of the kk nearest is its own pass, and the ball holds more
+            out[at[np.isinf(out[at]) & found[:, -1]]] = -1.0
+        if kk == len(pts):
+            break
+        todo, k = np.flatnonzero(out == -1.0), 4 * k
+    return np.where(out < 0, np.inf, out)
+
+
+def bend_radius(p: np.ndarray) -> np.ndarray:
+    """The radius of the circle through each three consecutive samples ``p[n, 3]`` (``n - 2``
+    values; ``inf`` where they are collinear): a tube of radius ``r`` about the curve folds
+    through itself where this is under ``r``."""
+    a, b = np.diff(p[:-1], axis=0), np.diff(p[1:], axis=0)
+    chord = np.linalg.norm(p[2:] - p[:-2], axis=1)
+    twice_area = np.linalg.norm(np.cross(a, b), axis=1)
+    with np.errstate(divide="ignore"):
+        return np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1) * chord / (2 * twice_area)

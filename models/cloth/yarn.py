@@ -18,7 +18,7 @@ import numpy as np
 from ..io import atomic_path
 from .bcc import CurveCollection
 from .curves import evaluate, interpolate_bspline, n_segments, to_bspline, write_mitsuba_curves
-from .plies import nearest_other, transport_frames, wind_plies
+from .plies import bend_radius, nearest_other, transport_frames, wind_plies
 
 
 @dataclass
@@ -63,6 +63,7 @@ class PlyGeometry:
     centre_deviation: float          # B-spline of a centre line vs the file's curve, largest (scene units)
     closest_yarns: float             # smallest centre-to-centre distance of two yarn passes (scene units)
     overlapping: float               # share of the yarn length nearer another pass than a yarn diameter
+    folded: float = 0.0              # share of the yarn length bent tighter than the yarn's radius
     pitch_used: list[float] = field(default_factory=list)
 
     @property
@@ -71,11 +72,18 @@ class PlyGeometry:
 
     def overlap_warning(self, yarn: YarnSpec) -> str | None:
         """A sentence about interpenetrating yarns, with the amounts (None if they do not)."""
-        if self.overlapping == 0:
+        said = []
+        if self.overlapping > 0:
+            said.append(f"yarns interpenetrate: the nearest two passes are {self.closest_yarns:.3g} apart centre to "
+                        f"centre (a yarn diameter is {2 * yarn.radius:.3g}), and {100 * self.overlapping:.1f}% of the "
+                        "yarn length comes nearer another pass than a yarn diameter")
+        if self.folded > 0:
+            said.append(f"{100 * self.folded:.2f}% of the yarn length bends tighter than the yarn's radius "
+                        f"({yarn.radius:.3g}), where the yarn folds through itself")
+        if not said:
             return None
-        return (f"yarns interpenetrate: the nearest two passes are {self.closest_yarns:.3g} apart centre to centre "
-                f"(a yarn diameter is {2 * yarn.radius:.3g}), and {100 * self.overlapping:.1f}% of the yarn length "
-                "comes nearer another pass than a yarn diameter; a smaller cloth.yarn_radius_mm separates them")
+        return "; ".join(said) + "; a smaller cloth.yarn_radius_mm " + ("separates them" if self.overlapping > 0
+                                                                          else "clears it")
 
 
 def centre_lines(collection: CurveCollection, scale: float, tol: float):
@@ -111,27 +119,71 @@ def build_plies(collection: CurveCollection, scale: float, yarn: YarnSpec, tol_f
     if not scale > 0:
         raise ValueError(f"the model's scale must be positive (got {scale})")
     centres, deviation = centre_lines(collection, scale, tol_fraction * yarn.radius)
-    plies, passes, closed, pitches = [], [], [], []
-    for k, c in enumerate(collection.curves):
+    # the file's own curves, evaluated exactly, 8 samples a segment
+    passes, closed, segments = [], [c.closed for c in collection.curves], []
+    for c in collection.curves:
         P = scale * c.points
-        n = n_segments(P, c.closed, collection.kind)
-        u = np.arange(8 * n + (0 if c.closed else 1)) / 8
-        samples = evaluate(P, c.closed, collection.kind, u)
-        passes.append(samples)
-        closed.append(c.closed)
+        segments.append(n_segments(P, c.closed, collection.kind))
+        passes.append(evaluate(P, c.closed, collection.kind, np.arange(8 * segments[-1] + (0 if c.closed else 1)) / 8))
+    check_bends(passes, yarn.radius)
+    plies, pitches = [], []
+    for k, samples in enumerate(passes):
         if yarn.K == 1:  # a single ply is the yarn: its centre line as converted
             plies.append(centres[k][0])
         else:
-            frames = transport_frames(samples, c.closed, stride=4)
+            frames = transport_frames(samples, closed[k], stride=4)
             wound, pitch = wind_plies(frames, yarn.K, yarn.R, yarn.pitch, samples_per_turn,
-                                      min_samples=samples_per_segment * n)
+                                      min_samples=samples_per_segment * segments[k])
             pitches.append(pitch)
-            plies += [interpolate_bspline(q, c.closed) for q in wound]
+            plies += [interpolate_bspline(q, closed[k]) for q in wound]
         if progress is not None:
             progress(k + 1)
     near = nearest_other([q[::4] for q in passes], closed, along_min=4 * yarn.radius)
+    check_distinct([q[::4] for q in passes], near, yarn.radius)
     return PlyGeometry(plies, yarn.r_ply, deviation, float(near.min()), float(np.mean(near < 2 * yarn.radius)),
-                       pitches)
+                       folded=folded_share(passes, yarn.radius), pitch_used=pitches)
+
+
+def folded_share(passes: list[np.ndarray], radius: float) -> float:
+    """The share of the centre lines' length (dense samples ``passes``) that bends tighter
+    than ``radius``: there a tube of that radius folds through itself."""
+    bent = np.concatenate([bend_radius(p) < radius for p in passes])
+    step = np.concatenate([0.5 * np.linalg.norm(p[2:] - p[:-2], axis=1) for p in passes])
+    return float(np.sum(step * bent) / np.sum(step))
+
+
+def check_distinct(passes: list[np.ndarray], near: np.ndarray, radius: float) -> None:
+    """Refuse coincident yarns (a curve listed twice, or one that runs back over itself):
+    no yarn radius separates them. ``near``: each sample's nearest other pass
+    (:func:`~models.cloth.plies.nearest_other`); coincident means within float64 rounding of
+    the model's size, far below any yarn radius (1e-6 of it)."""
+    i = int(np.argmin(near))
+    if not near[i] < 1e-6 * radius:
+        return
+    owner = np.concatenate([np.full(len(p), k) for k, p in enumerate(passes)])
+    pts = np.concatenate(passes)
+    d = np.linalg.norm(pts - pts[i], axis=1)
+    others = np.flatnonzero((d < 1e-6 * radius) & (np.abs(np.arange(len(pts)) - i) > 1))
+    j = int(others[np.argmax(owner[others] != owner[i])]) if len(others) else i
+    share = float(np.mean(near < 1e-6 * radius))
+    what = (f"curves {owner[i]} and {owner[j]} coincide" if owner[j] != owner[i]
+            else f"curve {owner[i]} runs back over itself")
+    raise ValueError(f"cloth.model: {what} ({100 * share:.1f}% of the yarn length lies on another pass); no yarn "
+                     "radius separates them: remove the duplicated or degenerate curves from the model")
+
+
+def check_bends(passes: list[np.ndarray], radius: float, what: str = "cloth.yarn_radius_mm") -> None:
+    """Refuse a yarn radius at which most of the centre lines fold the yarn through itself
+    (their median bend is tighter than the radius): what would render is a blob, not a yarn.
+    A few tight bends (a simulated knit's kinks) are measured and warned of instead
+    (:attr:`PlyGeometry.folded`)."""
+    bends = np.concatenate([bend_radius(p) for p in passes])
+    median = float(np.median(bends))
+    if radius > median:
+        raise ValueError(f"{what}: a yarn radius of {radius:.3g} mm is larger than the centre lines' median bend "
+                         f"radius ({median:.3g} mm), so the yarn would fold through itself along "
+                         f"{100 * folded_share(passes, radius):.0f}% of its length; give a yarn radius under "
+                         f"{median:.3g} mm, or check cloth.units_mm (the model's size in millimetres)")
 
 
 def write_curves(path, geometry: PlyGeometry) -> None:
