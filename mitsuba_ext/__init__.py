@@ -12,6 +12,7 @@ Usage, after choosing a variant at your entry point::
         ...
     with mitsuba_ext.evaluated_mode():          # what the onnx backend renders in
         image = mi.render(scene)
+    mitsuba_ext.check_integrator(scene)         # None, or why its integrator cannot render its bundles
 
 Python plugins derive from the active variant's classes, so call :func:`register`
 again after switching variants. The modules:
@@ -34,6 +35,8 @@ import importlib
 
 import drjit as dr
 import mitsuba as mi
+
+from mitsuba_ext.crossing import check_integrator  # noqa: F401  (why a loaded scene cannot render its bundles)
 
 
 def plugin_modules() -> list:

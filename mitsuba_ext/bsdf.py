@@ -15,6 +15,7 @@ import mitsuba as mi
 import numpy as np
 
 from mitsuba_ext.backends import load_backend
+from mitsuba_ext.crossing import refuse_other_integrators
 from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, resolve_path,
                                spectral_weights, split_uniform)
 from mitsuba_ext.params import boolean, jit_variant_only, number, vector3
@@ -235,8 +236,11 @@ class FiberBundleBSDF(CurveBSDF):
     the frame follows a tangent only these two have); every JIT variant, ``llvm_*``
     and ``cuda_*`` (the ``onnx`` backend in evaluated mode only; ``scalar_*`` is refused
     at load: the lookups are vectorized Dr.Jit code); ``path`` and ``bundle_path``
-    integrators (only ``bundle_path`` crosses bundles with their passthrough in
-    shadow rays and leaves them from the displaced exit point).
+    integrator ``bundle_path`` only: it crosses bundles with their passthrough in shadow
+    rays and leaves them from the displaced exit point, which Mitsuba's ``path`` (or any
+    other) would leave out, rendering the ply darker. A bundle rendered by another
+    integrator raises in ``mi.render`` (``bcsdf render-scene`` says so on loading the
+    scene; ``mitsuba_ext.check_integrator(scene)`` asks the same of a loaded scene).
     **Which direction is incident.** The table's ``S(w_i -> w_o)`` has ``w_i`` on the
     light's side (the bake's incidence). In ``eval(ctx, si, wo)`` of a path tracer
     (``TransportMode.Radiance``) the light side is ``wo`` and the camera side
@@ -333,6 +337,7 @@ class FiberBundleBSDF(CurveBSDF):
 
     # -- the BSDF interface ---------------------------------------------
     def eval(self, ctx, si, wo, active=True):
+        refuse_other_integrators()
         frame, _, _, inside = self._setup(si)
         value = self._value(ctx, si, frame, wo)
         return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), value, 0.0)
@@ -345,6 +350,7 @@ class FiberBundleBSDF(CurveBSDF):
         return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), pdf, 0.0)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
+        refuse_other_integrators()
         frame, phi_i, theta_i, inside = self._setup(si)
         P = self._passthrough(si, phi_i, theta_i, inside)
         if not ctx.is_enabled(mi.BSDFFlags.Null, 1):

@@ -8,11 +8,54 @@ No Mitsuba variant is needed to import this module (the plugin class in
 
 from __future__ import annotations
 
+import contextlib
+import sys
+import threading
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mitsuba_ext.frame import SINGLE_FIBERS, fiber_on_linear_curve
+
+
+# -- who renders a bundle -----------------------------------------------------------
+# ``bundle_path`` marks the thread while it traces; a ``fiber_bundle`` evaluated inside
+# ``mi.render`` with no mark is being rendered by another integrator and refuses, so that a
+# hand-built scene keeps the rule ``bcsdf render-scene`` checks on loading
+_TRACING = threading.local()
+
+OTHER_INTEGRATOR = ("fiber_bundle is rendered by an integrator other than bundle_path, which would render it "
+                    "without passthrough in its shadow rays and without its displaced exits (darker, wrongly): "
+                    "use the bundle_path integrator ({'type': 'bundle_path'}, or <integrator type=\"bundle_path\"> "
+                    "in XML; it takes path's max_depth and rr_depth)")
+
+
+@contextlib.contextmanager
+def tracing(who: str):
+    """Mark this thread as rendered by ``who``: ``"bundle_path"`` (the integrator, around its
+    ``sample``), or ``"any"``: a reference that renders a bundle under another integrator
+    knowing what it leaves out (a test of one part of ``bundle_path``)."""
+    before = getattr(_TRACING, "who", None)
+    _TRACING.who = who
+    try:
+        yield
+    finally:
+        _TRACING.who = before
+
+
+def refuse_other_integrators() -> None:
+    """Raise where a bundle is evaluated inside ``mi.render`` (a Python function: its frame is
+    on this thread's stack) with no integrator's mark. Evaluations outside a render (a test, a
+    chi-square check, an analysis through ``si.bsdf()``) pass."""
+    if getattr(_TRACING, "who", None) is not None:
+        return
+    render = getattr(getattr(mi, "render", None), "__code__", None)
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_code is render:
+            raise RuntimeError(OTHER_INTEGRATOR)
+        frame = frame.f_back
 
 
 # -- small pure functions ----------------------------------------------------------

@@ -11,7 +11,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_ext.crossing import bundle_axis, check_bundles, displaced_exit, far_side, mis_weight, offset_ray
+from mitsuba_ext.crossing import (bundle_axis, check_bundles, displaced_exit, far_side, mis_weight, offset_ray,
+                                  tracing)
 from mitsuba_ext.frame import LinearCurves
 from mitsuba_ext.params import boolean, choice, integer, jit_variant_only, number
 
@@ -333,8 +334,12 @@ class BundlePathIntegrator(mi.SamplingIntegrator):
         return T
 
     # -- the integrator ---------------------------------------------------
-    @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        with tracing("bundle_path"):  # the bundles it meets know who traces them
+            return self._sample(scene, sampler, ray, medium, active)
+
+    @dr.syntax
+    def _sample(self, scene, sampler, ray, medium=None, active=True):
         self._check(scene)  # Python, once per render call: the body below is traced
         ctx = mi.BSDFContext()
 

@@ -369,12 +369,22 @@ def test_each_wavelength_leaves_by_its_own_share(mi_plug, tables, tmp_path):
 
 def test_passthrough_shadow_transmittance_is_unbiased(mi_plug, tables):
     """NEE through bundles (bundle_path) and BSDF sampling alone (path) agree on average."""
+    from mitsuba_ext.crossing import tracing
+
     mi = mi_plug
     bundle = {"type": "fiber_bundle", "table": str(tables["circle"])}
     scene = scene_dict({"type": "bundle_path", "max_depth": 6, "displaced_exit": False}, bundle, spp=256, res=(24, 16))
     a = np.array(mi.render(mi.load_dict(scene)))
     scene["integrator"] = {"type": "path", "max_depth": 6}
-    b = np.array(mi.render(mi.load_dict(scene)))
+    with pytest.raises(RuntimeError) as refused:
+        mi.render(mi.load_dict(scene))  # a bundle under path is refused ...
+    chain, e = [], refused.value
+    while e is not None:  # mi.render wraps it: "error while performing a custom differentiable operation"
+        chain.append(str(e))
+        e = e.__cause__ or e.__context__
+    assert any("integrator other than bundle_path" in text for text in chain), chain
+    with tracing("any"):  # ... unless a reference knows what it leaves out (no displaced exit here)
+        b = np.array(mi.render(mi.load_dict(scene)))
     assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
     assert abs(a.mean() / b.mean() - 1) < 0.03, (a.mean(), b.mean())
 
