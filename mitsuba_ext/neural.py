@@ -26,7 +26,7 @@ import numpy as np
 
 from models import lines as fl
 from models.jit import to_drjit
-from models.neural import NeuralSpec, features, stable_expm1
+from models.neural import NeuralSpec, energy_gain, features, stable_expm1
 from models.queries import directions
 
 
@@ -181,7 +181,9 @@ class DrJitMLP:
             x = x[:-3] + self._line_products(Float, x[-3:])
         y = self._matvec(Float, x) if self.cooperative(Float) else self._literal(x)
         s0, y_max = self.spec.s0, self.spec.y_max
-        return [s0 * stable_expm1(dr, dr.clip(v, 0.0, y_max)) for v in y]
+        S = [s0 * stable_expm1(dr, dr.clip(v, 0.0, y_max)) for v in y]
+        gain = energy_gain(dr, self.spec, theta_i)
+        return S if gain is None else [s * g for s, g in zip(S, gain)]
 
     def _line_products(self, Float, coords):
         """``A_c B_c D_c`` at the line coordinates: a gather and a lerp per line and channel,

@@ -14,11 +14,11 @@ Phase 1 (:func:`fit_bins`) minimizes a weighted MSE in log space, ``y = log(1 + 
 each sample and wavelength is weighted by ``1 / (sigma_y^2 + sigma_floor^2)`` where
 ``sigma_y`` is the table's own standard error carried into log space, so Monte Carlo
 noise is not learned as signal. Log-space errors bias the albedo (worst at grazing
-incidence), so phase 2 (:func:`calibrate`) refits the output layer alone by L-BFGS on the
-whole table: the same fit term plus, weighted by ``albedo_weight``, the squared relative
-error of the model's albedo ``sum S solid_angle`` per incident direction and wavelength
-against the table's scattered fraction. A row's sum includes its held-out bins: their
-values are never fitted, only the row's total is the target.
+incidence), so phase 2 (:func:`energy_gain`) computes, in closed form, a gain per
+incident longitude and wavelength that makes the model's albedo ``sum S solid_angle``
+the table's scattered fraction (a row's sum includes its held-out bins: their values are
+never fitted, only the row's total is the target). It is part of the model
+(:func:`models.neural.energy_gain`), evaluated by every backend.
 
 A random ``val_fraction`` of the samples (all wavelengths of a bin, and all its mirror
 images, together) is held out for early stopping and for the report. Same table, seed
@@ -139,14 +139,15 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     return Problem(base, data, train_idx, val_idx, w)
 
 
-def model_bin_averages(spec: NeuralSpec, model, cell) -> np.ndarray:
-    """The model's (exported transform's) average over each bin of ``cell`` (4 x 4 points), float64."""
+def model_bin_averages(spec: NeuralSpec, model, cell, k: int = 4) -> np.ndarray:
+    """The model's (exported transform's, its gain included) average over each bin of ``cell``
+    (k x k midpoints), float64."""
     module = make_export_module(spec, model).eval()
 
     def predict(*angles):
         with torch.no_grad():
             return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
-    return bin_average(predict, cell)
+    return bin_average(predict, cell, k)
 
 
 def held_out_metrics(spec: NeuralSpec, model, data, val_idx) -> dict:
@@ -230,7 +231,8 @@ class BinFit:
 
 
 def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
-    """Train one MLP of ``spec``'s widths on ``problem``: :func:`fit_bins`, then :func:`calibrate`.
+    """Train one MLP of ``spec``'s widths on ``problem``: :func:`fit_bins`, then :func:`energy_gain`
+    (which sets ``spec``'s gain).
 
     Returns the model, the loss history, the best validation loss, the seconds taken and
     the worst albedo error over (incident direction, wavelength) before and after the
@@ -243,7 +245,7 @@ def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
     t0 = time.perf_counter()
     history, best = fit_bins(model, p, c, name, on_epoch, t0)
     t1 = time.perf_counter()
-    calibration = calibrate(model, p, c, name) if c.calibration_steps else {}
+    calibration = energy_gain(model, spec, p) if c.energy_gain else {}
     if calibration:
         calibration["calibration_seconds"] = time.perf_counter() - t1
     return model, history, best, time.perf_counter() - t0, calibration
@@ -303,60 +305,48 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
     return history, best
 
 
-CALIBRATION_STRATA = 4  # k x k points per bin in the calibration (the training bench's --calibration varies it)
+GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the energy gain
 
 
-def calibrate(model, p: BinFit, c, name, strata: int = CALIBRATION_STRATA) -> dict:
-    """Phase 2: energy calibration of the output layer.
+def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -> dict:
+    """Phase 2: the energy gain, in closed form.
 
-    Log-space errors alone bias the albedo (worst at grazing incidence; the train summary
-    records the worst row before and after). With the hidden layers frozen, the output layer is refitted by
-    L-BFGS on the whole table at ``strata`` x ``strata`` stratified points per bin (drawn once; the
-    features are computed once, so each iteration is one small matrix product): the fit
-    term keeps the shape, the energy term pulls every row's albedo, the sum of S d omega
-    over all its outgoing bins, onto the table's. The rows include the held-out bins:
-    their values are never fitted, but the row's total is the target. Energy terms in the
-    minibatch loss instead (over the batch's share of a row, or the whole row from a cache)
-    made training oscillate and did no better after this phase.
+    Log-space errors alone bias the albedo (worst at grazing incidence). The gain
+    (:func:`models.neural.energy_gain`) scales the network's spectrum per incident longitude
+    and wavelength so that each incident direction's albedo, ``sum S d omega`` over all its
+    outgoing bins, is the table's scattered fraction: at each of the table's ``theta_i``
+    the ratio of the two (over the ``phi_i`` that share it), piecewise linear between them.
+    The rows include the held-out bins: their values are never fitted, but the row's total
+    is the target. The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
+    every bin: the ridge along the specular cone is narrower than a bin, and random points
+    (the fit's) would put their own noise into the gain.
 
-    Returns the worst albedo error before and after (empty if no row scatters).
+    Sets ``spec.gain`` and ``spec.gain_theta_i``; returns the worst albedo error over the
+    scattering rows before and after (empty if no row scatters).
     """
-
     if not len(p.albedo):  # no row scatters
         return {}
-
-    def energy_loss(S):
-        """Mean squared symmetric relative difference 2 (p - a) / (p + a) of the model's
-        albedo p per (incident direction, wavelength) against the table's a: ~ the
-        relative error when small, bounded by 2 when far off (a 1e5:1 table)."""
-        q = p.model_albedo(S)
-        return ((2 * (q - p.albedo) / (q + p.albedo)) ** 2).mean()
-
-    def worst_albedo_error():
-        with torch.no_grad():
-            return p.worst_albedo_error(p.bin_means(p.every, last(hidden))[1])
-
-    pts = p.stratified(len(p.data.x), strata, torch.Generator().manual_seed(c.seed + 2))
+    S = 0.0
     with torch.no_grad():
-        hidden = model[:-1](p.encode(p.every, pts))
-    last = model[-1]
-    before = worst_albedo_error()
-    opt = torch.optim.LBFGS(last.parameters(), max_iter=c.calibration_steps, history_size=20,
-                            line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
-
-    # L-BFGS evaluates at most max_eval = 1.25 max_iter times (PyTorch's default): the
-    # bar's total, so that a long calibration (a big table) shows its time left
-    bar = tqdm(total=int(1.25 * c.calibration_steps), desc=f"calibrate {name}", unit="eval")
-
-    def closure():
-        opt.zero_grad()
-        y, S = p.bin_means(p.every, last(hidden))
-        loss = p.loss(p.tr, y[p.tr]) + c.albedo_weight * energy_loss(S)
-        loss.backward()
-        bar.update()
-        return loss
-    with bar:
-        opt.step(closure)
-    if not all(torch.isfinite(q).all() for q in last.parameters()):
-        raise FloatingPointError(f"the energy calibration of {name} diverged; lower train.albedo_weight")
-    return {"worst_albedo_error_before": before, "worst_albedo_error_after": worst_albedo_error()}
+        for a in (np.arange(strata) + 0.5) / strata:
+            for b in (np.arange(strata) + 0.5) / strata:
+                u = torch.tensor([[[a, b]]], dtype=torch.float32).expand(len(p.every), 1, 2)
+                S = S + p.bin_means(p.every, model(p.encode(p.every, u)))[1].double()
+    S = S / strata**2
+    model_albedo = torch.zeros(p.seen.shape, dtype=S.dtype).index_add(0, p.group, S * p.omega.double()).numpy()
+    table_albedo = p.data.albedo
+    # each group's incident longitude (|theta_i| under the theta fold: the features cannot tell the sign)
+    theta = np.zeros(len(table_albedo))
+    theta[p.data.group] = p.data.cell[:, 1]
+    theta = np.abs(theta) if "theta" in spec.folds else theta
+    nodes = np.unique(np.round(theta, 12))
+    at = np.searchsorted(nodes, np.round(theta, 12))
+    num, den = np.zeros((len(nodes), table_albedo.shape[1])), np.zeros((len(nodes), table_albedo.shape[1]))
+    np.add.at(num, at, table_albedo)
+    np.add.at(den, at, model_albedo)
+    gain = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), 1.0)
+    before = float(np.max(np.abs(model_albedo / table_albedo - 1)[p.seen.numpy()]))
+    spec.gain, spec.gain_theta_i = gain.tolist(), np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)
+    after = model_albedo * gain[at]
+    return {"worst_albedo_error_before": before,
+            "worst_albedo_error_after": float(np.max(np.abs(after / table_albedo - 1)[p.seen.numpy()]))}

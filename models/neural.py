@@ -53,8 +53,8 @@ from scipy.sparse.csgraph import connected_components
 from . import lines as fl
 from . import rounding as rd
 
-FORMAT = "bcsdf.neural/3"  # /3: feature lines (models/lines.py)
-READABLE = ("bcsdf.neural/2", FORMAT)  # /2: a plain MLP, read as one without lines
+FORMAT = "bcsdf.neural/4"  # /4: the energy gain; /3: feature lines (models/lines.py)
+READABLE = ("bcsdf.neural/2", "bcsdf.neural/3", FORMAT)  # older: read as models without them
 FOLDS = ("theta", "dphi", "xz")
 
 
@@ -84,6 +84,11 @@ class NeuralSpec:
     # line; empty and 0: a plain MLP on the features
     lines: list = field(default_factory=list)
     line_channels: int = 0
+    # the energy gain (:func:`energy_gain`): its values [node][wavelength] at the incident
+    # longitudes gain_theta_i (radians, increasing; |theta_i| where the theta fold holds); empty:
+    # none
+    gain: list = field(default_factory=list)
+    gain_theta_i: list = field(default_factory=list)
     format: str = FORMAT
 
     def __post_init__(self):
@@ -113,6 +118,12 @@ class NeuralSpec:
                 and isinstance(self.line_channels, int) and self.line_channels >= 1):
             raise ValueError(f"model metadata: lines {self.lines} x {self.line_channels} channels; feature lines "
                              "need three node counts >= 2 and at least one channel (or none of either)")
+        if self.gain or self.gain_theta_i:
+            g, t = np.asarray(self.gain, float), np.asarray(self.gain_theta_i, float)
+            if g.shape != (len(t), len(wl)) or not (np.all(np.isfinite(g)) and np.all(g > 0)) or \
+                    not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0) or np.any(np.abs(t) > np.pi / 2):
+                raise ValueError("model metadata: gain must hold a positive finite value per (gain_theta_i node, "
+                                 "wavelength), the nodes increasing longitudes within +-pi/2")
         bad = [f for f in self.folds if f not in FOLDS]
         if bad or ("dphi" in self.folds and not self.relative_phi) or ("xz" in self.folds and self.relative_phi):
             raise ValueError(f"folds {self.folds} do not fit a {'relative' if self.relative_phi else 'absolute'}"
@@ -305,6 +316,31 @@ def stable_expm1(lib, y):
     return where(y < 1e-2, series, lib.exp(y) - 1.0)
 
 
+def energy_gain(lib, spec: NeuralSpec, theta_i):
+    """The energy gain at incident longitudes ``theta_i``: one factor per wavelength that
+    multiplies the network's spectrum, so that each incident direction's albedo is the
+    table's (:func:`models.fit.energy_gain`). Piecewise linear in ``theta_i`` (``|theta_i|``
+    under the theta fold) through ``spec.gain_theta_i``, constant beyond the end nodes,
+    written as a sum of clipped segments, ``g_0 + sum_k m_k (clip(t, t_k, t_k+1) - t_k)``, the
+    slopes ``m_k``: ops every backend has. ``lib`` as :func:`features`; returns a list over
+    wavelengths, or ``None`` without a gain."""
+    if not spec.gain:
+        return None
+    clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
+    t = clip(theta_i, float(-np.pi / 2), float(np.pi / 2))
+    t = lib.abs(t) if "theta" in spec.folds else t
+    nodes, g = np.asarray(spec.gain_theta_i, np.float64), np.asarray(spec.gain, np.float64)
+    segments = [clip(t, float(a), float(b)) - float(a) for a, b in zip(nodes[:-1], nodes[1:])]
+    slopes = np.diff(g, axis=0) / np.diff(nodes)[:, None]
+    out = []
+    for k in range(g.shape[1]):
+        acc = t * 0.0 + float(g[0, k])
+        for segment, m in zip(segments, slopes[:, k]):
+            acc = segment * float(m) + acc
+        out.append(acc)
+    return out
+
+
 def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int = 4096, lines=()):
     """``(S, err)``: the exported model at ``angles [n, 4]`` (exact, float64) and a bound on
     how far an evaluation of it in floating point (unit roundoff ``u``, float32 by
@@ -328,6 +364,9 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
             x = x[:-3] + line_products(spec, lines, x[-3:])
         y = rd.relu_mlp(rd.stack(x, u), layers)
         out = spec.s0 * stable_expm1(rd.BOUNDED, rd.clip(y, 0.0, spec.y_max))
+        gain = energy_gain(rd.BOUNDED, spec, a[1])
+        if gain is not None:
+            out = out * rd.stack(gain, u)
         S.append(out.value)
         err.append(out.err)
     return np.concatenate(S), np.concatenate(err)
@@ -367,6 +406,8 @@ def make_export_module(spec: NeuralSpec, mlp):
 
         def forward(self, angles):
             y = self.mlp(torch.stack(features(torch, spec, *angles.unbind(-1)), -1))
-            return spec.s0 * stable_expm1(torch, torch.clamp(y, 0.0, spec.y_max))
+            S = spec.s0 * stable_expm1(torch, torch.clamp(y, 0.0, spec.y_max))
+            gain = energy_gain(torch, spec, angles[..., 1])
+            return S if gain is None else S * torch.stack(gain, -1)
 
     return Exported()

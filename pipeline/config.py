@@ -419,9 +419,8 @@ class TrainCfg(Strict):
     sigma_floor: float = Field(0.02, gt=0.0, le=1.0, description="log-space noise floor of the loss weights")
     bin_strata: int = Field(2, ge=1, le=8,
                             description="k: the model's mean over k x k stratified points of a bin is fitted")
-    albedo_weight: float = Field(3.0, ge=0.0, le=1000.0, description="weight of the energy term of the calibration")
-    calibration_steps: int = Field(150, ge=0, le=100_000,
-                                   description="L-BFGS iterations of the output layer's energy calibration (0: none)")
+    energy_gain: bool = Field(True, description="scale the model per incident longitude and wavelength so that "
+                              "each incidence's albedo is the table's (models.fit.energy_gain)")
     seed: int = Field(0, ge=0, le=2**32 - 1)
     threads: int = Field(2, ge=1, le=256)
     line_nodes: list[Annotated[int, Field(ge=2, le=4096)]] = Field(

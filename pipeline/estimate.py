@@ -104,7 +104,9 @@ def _train_work(cfg) -> float:
     for hidden in t.models.values():
         widths = [16] + list(hidden) + [cfg.wavelengths.count]
         params = sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:]))
-        total += (t.epochs + t.calibration_steps) * bins * (1 + params / 10_000)
+        # the energy gain: 8 x 8 forward passes over every bin, an epoch 2 x 2 forward and
+        # backward (~3 forwards): ~5 epochs' work
+        total += (t.epochs + 5 * t.energy_gain) * bins * (1 + params / 10_000)
     return total
 
 

@@ -107,7 +107,7 @@ class TrainSummary(Summary):
     epochs: int
     train_seconds: float
     parameters: int
-    # the energy calibration (absent without one)
+    # the energy gain (absent without one)
     worst_albedo_error_before: Optional[float] = None
     worst_albedo_error_after: Optional[float] = None
     calibration_seconds: Optional[float] = None

@@ -14,7 +14,7 @@ from tests.test_cli import ROOT
 
 SHRINK = ["tabulate.theta_i_step_deg=30", "bake.paths_per_phi_i=2000",
           "bake.batch_paths=1024", "bake.theta_i_deg=null", "bake.theta_i_step_deg=45", "bake.phi_i_step_deg=45",
-          "bake.n_phi_o=8", "train.models={s: [4]}", "train.epochs=2", "train.calibration_steps=2",
+          "bake.n_phi_o=8", "train.models={s: [4]}", "train.epochs=2",
           "render.width=16", "render.height=8", "render.spp=1", "render.mono_check=false",
           "render.explicit=false", "render.model=null", "render.backends=[table, mlp]", "report.queries=1000"]
 CONFIGS = sorted(p.name for p in (ROOT / "configs").glob("*.yaml"))

@@ -25,7 +25,7 @@ fiber: {model: mie, radius_um: 3.0, ior: {k: 0.001}, mie: {roughness_deg: 5.0}}
 tabulate: {theta_i_step_deg: 15}
 bundle: {shape: circle, radius_um: 20.0, seed: 1}
 bake: {paths_per_phi_i: 20000, batch_paths: 8192, theta_i_step_deg: 30, n_theta_o: 12, n_phi_o: 16}
-train: {models: {s: [8]}, epochs: 5, batch_size: 256, calibration_steps: 5}
+train: {models: {s: [8]}, epochs: 5, batch_size: 256}
 render: {width: 24, height: 12, spp: 2, scenes: [ply], mono_check: false, explicit: false}
 report: {queries: 5000}
 cloth: {swatch: {courses: 2, wales: 2}, width: 24, height: 16, spp: 2, max_depth: 4}

@@ -3,21 +3,22 @@
 For each model size of the config, in one run on the same folded table, split and seed:
 
 * a long **reference** schedule (:data:`OLD`: 1500 epochs of batch 1024 at lr 3e-3,
-  patience 300, 300 calibration iterations; the rows call it ``old``) and
+  patience 300; the rows call it ``old``) and
 * the config's own ``train:`` schedule (**new**),
 
 each trained by :func:`models.fit.fit`, the code ``bcsdf train`` runs. During
 phase 1 the best state so far is copied at about 12 log-spaced moments; their held-out
 relative L1 (bin averages, 4 x 4 points, the ``summary.json`` metric) is computed after the
-clock has stopped, so measuring costs the schedules nothing. After the calibration: the final
+clock has stopped, so measuring costs the schedules nothing. After the energy gain: the final
 held-out L1, the worst albedo error and the seconds of each phase. First, where a minibatch
 step's time goes (points and features, forward, backward, optimizer) for each size.
 
 Prints one table, recorded as ``benchmarks/train.json`` (``pipeline.bench.results``), and
 draws ``docs/images/train_schedules.png`` (held-out L1 against seconds, one panel per size). ``--sizes`` limits
 the sizes; ``--quick`` trains 1/10 of each schedule's epochs (a smoke run, not a measurement).
-``--calibration 4 3`` instead compares the energy calibration at 4 x 4 and 3 x 3 points per
-bin from one phase-1 state per size (seconds, held-out L1, worst albedo error at fresh points).
+``--calibration 4 8`` instead compares the energy gain with the model's albedo integrated at
+4 x 4 and 8 x 8 midpoints per bin, from one phase-1 state per size (seconds, held-out L1,
+worst albedo error integrated at 16 x 16 midpoints).
 """
 
 from __future__ import annotations
@@ -46,15 +47,14 @@ from . import results
 IMAGES = Path(__file__).resolve().parents[2] / "docs" / "images"
 
 # the reference schedule: long and slow, the yardstick of the config's own
-OLD = {"epochs": 1500, "batch_size": 1024, "lr": 3e-3, "patience": 300, "bin_strata": 2, "calibration_steps": 300}
+OLD = {"epochs": 1500, "batch_size": 1024, "lr": 3e-3, "patience": 300, "bin_strata": 2}
 
 
 def measure_schedule(cfg, problem, name, hidden, schedule: dict, quick=False) -> dict:
     """Train one size under one schedule; its curve and final figures."""
 
     if quick:
-        schedule = {**schedule, "epochs": max(2, schedule["epochs"] // 10),
-                    "calibration_steps": max(1, schedule["calibration_steps"] // 10)}
+        schedule = {**schedule, "epochs": max(2, schedule["epochs"] // 10)}
     c = cfg.train.model_copy(update=schedule)
     spec = dataclasses.replace(problem.base, hidden=list(hidden))
     marks = iter(np.geomspace(0.5, 2000.0, 40))
@@ -125,9 +125,9 @@ def profile_steps(cfg, problem, name, hidden, steps=30) -> dict:
 
 
 def compare_calibration(cfg, problem, sizes, strata) -> dict:
-    """Phase 1 once per size, then the calibration from that same state at each k x k points
-    per bin: its seconds, the held-out L1 and the worst albedo error, the latter at 6 x 6
-    fresh points per bin (not the calibration's own)."""
+    """Phase 1 once per size, then the energy gain from that same state with the model's
+    albedo integrated at each k x k midpoints per bin: its seconds, the held-out L1 and the
+    worst albedo error, the latter integrated at 16 x 16 midpoints (not the gain's own)."""
     c = cfg.train
     rows = {}
     for name in sizes:
@@ -135,21 +135,20 @@ def compare_calibration(cfg, problem, sizes, strata) -> dict:
         torch.manual_seed(c.seed)
         model, p = make_torch_model(spec), fitting.BinFit(spec, problem)
         fitting.fit_bins(model, p, c, name)
-        state = copy.deepcopy(model.state_dict())
         rows[name] = {}
         for k in strata:
-            model.load_state_dict(state)
             t0 = time.perf_counter()
-            fitting.calibrate(model, p, c, name, strata=k)
+            fitting.energy_gain(model, spec, p, strata=k)
             seconds = time.perf_counter() - t0
-            fresh = p.stratified(len(p.every), 6, torch.Generator().manual_seed(12345))  # not the calibration's
-            with torch.no_grad():
-                S = p.bin_means(p.every, model(p.encode(p.every, fresh)))[1]
+            S = fitting.model_bin_averages(spec, model, problem.data.cell, k=16)
+            albedo = np.zeros_like(problem.data.albedo)
+            np.add.at(albedo, problem.data.group, S * problem.data.omega[:, None])
+            seen = problem.data.albedo > 0
             r = {"seconds": seconds, "relative_l1": fitting.held_out_metrics(spec, model, problem.data,
                                                                        problem.val_idx)["relative_l1"],
-                 "worst_albedo_error": p.worst_albedo_error(S)}
+                 "worst_albedo_error": float(np.max(np.abs(albedo[seen] / problem.data.albedo[seen] - 1)))}
             rows[name][k] = r
-            print(f"{name:8s} calibration at {k} x {k} points: {seconds:5.1f} s, held-out L1 {r['relative_l1']:.2%}, "
+            print(f"{name:8s} energy gain at {k} x {k} points: {seconds:5.1f} s, held-out L1 {r['relative_l1']:.2%}, "
                   f"worst albedo error {r['worst_albedo_error']:.2%}", flush=True)
     return rows
 
@@ -161,7 +160,7 @@ def main(argv=None):
     parser.add_argument("--sizes", nargs="*", help="model names of train.models (default: all)")
     parser.add_argument("--quick", action="store_true", help="a tenth of the epochs: a smoke run")
     parser.add_argument("--calibration", type=int, nargs="+", metavar="K",
-                        help="instead: the calibration at K x K points per bin, side by side from one phase 1")
+                        help="instead: the energy gain at K x K points per bin, side by side from one phase 1")
     parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
                     help="change a config key, as `bcsdf run --set` (make run-sizes: the three model sizes)")
     args = parser.parse_args(argv)

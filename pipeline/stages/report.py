@@ -107,7 +107,7 @@ def run(cfg, out_root="artifacts") -> Path:
                             f"<td>{calibration}</td></tr>")
         body = ("<table><tr><th>model</th><th>hidden</th><th>parameters</th><th>epochs</th><th>train s</th>"
                 "<th>held-out rel. L1</th><th>table noise L1</th><th>error / table noise</th>"
-                "<th>worst albedo error, calibration</th></tr>"
+                "<th>worst albedo error, energy gain</th></tr>"
                 + "".join(rows) + "</table>")
         body += "".join(img_tag(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
                         if (train / n / "loss.png").exists())

@@ -5,10 +5,10 @@ For every model name, writes under ``artifacts/<name>/train/<model>/``:
 * ``model.pt``      the weights and the :class:`models.neural.NeuralSpec`;
 * ``loss.png``      training and validation loss per epoch;
 * ``summary.json``  held-out errors, the noise ratio, time, parameter count, and the
-                    worst albedo error before and after the energy calibration.
+                    worst albedo error before and after the energy gain.
 
 The fitting itself (folds, bin averages, the noise-weighted log-space loss, the energy
-calibration, the held-out split) is :mod:`models.fit`; the training bench runs the same
+gain, the held-out split) is :mod:`models.fit`; the training bench runs the same
 code. Same table, seed and threads: the same weights.
 """
 
@@ -68,7 +68,7 @@ def run(cfg, out_root="artifacts") -> Path:
                 f"{summary.noise_ratio:.2f}")
         if calibration:
             line += (f"; worst albedo error {summary.worst_albedo_error_before:.2%} -> "
-                     f"{summary.worst_albedo_error_after:.2%} by the calibration")
+                     f"{summary.worst_albedo_error_after:.2%} by the energy gain")
         print(line)
         if summary.relative_l1 > max(POOR_L1, 3 * summary.table_noise_l1):
             print(f"[train] warning: {name} is {summary.relative_l1:.0%} off on the held-out bins (the table's own "
