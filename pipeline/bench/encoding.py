@@ -14,7 +14,7 @@ table's own noise on those bins, and the worst albedo error after the calibratio
 ``--reference NAME``: the artifacts of an **independent bake** of the same config (another
 seed, more paths; e.g. ``bcsdf bake configs/default.yaml --set name=default_ref --set
 bake.seed=7 --set bake.paths_per_phi_i=16000000``, fiber first) as the truth: each model's
-bin averages over *every* bin (8 x 8 midpoints: the ridge is narrower than a bin) against it, :func:`models.errors.core_l1` (the
+bin averages over *every* bin (12 x 12 midpoints: the ridge is narrower than a bin, and none is a point of the energy gain's 8 x 8) against it, :func:`models.errors.core_l1` (the
 bins holding 90% of each incident direction and wavelength's energy), and its albedo against
 the reference's scattered fraction; the training table itself is the first row (its noise).
 
@@ -70,7 +70,7 @@ def measure(cfg, table, table_path, label, nodes, channels, hidden, quick=False,
     m = held_out_metrics(spec, model, problem.data, problem.val_idx)
     parameters = int(sum(p.numel() for p in model.parameters()))
     truth = ({} if reference is None else
-             against(reference, model_bin_averages(spec, model, table_cells(table), k=8).reshape(table.values.shape)))
+             against(reference, model_bin_averages(spec, model, table_cells(table), k=12).reshape(table.values.shape)))
     return {**{"encoding": label, "hidden": str(list(hidden)), "parameters": parameters, "bytes": 4 * parameters,
             "epochs": len(history), "train_s": seconds, "relative_l1": m["relative_l1"],
             "error_over_noise": m["noise_ratio"], "table_noise_l1": m["table_noise_l1"],
