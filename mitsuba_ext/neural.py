@@ -38,7 +38,8 @@ def load_weights(path):
                          "weights.npz (beside it), or evaluate the graph with OnnxMLP (backend 'onnx')")
     try:
         with np.load(path, allow_pickle=False) as z:
-            spec = NeuralSpec.from_dict(json.loads(str(z["spec"])))
+            text = z["spec"]  # UTF-8 bytes; an older export's numpy str
+            spec = NeuralSpec.from_dict(json.loads(text.item().decode("utf-8") if text.dtype.kind == "S" else str(text)))
             layers = []
             while f"W{len(layers)}" in z:
                 k = len(layers)

@@ -128,7 +128,7 @@ def test_model_metadata_out_of_its_domain_is_refused(trained, tmp_path, field, v
     src = root / cfg.name / "export" / size / "weights.npz"
     with np.load(src, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
-    spec = json.loads(str(arrays["spec"]))
+    spec = json.loads(arrays["spec"].item().decode("utf-8"))
     spec[field] = value
     if field == "passthrough":
         spec["passthrough_phi_i"] = [0.0]

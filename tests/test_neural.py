@@ -438,7 +438,7 @@ def test_models_of_the_previous_formats_still_load(trained, tmp_path):
     src = tmp / "n" / "export" / "tiny" / "weights.npz"
     with np.load(src) as z:
         arrays = {k: z[k] for k in z.files}
-    spec = json.loads(str(arrays.pop("spec")))
+    spec = json.loads(arrays.pop("spec").item().decode("utf-8"))
     assert spec["gain"], "the fixture's model has an energy gain"
     gain, nodes = np.asarray(spec.pop("gain")), np.asarray(spec.pop("gain_theta_i"))
     old = tmp_path / "old.npz"
