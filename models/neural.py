@@ -322,8 +322,9 @@ def energy_gain(lib, spec: NeuralSpec, theta_i):
     table's (:func:`models.fit.energy_gain`). Piecewise linear in ``theta_i`` (``|theta_i|``
     under the theta fold) through ``spec.gain_theta_i``, constant beyond the end nodes,
     written as a sum of clipped segments, ``g_0 + sum_k m_k (clip(t, t_k, t_k+1) - t_k)``, the
-    slopes ``m_k``: ops every backend has. ``lib`` as :func:`features`; returns a list over
-    wavelengths, or ``None`` without a gain."""
+    slopes ``m_k``: ops every backend has. ``lib`` as :func:`features`; returns ``[..., n_lambda]``
+    for numpy and PyTorch (the segments times a matrix: one ``MatMul`` in the ONNX graph), a
+    list over wavelengths for Dr.Jit and bounded arithmetic, or ``None`` without a gain."""
     if not spec.gain:
         return None
     clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
@@ -332,6 +333,11 @@ def energy_gain(lib, spec: NeuralSpec, theta_i):
     nodes, g = np.asarray(spec.gain_theta_i, np.float64), np.asarray(spec.gain, np.float64)
     segments = [clip(t, float(a), float(b)) - float(a) for a, b in zip(nodes[:-1], nodes[1:])]
     slopes = np.diff(g, axis=0) / np.diff(nodes)[:, None]
+    if lib is np or getattr(lib, "__name__", "") == "torch":  # one matrix product: one MatMul in ONNX
+        if not segments:
+            return t[..., None] * 0.0 + lib.asarray(g[0].astype(np.float32))
+        seg = lib.stack(segments, -1)
+        return seg @ lib.asarray(slopes.astype(np.float32)) + lib.asarray(g[0].astype(np.float32))
     out = []
     for k in range(g.shape[1]):
         acc = t * 0.0 + float(g[0, k])
@@ -408,6 +414,6 @@ def make_export_module(spec: NeuralSpec, mlp):
             y = self.mlp(torch.stack(features(torch, spec, *angles.unbind(-1)), -1))
             S = spec.s0 * stable_expm1(torch, torch.clamp(y, 0.0, spec.y_max))
             gain = energy_gain(torch, spec, angles[..., 1])
-            return S if gain is None else S * torch.stack(gain, -1)
+            return S if gain is None else S * gain
 
     return Exported()

@@ -58,7 +58,7 @@ def figures(cfg, artifacts) -> tuple[list[dict], dict]:
         ("sizes", "stored table / weights.npz", f"{table_file / weights_file:.0f}x"),
         ("model", "held-out relative L1 (bin averages)", f"{train.relative_l1:.1%}"),
         ("model", "held-out error / the table's own noise", f"{train.noise_ratio:.2f}"),
-        ("model", "worst albedo error per incidence and wavelength, the energy gain's 8 x 8 points per bin",
+        ("model", "worst albedo error per incidence and wavelength after the energy gain (9 x 9 points a bin, not the gain's 8 x 8)",
          f"{train.worst_albedo_error_after:.2%}" if train.worst_albedo_error_after is not None else "-"),
         ("model", "worst albedo error of the exported model, each bin averaged on its own",
          f"{mlp['albedo_error']:.2%}"),
