@@ -334,10 +334,11 @@ def energy_gain(lib, spec: NeuralSpec, theta_i):
     segments = [clip(t, float(a), float(b)) - float(a) for a, b in zip(nodes[:-1], nodes[1:])]
     slopes = np.diff(g, axis=0) / np.diff(nodes)[:, None]
     if lib is np or getattr(lib, "__name__", "") == "torch":  # one matrix product: one MatMul in ONNX
+        g0 = lib.asarray(g[0], dtype=t.dtype)  # constants of the evaluation's precision, as elsewhere
         if not segments:
-            return t[..., None] * 0.0 + lib.asarray(g[0].astype(np.float32))
+            return t[..., None] * 0.0 + g0
         seg = lib.stack(segments, -1)
-        return seg @ lib.asarray(slopes.astype(np.float32)) + lib.asarray(g[0].astype(np.float32))
+        return seg @ lib.asarray(slopes, dtype=seg.dtype) + g0
     out = []
     for k in range(g.shape[1]):
         acc = t * 0.0 + float(g[0, k])
