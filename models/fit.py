@@ -6,12 +6,9 @@ bins that the symmetric features cannot tell apart are one sample, their mean.
 :func:`choose_folds` keeps a symmetry only if the table obeys it within its noise.
 
 The table's values are bin averages, so the model's *bin average* is fitted: its mean
-over the ``bin_strata`` x ``bin_strata`` midpoints of the bin; the held-out errors compare
-bin averages (4 x 4 midpoints) too. Fixed points, not random ones: on the ridge along the
-specular cone, narrower than a bin, a random draw's variance biases a log-space fit of the
-mean. A model fitted at one point per bin is free to peak unseen between them; whether it
-does at 2 x 2 shows in the figures measured on other grids (the truth's 12 x 12 in
-``pipeline.bench.encoding``, the albedo's 9 x 9 after the energy gain).
+over ``bin_strata`` x ``bin_strata`` stratified random points of the bin (fresh every
+step); the held-out errors compare bin averages (4 x 4 points) too. A model fitted and
+measured at bin centres alone is free to peak unseen between them.
 
 Phase 1 (:func:`fit_bins`) minimizes a weighted MSE in log space, ``y = log(1 + S / s0)``:
 each sample and wavelength is weighted by ``1 / (sigma_y^2 + sigma_floor^2)`` where
@@ -176,7 +173,9 @@ class BinFit:
     model's *bin averages*.
 
     The table holds bin averages, so the model's bin average is fitted: its mean, in
-    linear space, over the k x k midpoints of the bin (module docstring: why fixed points).
+    linear space, over k x k stratified random points of the bin. Fitted at the centres
+    alone, a network peaks unseen between them (too much energy); with unstratified points
+    the estimate's variance biases the fit low.
     """
 
     def __init__(self, spec: NeuralSpec, problem: Problem):
@@ -195,16 +194,10 @@ class BinFit:
         self.group = torch.from_numpy(data.group)
 
     @staticmethod
-    def midpoints(n, k):
-        """``[n, k * k, 2]``: the midpoints of the k x k cells of the unit square, for each of n bins."""
-        mid = torch.tensor([[(i + 0.5) / k, (j + 0.5) / k] for i in range(k) for j in range(k)])
-        return mid.expand(n, k * k, 2)
-
-    def encoded(self, k):
-        """Every sample's features at its bin's k x k midpoints, ``[samples, k * k, n_inputs]``:
-        computed once, indexed by every step."""
-        x = self.encode(self.every, self.midpoints(len(self.every), k))
-        return x.reshape(len(self.every), k * k, -1)
+    def stratified(n, k, generator):
+        """``[n, k * k, 2]`` points, one uniform in each of the k x k strata of the unit square."""
+        strata = torch.tensor([[i / k, j / k] for i in range(k) for j in range(k)])
+        return strata + torch.rand((n, k * k, 2), generator=generator) / k
 
     def encode(self, b, u):
         """Features at the points ``u [len(b), K, 2]`` of bins ``b``: ``[len(b) * K, n_inputs]``."""
@@ -269,15 +262,14 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
     ``[(train, validation)]`` per epoch and the best validation loss.
 
     The training loss of an epoch is the mean of its minibatch losses (no second pass);
-    the held-out loss is measured on the held-out bins alone, at the same midpoints.
+    the held-out loss is measured on the held-out bins alone at fixed stratified points.
     """
 
     opt = adam(model, c.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, c.epochs)
     gen = torch.Generator().manual_seed(c.seed)
-    x_all = p.encoded(c.bin_strata)  # the features do not change: one encoding for every step
-    n_in = x_all.shape[-1]
-    x_val = x_all[p.va].reshape(-1, n_in)
+    fixed = p.stratified(len(p.data.x), c.bin_strata, torch.Generator().manual_seed(c.seed + 1))
+    x_val = p.encode(p.va, fixed[p.va])  # the points of every bin drawn, so a bin's points do not depend on the split
     history, best, best_state, since = [], np.inf, None, 0
     t0 = time.perf_counter() if t0 is None else t0
     with tqdm(range(c.epochs), desc=f"train {name}", unit="epoch") as bar:
@@ -286,7 +278,7 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
             total = 0.0
             for lo in range(0, len(perm), c.batch_size):
                 b = perm[lo: lo + c.batch_size]
-                y, _ = p.bin_means(b, model(x_all[b].reshape(-1, n_in)))
+                y, _ = p.bin_means(b, model(p.encode(b, p.stratified(len(b), c.bin_strata, gen))))
                 loss = p.loss(b, y)
                 opt.zero_grad()
                 loss.backward()
@@ -337,7 +329,8 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     the ratio of the two (over the ``phi_i`` that share it), piecewise linear between them.
     The rows include the held-out bins: their values are never fitted, but the row's total
     is the target. The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
-    every bin (finer than the fit's: the ridge along the specular cone is narrower than a bin).
+    every bin: the ridge along the specular cone is narrower than a bin, and random points
+    (the fit's) would put their own noise into the gain.
 
     Sets ``spec.gain`` and ``spec.gain_theta_i``; returns the worst albedo error over the
     scattering rows before and after (after: integrated at ``strata + 1`` x ``strata + 1``

@@ -418,7 +418,7 @@ class TrainCfg(Strict):
     val_fraction: float = Field(0.1, gt=0.0, lt=0.9)
     sigma_floor: float = Field(0.02, gt=0.0, le=1.0, description="log-space noise floor of the loss weights")
     bin_strata: int = Field(2, ge=1, le=8,
-                            description="k: the model's mean over the k x k midpoints of a bin is fitted")
+                            description="k: the model's mean over k x k stratified points of a bin is fitted")
     energy_gain: bool = Field(True, description="scale the model per incident longitude and wavelength so that "
                               "each incidence's albedo is the table's (models.fit.energy_gain)")
     seed: int = Field(0, ge=0, le=2**32 - 1)

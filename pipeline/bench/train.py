@@ -103,7 +103,7 @@ def profile_steps(cfg, problem, name, hidden, steps=30) -> dict:
     for k in range(steps + 3):
         b = p.tr[torch.randperm(len(p.tr), generator=gen)[:c.batch_size]]
         t0 = time.perf_counter()
-        x = p.encode(b, p.midpoints(len(b), c.bin_strata))  # (training encodes once; its cost per step)
+        x = p.encode(b, p.stratified(len(b), c.bin_strata, gen))
         t1 = time.perf_counter()
         loss = p.loss(b, p.bin_means(b, model(x))[0])
         t2 = time.perf_counter()
@@ -115,7 +115,7 @@ def profile_steps(cfg, problem, name, hidden, steps=30) -> dict:
         if k >= 3:  # the first steps warm the allocator
             for key, dt in zip(T, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                 T[key] += dt * 1e3 / steps
-    x_val = p.encode(p.va, p.midpoints(len(p.va), c.bin_strata))
+    x_val = p.encode(p.va, p.stratified(len(p.va), c.bin_strata, gen))
     t0 = time.perf_counter()
     with torch.no_grad():
         p.loss(p.va, p.bin_means(p.va, model(x_val))[0])
