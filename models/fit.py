@@ -305,7 +305,7 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
     return history, best
 
 
-GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the energy gain
+GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the gain (`bench.train --calibration` compares k)
 
 
 def _midpoint_means(model, p: BinFit, k: int):
