@@ -236,7 +236,7 @@ def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
 
     Returns the model, the loss history, the best validation loss, the seconds taken and
     the worst albedo error over (incident direction, wavelength) before and after the
-    calibration (at its points; empty without calibration). ``on_epoch(epoch, seconds,
+    energy gain (:func:`energy_gain`; empty without one). ``on_epoch(epoch, seconds,
     best_state)`` is called after every epoch (the training bench records with it).
     """
     torch.manual_seed(c.seed)

@@ -84,7 +84,7 @@ def measure_schedule(cfg, problem, name, hidden, schedule: dict, quick=False) ->
 def equal_accuracy_speedup(old: dict, new: dict):
     """How much sooner the config's schedule reaches its accuracy than the reference one
     does. The old schedule's seconds to its first phase-1 snapshot at or below the
-    new one's final held-out L1, plus its calibration, over the new schedule's seconds
+    new one's final held-out L1, plus its energy gain, over the new schedule's seconds
     (the snapshots are ~24% of time apart: as coarse); ``None`` if no snapshot gets there."""
     reached = [p["seconds"] for p in old["curve"] if p["relative_l1"] <= new["relative_l1"]]
     return (reached[0] + old["calibration_seconds"]) / new["seconds"] if reached else None
@@ -220,7 +220,7 @@ def plot(rows: dict, path: Path) -> None:
             ax.plot([p["seconds"] for p in c], [p["relative_l1"] for p in c], "o-", ms=3, color=color,
                     label=f"{label}: phase 1")
             ax.plot([r["seconds"]], [r["relative_l1"]], "*", ms=12, color=color,
-                    label=f"{label}: calibrated, {r['seconds']:.0f} s")
+                    label=f"{label}: with its energy gain, {r['seconds']:.0f} s")
         ax.axhline(by["old"]["relative_l1"], color="0.45", ls=":", lw=1)
         ax.set(xscale="log", yscale="log", xlabel="wall time [s] (2 threads)", ylabel="held-out relative L1",
                title=f"model {name}")
