@@ -186,7 +186,7 @@ def schedules(args):
         print(f"  {name:8s} " + ", ".join(f"{k} {q[k]:.2f}" for k in ("data", "forward", "backward", "optimizer"))
               + f"; {q['steps_per_epoch']} steps = {q['epoch']:.0f} ms per epoch, held-out loss {q['validation']:.1f} ms")
     rows = {}
-    print(f"{'size':8s} {'schedule':8s} {'epochs':>6s} {'phase 1 s':>9s} {'calib. s':>8s} {'total s':>8s} "
+    print(f"{'size':8s} {'schedule':8s} {'epochs':>6s} {'phase 1 s':>9s} {'gain s':>8s} {'total s':>8s} "
           f"{'rel. L1':>8s} {'albedo':>7s}")
     for name in sizes:
         hidden = cfg.train.models[name]
@@ -225,7 +225,8 @@ def plot(rows: dict, path: Path) -> None:
         ax.set(xscale="log", yscale="log", xlabel="wall time [s] (2 threads)", ylabel="held-out relative L1",
                title=f"model {name}")
         ax.legend(fontsize=7)
-    fig.suptitle("training schedules: held-out error against time, same table, split and seed", fontsize=10)
+    fig.suptitle("training schedules: held-out error against time" + ("\n" if len(rows) < 2 else ", ")
+                 + "same table, split and seed", fontsize=10)
     fig.tight_layout()
     save_figure(fig, path)
 
