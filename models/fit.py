@@ -185,13 +185,9 @@ class BinFit:
         self.cell = torch.from_numpy(data.cell.astype(np.float32))
         self.tr, self.va = torch.from_numpy(problem.train_idx), torch.from_numpy(problem.val_idx)
         self.every = torch.arange(len(data.x))
-        # the table's albedo per (incident direction, wavelength) row; a row that scatters
-        # nothing has no relative error
-        albedo = torch.from_numpy(data.albedo.astype(np.float32))
-        self.seen = albedo > 0
-        self.albedo = albedo[self.seen]
-        self.omega = torch.from_numpy(data.omega.astype(np.float32))[:, None]
-        self.group = torch.from_numpy(data.group)
+        # the (incident direction, wavelength) rows that scatter: a row that scatters nothing
+        # has no relative albedo error
+        self.seen = data.albedo > 0
 
     @staticmethod
     def stratified(n, k, generator):
@@ -216,14 +212,18 @@ class BinFit:
         # so relu(e) is the clamped expm1; e's bin mean is the leaky S / s0
         return torch.log1p(torch.clamp(e.mean(1), min=-0.5)), self.spec.s0 * torch.relu(e).mean(1)
 
-    def model_albedo(self, S):
-        """The model's albedo per scattering row (those of :attr:`albedo`) from its bin
-        values ``S`` at every bin: the sum of ``S d omega`` over each row's outgoing bins."""
-        return torch.zeros(self.seen.shape, dtype=S.dtype).index_add(0, self.group, S * self.omega)[self.seen]
+    def model_albedo(self, S) -> np.ndarray:
+        """The model's albedo per (incident direction, wavelength) row, ``[groups, lambda]``,
+        from its bin values ``S [samples, lambda]``: the sum of ``S d omega`` over each row's
+        outgoing bins."""
+        albedo = np.zeros_like(self.data.albedo)
+        np.add.at(albedo, self.data.group, S * self.data.omega[:, None])
+        return albedo
 
-    def worst_albedo_error(self, S) -> float:
-        """The largest relative albedo error over the scattering rows."""
-        return float((self.model_albedo(S) / self.albedo - 1).abs().max())
+    def worst_albedo_error(self, albedo) -> float:
+        """The largest relative error of ``albedo [groups, lambda]`` against the table's over
+        the scattering rows."""
+        return float(np.max(np.abs(albedo[self.seen] / self.data.albedo[self.seen] - 1)))
 
     def loss(self, b, y):
         """Weighted log-space MSE: the weights carry the table's own noise."""
@@ -308,15 +308,13 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
 GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the gain (`bench.train --calibration` compares k)
 
 
-def _midpoint_means(model, p: BinFit, k: int):
-    """The network's bin averages ``S [classes, lambda]`` (float64, no gain) over k x k midpoints."""
-    S = 0.0
-    with torch.no_grad():
-        for a in (np.arange(k) + 0.5) / k:
-            for b in (np.arange(k) + 0.5) / k:
-                u = torch.tensor([[[a, b]]], dtype=torch.float32).expand(len(p.every), 1, 2)
-                S = S + p.bin_means(p.every, model(p.encode(p.every, u)))[1].double()
-    return S / k**2
+def _midpoint_means(model, p: BinFit, k: int) -> np.ndarray:
+    """The network's bin averages ``S [samples, lambda]`` (no gain) over k x k midpoints."""
+    def predict(*angles):
+        x = torch.stack(features(torch, p.spec, *(torch.from_numpy(a.astype(np.float32)) for a in angles)), -1)
+        with torch.no_grad():
+            return p.bin_means(p.every, model(x))[1].double().numpy()
+    return bin_average(predict, p.data.cell, k)
 
 
 def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -> dict:
@@ -336,10 +334,9 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     scattering rows before and after (after: integrated at ``strata + 1`` x ``strata + 1``
     midpoints; empty if no row scatters).
     """
-    if not len(p.albedo):  # no row scatters
+    if not p.seen.any():  # no row scatters
         return {}
-    S = _midpoint_means(model, p, strata)
-    model_albedo = torch.zeros(p.seen.shape, dtype=S.dtype).index_add(0, p.group, S * p.omega.double()).numpy()
+    model_albedo = p.model_albedo(_midpoint_means(model, p, strata))
     table_albedo = p.data.albedo
     # each group's incident longitude (|theta_i| under the theta fold: the features cannot tell the sign)
     theta = np.zeros(len(table_albedo))
@@ -351,13 +348,9 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     np.add.at(num, at, table_albedo)
     np.add.at(den, at, model_albedo)
     gain = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), 1.0)
-    seen = p.seen.numpy()
-    before = float(np.max(np.abs(model_albedo[seen] / table_albedo[seen] - 1)))
     spec.gain, spec.gain_theta_i = gain.tolist(), np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)
     # after: integrated on another grid (strata + 1 midpoints a side, none shared), so that the
     # figure holds the gain's own quadrature error, not zero by construction
-    S_other = _midpoint_means(model, p, strata + 1).numpy() * gain[at][p.data.group]
-    after = np.zeros_like(table_albedo)
-    np.add.at(after, p.data.group, S_other * p.data.omega[:, None])
-    return {"worst_albedo_error_before": before,
-            "worst_albedo_error_after": float(np.max(np.abs(after[seen] / table_albedo[seen] - 1)))}
+    after = p.model_albedo(_midpoint_means(model, p, strata + 1)) * gain[at]
+    return {"worst_albedo_error_before": p.worst_albedo_error(model_albedo),
+            "worst_albedo_error_after": p.worst_albedo_error(after)}
