@@ -74,9 +74,8 @@ BYTES_PER_HAIR_POINT = 200
 POINTS_PER_HAIR = {"linearcurve": 6, "bsplinecurve": 12}   # models.cloth.flyaways.hair_flyaways
 
 
-def estimated_points(collection, c, yarn) -> int:
-    """Ply control points the model will make, from its centre lines' lengths (before building)."""
-    length = centre_length(collection, c)
+def estimated_points(length: float, yarn) -> int:
+    """Ply control points the model will make from ``length`` mm of centre lines (before building)."""
     return int(yarn.K * max(length / abs(yarn.pitch) * 16, length / (0.25 * yarn.radius)))
 
 
@@ -98,9 +97,10 @@ def estimated_hairs(c, yarn, length: float) -> int:
 
 def check_fits(collection, c, yarn) -> None:
     """Refuse, before building, a model whose plies and flyaways would not fit in memory."""
-    points = estimated_points(collection, c, yarn)
+    length = centre_length(collection, c)
+    points = estimated_points(length, yarn)
     model_points = sum(len(cv.points) for cv in collection.curves)
-    hairs = estimated_hairs(c, yarn, centre_length(collection, c))
+    hairs = estimated_hairs(c, yarn, length)
     per_hair = BYTES_PER_HAIR + POINTS_PER_HAIR[c.flyaways.curve] * BYTES_PER_HAIR_POINT if hairs else 0
     need, have = points * BYTES_PER_POINT + model_points * BYTES_PER_MODEL_POINT + hairs * per_hair, memory_bytes()
     if need > 0.5 * have:

@@ -125,7 +125,8 @@ def build_plies(collection: CurveCollection, scale: float, yarn: YarnSpec, tol_f
         P = scale * c.points
         segments.append(n_segments(P, c.closed, collection.kind))
         passes.append(evaluate(P, c.closed, collection.kind, np.arange(8 * segments[-1] + (0 if c.closed else 1)) / 8))
-    check_bends(passes, yarn.radius)
+    bends = Bends.of(passes)
+    bends.check(yarn.radius)
     plies, pitches = [], []
     for k, samples in enumerate(passes):
         if yarn.K == 1:  # a single ply is the yarn: its centre line as converted
@@ -141,15 +142,7 @@ def build_plies(collection: CurveCollection, scale: float, yarn: YarnSpec, tol_f
     near = nearest_other([q[::4] for q in passes], closed, along_min=4 * yarn.radius)
     check_distinct([q[::4] for q in passes], near, yarn.radius)
     return PlyGeometry(plies, yarn.r_ply, deviation, float(near.min()), float(np.mean(near < 2 * yarn.radius)),
-                       folded=folded_share(passes, yarn.radius), pitch_used=pitches)
-
-
-def folded_share(passes: list[np.ndarray], radius: float) -> float:
-    """The share of the centre lines' length (dense samples ``passes``) that bends tighter
-    than ``radius``: there a tube of that radius folds through itself."""
-    bent = np.concatenate([bend_radius(p) < radius for p in passes])
-    step = np.concatenate([0.5 * np.linalg.norm(p[2:] - p[:-2], axis=1) for p in passes])
-    return float(np.sum(step * bent) / np.sum(step))
+                       folded=bends.folded(yarn.radius), pitch_used=pitches)
 
 
 def check_distinct(passes: list[np.ndarray], near: np.ndarray, radius: float) -> None:
@@ -172,18 +165,35 @@ def check_distinct(passes: list[np.ndarray], near: np.ndarray, radius: float) ->
                      "radius separates them: remove the duplicated or degenerate curves from the model")
 
 
-def check_bends(passes: list[np.ndarray], radius: float, what: str = "cloth.yarn_radius_mm") -> None:
-    """Refuse a yarn radius at which most of the centre lines fold the yarn through itself
-    (their median bend is tighter than the radius): what would render is a blob, not a yarn.
-    A few tight bends (a simulated knit's kinks) are measured and warned of instead
-    (:attr:`PlyGeometry.folded`)."""
-    bends = np.concatenate([bend_radius(p) for p in passes])
-    median = float(np.median(bends))
-    if radius > median:
-        raise ValueError(f"{what}: a yarn radius of {radius:.3g} mm is larger than the centre lines' median bend "
-                         f"radius ({median:.3g} mm), so the yarn would fold through itself along "
-                         f"{100 * folded_share(passes, radius):.0f}% of its length; give a yarn radius under "
-                         f"{median:.3g} mm, or check cloth.units_mm (the model's size in millimetres)")
+@dataclass
+class Bends:
+    """How tightly the centre lines bend: the radius of the circle through every three
+    consecutive samples (:func:`~models.cloth.plies.bend_radius`) and the length each stands for."""
+
+    radius: np.ndarray
+    step: np.ndarray
+
+    @classmethod
+    def of(cls, passes: list[np.ndarray]) -> "Bends":
+        return cls(np.concatenate([bend_radius(p) for p in passes]),
+                   np.concatenate([0.5 * np.linalg.norm(p[2:] - p[:-2], axis=1) for p in passes]))
+
+    def folded(self, radius: float) -> float:
+        """The share of the length that bends tighter than ``radius``: there a tube of that
+        radius folds through itself."""
+        return float(np.sum(self.step * (self.radius < radius)) / np.sum(self.step))
+
+    def check(self, radius: float) -> None:
+        """Refuse a yarn radius at which most of the centre lines fold the yarn through itself
+        (their median bend is tighter than the radius): what would render is a blob, not a
+        yarn. A few tight bends (a simulated knit's kinks) are measured and warned of instead
+        (:attr:`PlyGeometry.folded`)."""
+        median = float(np.median(self.radius))
+        if radius > median:
+            raise ValueError(f"cloth.yarn_radius_mm: a yarn radius of {radius:.3g} mm is larger than the centre lines' median bend "
+                             f"radius ({median:.3g} mm), so the yarn would fold through itself along "
+                             f"{100 * self.folded(radius):.0f}% of its length; give a yarn radius under "
+                             f"{median:.3g} mm, or check cloth.units_mm (the model's size in millimetres)")
 
 
 def write_curves(path, geometry: PlyGeometry) -> None:
