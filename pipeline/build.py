@@ -19,7 +19,7 @@ from models.bake.twisted import TwistedBaker
 from models.fiber.base import FiberTable
 
 from .config import theta_nodes
-from .machine import memory_bytes
+from .machine import check_memory
 
 
 # A ply spaced out to clear its turning fibers keeps at least this share of the packing asked
@@ -149,12 +149,9 @@ def check_scene_fits(ply) -> None:
     margins then hold ever more cylinders)."""
     twisted.check_geometry(ply)
     cylinders = twisted.segments_per_fiber(ply) * len(ply.bundle.radii)
-    need, have = cylinders * twisted.BYTES_PER_CYLINDER, memory_bytes()
-    if need > 0.5 * have:
-        raise ValueError(f"bundle.twist: a pitch of {ply.pitch:g} um leans the outer fibers "
-                         f"{np.degrees(ply.max_lean):.1f} deg; one period would take {cylinders:,} cylinders, "
-                         f"~{need / 2**30:.1f} GiB, more than half of this machine's {have / 2**30:.0f} GiB: "
-                         "lengthen the pitch")
+    check_memory(cylinders * twisted.BYTES_PER_CYLINDER,
+                 f"bundle.twist: a pitch of {ply.pitch:g} um leans the outer fibers {np.degrees(ply.max_lean):.1f} deg; "
+                 f"one period would take {cylinders:,} cylinders", "lengthen the pitch")
 
 
 def cross_section(ply) -> bundles.Bundle:

@@ -19,7 +19,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PrivateAttr, 
 
 from models.grid import cone_bin_counts, cone_edges, cone_nodes
 
-from .machine import memory_bytes
+from .machine import check_memory
 
 # Which config sections each stage's artifact depends on (its provenance hash)
 FIBER_SECTIONS = ("wavelengths", "fiber", "tabulate")
@@ -669,13 +669,11 @@ class Config(Strict):
         b = self.bake
         n_phi_i, n_theta_i = self.incidences(expanded=True)
         cells = n_phi_i * n_theta_i * b.n_phi_o * b.n_theta_o * self.wavelengths.count
-        need = cells * 40  # float64 sum and sum of squares, float32 values and errors, and an expanded copy
-        have = memory_bytes()
-        if need > 0.5 * have:
-            raise ValueError(f"the bake's table needs about {need / 2**30:.1f} GiB ({n_phi_i} x {n_theta_i} x "
-                             f"{b.n_phi_o} x {b.n_theta_o} bins x {self.wavelengths.count} wavelengths), more than "
-                             f"half of this machine's {have / 2**30:.0f} GiB: use fewer bins (bake.n_theta_o, "
-                             "bake.n_phi_o), fewer theta_i nodes (bake.theta_i_step_deg) or fewer wavelengths")
+        # float64 sum and sum of squares, float32 values and errors, and an expanded copy: 40 B a cell
+        check_memory(cells * 40, f"the bake's table of {n_phi_i} x {n_theta_i} x {b.n_phi_o} x {b.n_theta_o} bins x "
+                                 f"{self.wavelengths.count} wavelengths",
+                     "use fewer bins (bake.n_theta_o, bake.n_phi_o), fewer theta_i nodes (bake.theta_i_step_deg) "
+                     "or fewer wavelengths")
         if self.bundle.arrangement == "poisson":
             # the fibers it would place: the bundle's area over a fiber's, times the packing
             # (a Poisson disk of minimum distance 2 r fills about 0.55); said here, not after

@@ -31,7 +31,7 @@ from models.io import atomic_path
 from . import closure, scenes
 from .artifacts import bundle_table_path, fiber_table_path
 from .config import Config
-from .machine import memory_bytes
+from .machine import check_memory
 from .images import render_timed
 from .plots import LUMINANCE
 
@@ -102,13 +102,11 @@ def check_fits(collection, c, yarn) -> None:
     model_points = sum(len(cv.points) for cv in collection.curves)
     hairs = estimated_hairs(c, yarn, length)
     per_hair = BYTES_PER_HAIR + POINTS_PER_HAIR[c.flyaways.curve] * BYTES_PER_HAIR_POINT if hairs else 0
-    need, have = points * BYTES_PER_POINT + model_points * BYTES_PER_MODEL_POINT + hairs * per_hair, memory_bytes()
-    if need > 0.5 * have:
-        raise ValueError(f"cloth: the model's {model_points:,} control points would make about {points:,} ply "
-                         f"control points" + (f" and {hairs:,} flyaways" if hairs else "")
-                         + f", ~{need / 2**30:.1f} GiB, more than half of this machine's {have / 2**30:.0f} GiB: "
-                         "render fewer curves (cloth.curves), a larger cloth.ply_pitch_mm, "
-                         + ("a smaller cloth.flyaways.density_scale, " if hairs else "") + "or a smaller model")
+    check_memory(points * BYTES_PER_POINT + model_points * BYTES_PER_MODEL_POINT + hairs * per_hair,
+                 f"cloth: the model's {model_points:,} control points would make about {points:,} ply control points"
+                 + (f" and {hairs:,} flyaways" if hairs else ""),
+                 "render fewer curves (cloth.curves), a larger cloth.ply_pitch_mm, "
+                 + ("a smaller cloth.flyaways.density_scale, " if hairs else "") + "or a smaller model")
 
 
 def ply_table(cfg, yarn) -> str:

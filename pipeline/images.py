@@ -16,7 +16,7 @@ import numpy as np
 import mitsuba_ext
 from models.io import atomic_path
 
-from .machine import memory_bytes
+from .machine import check_memory
 
 
 def check_film(film, where: str) -> None:
@@ -28,12 +28,12 @@ def check_film(film, where: str) -> None:
     width, height = (int(v) for v in film.crop_size())
     c = int(film.base_channels_count())
     pixels = width * height
-    entries, need, have = pixels * (c + 2), pixels * (4 * (c + 2) + 8 * c + 32), memory_bytes()
-    if entries >= 2**32 or need > 0.5 * have:
-        raise ValueError(f"{where}: a film of {width} x {height} pixels takes {entries:,} values in Dr.Jit's image block "
-                         f"(at most {2**32 - 1:,}) and ~{need / 2**30:.1f} GiB with its copies (this machine has "
-                         f"{have / 2**30:.0f} GiB): render a smaller film, or a crop of it (the film's crop_width, "
-                         "crop_height)")
+    fix = "render a smaller film, or a crop of it (the film's crop_width, crop_height)"
+    if pixels * (c + 2) >= 2**32:
+        raise ValueError(f"{where}: a film of {width} x {height} pixels takes {pixels * (c + 2):,} values in Dr.Jit's "
+                         f"image block, at most {2**32 - 1:,}: {fix}")
+    check_memory(pixels * (4 * (c + 2) + 8 * c + 32), f"{where}: a film of {width} x {height} pixels with its copies",
+                 fix)
 
 
 def render_timed(mi, scene, backend: str = "table", warm: bool = True,

@@ -473,11 +473,11 @@ def test_patch_cuts_runs_inside_the_sphere():
 def test_a_model_too_large_for_memory_is_refused_before_building(monkeypatch):
     """On a 16 GiB machine (users' laptops): the glove with its flyaways fits; 1e5 times its
     size, or 100 times Zhao's flyaway density, does not, and says so before building."""
-    from pipeline import garment
+    from pipeline import machine
     from pipeline.loading import load_config
     from pipeline.garment import check_fits, yarn_model, yarn_spec
 
-    monkeypatch.setattr(garment, "memory_bytes", lambda: 16 * 2**30)
+    monkeypatch.setattr(machine, "memory_bytes", lambda: 16 * 2**30)
 
     cfg = load_config(ROOT / "configs" / "glove.yaml", ["cloth.units_mm=100000"])
     with pytest.raises(ValueError, match="more than half of this machine"):

@@ -357,10 +357,10 @@ def test_a_pitch_its_cylinders_cannot_hold_is_refused_before_building(monkeypatc
     1e15 um baked passthrough 0.161 against the parallel ply's 0.099); too short: the period's
     cylinders outgrow memory (pitch 1 um ran out of memory building them). Both said before
     anything is built; a pitch of 1 mm to 1 m passes."""
-    from pipeline import build
+    from pipeline import build, machine
     from pipeline.loading import load_config
 
-    monkeypatch.setattr(build, "memory_bytes", lambda: 16 * 2**30)  # the same answer on every machine
+    monkeypatch.setattr(machine, "memory_bytes", lambda: 16 * 2**30)  # the same answer on every machine
     for ok in (1000.0, -3000.0, 1e6):
         build.check_scene_fits(build.build_ply(load_config("configs/default.yaml", [f"bundle.twist={{pitch_um: {ok}}}"])))
     ply = build.build_ply(load_config("configs/default.yaml", [f"bundle.twist={{pitch_um: {pitch}}}"]))
