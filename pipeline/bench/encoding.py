@@ -9,14 +9,16 @@ process (``ATEN_CPU_CAPABILITY=avx2`` for a machine without AVX-512).
 
 Per row: parameters and their float32 bytes, training seconds, held-out relative L1 (bin
 averages, the ``summary.json`` metric), the error in units of the table's noise, the
-table's own noise on those bins, and the worst albedo error after the energy gain (9 x 9 points a bin).
+table's own noise on those bins, and the worst albedo error after the energy gain (9 x 9
+points a bin).
 
 ``--reference NAME``: the artifacts of an **independent bake** of the same config (another
 seed, more paths; e.g. ``bcsdf bake configs/default.yaml --set name=default_ref --set
 bake.seed=7 --set bake.paths_per_phi_i=16000000``, fiber first) as the truth: each model's
-bin averages over *every* bin (12 x 12 midpoints: the ridge is narrower than a bin, and none is a point of the energy gain's 8 x 8) against it, :func:`models.errors.core_l1` (the
-bins holding 90% of each incident direction and wavelength's energy), and its albedo against
-the reference's scattered fraction; the training table itself is the first row (its noise).
+bin averages over *every* bin (12 x 12 midpoints: the ridge is narrower than a bin, and none
+is a point of the energy gain's 8 x 8) against it, :func:`models.errors.core_l1` (the bins
+holding 90% of each incident direction and wavelength's energy), and its albedo against the
+reference's scattered fraction; the training table itself is the first row (its noise).
 
 Prints one table, recorded as ``benchmarks/encoding.json``; ``--quick`` trains a tenth of
 the epochs (a smoke run, not recorded).
