@@ -64,11 +64,16 @@ class TableBackend:
 
     name = "table"
 
-    def __init__(self, table_path, Float, lookup: str = "linear"):
+    def __init__(self, table_path, Float, lookup: str = "linear", dye=None):
         if lookup not in ("linear", "nearest"):
             raise ValueError(f"fiber_bundle: lookup {lookup!r}; use 'linear' (default) or 'nearest'")
         self.Float = Float
         self.table = BundleTable.load(table_path, expand=True)
+        if dye is not None:  # a dye: the order-resolved table recoloured once, at load
+            try:
+                self.table = self.table.recolour(dye(self.table.wavelength))
+            except ValueError as e:
+                raise ValueError(f"fiber_bundle: 'albedo' with {table_path}: {e}") from None
         self.lookup = lookup
         self.dj = DrJitTable(self.table, Float)
         self.wavelength = np.asarray(self.table.wavelength, float)
@@ -169,15 +174,20 @@ class OnnxBackend(_NeuralBackend):
         return [to_drjit(self.Float, out[:, k]) for k in range(out.shape[1])]
 
 
-def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "linear"):
-    """Build the backend ``kind`` ('table', 'mlp' or 'onnx') from its file."""
+def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "linear", dye=None):
+    """Build the backend ``kind`` ('table', 'mlp' or 'onnx') from its file; ``dye``: a
+    function of the table's wavelengths giving the per-event albedo that recolours an
+    order-resolved table (``BundleTable.recolour``)."""
     if kind not in BACKENDS:
         raise ValueError(f"fiber_bundle: backend {kind!r}; use one of {', '.join(BACKENDS)}")
     if kind == "table":
         if not table:
             raise ValueError("fiber_bundle: backend 'table' needs the parameter 'table' "
                              "(a bundle_table.npz written by `bcsdf bake`)")
-        return TableBackend(table, Float, lookup)
+        return TableBackend(table, Float, lookup, dye)
+    if dye is not None:
+        raise ValueError(f"fiber_bundle: 'albedo' recolours an order-resolved table (backend 'table', baked with "
+                         f"bake.orders); a neural model holds the one dye it was trained on (backend {kind!r})")
     if not model:
         what = "weights.npz" if kind == "mlp" else "model.onnx"
         raise ValueError(f"fiber_bundle: backend {kind!r} needs the parameter 'model' "

@@ -10,6 +10,8 @@ registers :data:`PLUGINS`. The geometry they share is in ``mitsuba_ext.frame``.
 
 from __future__ import annotations
 
+from functools import partial
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -18,7 +20,7 @@ from mitsuba_ext.backends import load_backend
 from mitsuba_ext.crossing import refuse_other_integrators
 from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, resolve_path,
                                spectral_weights, split_uniform)
-from mitsuba_ext.params import boolean, jit_variant_only, number, vector3
+from mitsuba_ext.params import boolean, jit_variant_only, number, spectrum_at, spectrum_property, vector3
 from models.fiber import lobes
 from models.fiber.base import FiberTable
 from models.fiber.lobes import LobeSampler
@@ -188,6 +190,16 @@ class FiberBundleBSDF(CurveBSDF):
          - ``linear``: each bin its value plus limited slopes, so that it averages to
            its value; theta_i nodes read along their own specular cone and blended.
            ``nearest``: the nearest node's bin value.
+       * - albedo
+         - spectrum
+         - none
+         - fraction
+         - A dye: every fiber event keeps this fraction of the baked fiber's scattering
+           (``BundleTable.recolour``; table backend, a table baked with
+           ``bake.orders``). A number, or a spatially uniform Mitsuba spectrum
+           (``spectrum``, ``srgb``, ...): spectral variants evaluate it at the table's
+           wavelengths, RGB variants upsample its colour as Mitsuba's spectral
+           variants do (Jakob and Hanika 2019).
        * - passthrough
          - boolean
          - ``true``
@@ -300,10 +312,12 @@ class FiberBundleBSDF(CurveBSDF):
 
     def __init__(self, props):
         super().__init__(props)
+        albedo = spectrum_property(props, "albedo") if "albedo" in props else None
         self.backend = load_backend(props.get("backend", "table"), mi.Float,
                                     table=resolve_path(self.plugin, "table", props.get("table", None)),
                                     model=resolve_path(self.plugin, "model", props.get("model", None)),
-                                    lookup=props.get("lookup", "linear"))
+                                    lookup=props.get("lookup", "linear"),
+                                    dye=None if albedo is None else partial(spectrum_at, self.plugin, "albedo", albedo))
         uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
         self.grid = self.backend.sampling_grid(uniform)
         self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))

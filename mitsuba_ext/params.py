@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numbers
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -86,3 +87,43 @@ def jit_variant_only(plugin: str) -> None:
     if variant.startswith("scalar"):
         raise ValueError(f"{plugin}: runs in Mitsuba's JIT variants (llvm_*, cuda_*), not {variant}: it is vectorized "
                          f"Dr.Jit code; render with {variant.replace('scalar', 'llvm_ad')}")
+
+
+def srgb_upsampled(rgb, wavelength) -> np.ndarray:
+    """An sRGB colour as a reflectance spectrum at ``wavelength`` (nm): Jakob and Hanika
+    2019's model with Mitsuba's own coefficients (``mi.srgb_model_fetch``), the spectrum
+    Mitsuba's spectral variants give the same colour: ``0.5 + x / (2 sqrt(1 + x^2))``,
+    ``x = c0 lambda^2 + c1 lambda + c2``."""
+    c = np.asarray(mi.srgb_model_fetch(mi.ScalarColor3f(*(float(v) for v in rgb))), np.float64)
+    lam = np.asarray(wavelength, np.float64)
+    x = (c[0] * lam + c[1]) * lam + c[2]
+    return 0.5 + x / (2 * np.sqrt(1 + x * x))
+
+
+def spectrum_property(props, name: str):
+    """The property ``name`` as a number or a Mitsuba texture (a ``{"type": "spectrum", ...}``
+    arrives as Mitsuba's spectrum record, which ``get_texture`` instantiates)."""
+    value = props[name]
+    if isinstance(value, (bool, np.bool_, str)) or isinstance(value, (numbers.Real, mi.Texture)):
+        return value
+    return props.get_texture(name)
+
+
+def spectrum_at(plugin: str, name: str, value, wavelength) -> np.ndarray:
+    """A spatially uniform spectrum at the table's ``wavelength`` (nm): a number (grey), or
+    a Mitsuba spectrum or texture (``{"type": "spectrum", "value": [(nm, v), ...]}``,
+    ``srgb``, ``uniform``, ...). Spectral variants evaluate it at the table's wavelengths;
+    RGB variants take its colour and upsample it (:func:`srgb_upsampled`); mono variants
+    take its one value."""
+    wl = np.asarray(wavelength, np.float64)
+    if not isinstance(value, mi.Texture):
+        return np.full(len(wl), number(plugin, name, value))
+    if value.is_spatially_varying():
+        _refuse(plugin, name, value, "a spectrum uniform over the shape (a texture that varies along the yarn is "
+                                     "not supported)")
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wl))
+    if mi.is_spectral:
+        si.wavelengths = mi.Spectrum(*([mi.Float(wl)] * dr.size_v(mi.Spectrum)))
+        return np.asarray(value.eval(si), np.float64).reshape(-1, len(wl))[0]  # channel 0: each lane one lambda
+    out = np.asarray(value.eval(dr.zeros(mi.SurfaceInteraction3f, 1)), np.float64).reshape(-1)
+    return srgb_upsampled(out, wl) if mi.is_rgb and len(out) == 3 else np.full(len(wl), out[0])

@@ -15,6 +15,15 @@ scattered light ``sum_bins S * solid_angle`` that left after exactly one fiber e
 (phi_i, theta_i, lambda): in a dyed yarn the blue light that leaves at all leaves after
 one fiber, the red after many (docs/BENCHMARKS.md, "Cloth").
 
+``orders`` (optional: ``bake.orders: K``) resolves ``S`` by the number of fiber events of
+its paths, ``S = sum_k S_k``: ``orders[k - 1]`` is ``S_k`` for ``k = 1 .. K-1`` and
+``orders[K - 1]`` the tail ``T = sum_{k >= K} S_k``, with its standard errors
+(``orders_stderr``) and the tail's ratio ``rho`` per (phi_i, theta_i, lambda)
+(``tail_ratio``). A fiber whose every event keeps a fraction ``a(lambda)`` of this fiber's
+scattering (a dye) has the table ``S_a = sum_{k<K} a^k S_k + a^K T (1 - rho) / (1 - a rho)``:
+exact but for the tail, which is taken as a geometric series of the ratio its mean order
+gives (:meth:`BundleTable.recolour`; docs/DESIGN.md, "Order-resolved tables").
+
 Axes and bins (radians, nm):
 
 =============  =================================================================
@@ -51,7 +60,7 @@ import numpy as np
 
 from .grid import TIE, Cells, bin_solid_angle, cell, linear
 from .io import atomic_path, check_axis
-from .queries import directions
+from .queries import check_albedo, directions
 
 FORMAT = "bcsdf.bundle_table/2"  # /2: values and stderr stored in half precision (see BundleTable.save)
 READABLE = ("bcsdf.bundle_table/1", FORMAT)  # /1: float32, read as before
@@ -68,6 +77,15 @@ def needs_expanding(reductions: dict) -> bool:
     return reductions.get("theta_i") == "mirror" or reductions.get("phi_i") in PHI_I_FOLDS
 ARRAYS = ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost",
           "phi_i", "theta_i", "phi_o_edges", "theta_o_edges", "wavelength")
+ORDER_ARRAYS = ("orders", "orders_stderr")  # stored in half precision, a scale per order
+OPTIONAL = ("passthrough_theta", "single") + ORDER_ARRAYS + ("tail_ratio",)
+
+
+def tail_factor(a, rho):
+    """``sum_j (a rho)^j / sum_j rho^j = (1 - rho) / (1 - a rho)``: what a per-event albedo
+    ``a`` leaves of a tail whose orders fall geometrically by ``rho`` (beyond its first
+    order's ``a^K``)."""
+    return (1 - rho) / (1 - a * rho)
 
 
 @dataclass
@@ -88,6 +106,9 @@ class BundleTable:
     # ``passthrough`` is its mean over theta_i
     passthrough_theta: np.ndarray | None = None
     single: np.ndarray | None = None  # [phi_i, theta_i, lambda]: scattered after one fiber event
+    orders: np.ndarray | None = None         # [K, phi_i, theta_i, phi_o, theta_o, lambda]: S by fiber events
+    orders_stderr: np.ndarray | None = None  # same shape
+    tail_ratio: np.ndarray | None = None     # [phi_i, theta_i, lambda]: rho of the tail k >= K
 
     # -- derived axes --------------------------------------------------------
     @property
@@ -142,9 +163,14 @@ class BundleTable:
         scales = {}
         for name in HALF:
             arrays[name], scales[name] = to_half(arrays[name])
-        for name in ("passthrough_theta", "single"):
+        for name in ("passthrough_theta", "single", "tail_ratio"):
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)
+        for name in ORDER_ARRAYS:  # each order its own scale: the orders fall by decades
+            if getattr(self, name) is not None:
+                halves = [to_half(o) for o in getattr(self, name)]
+                arrays[name] = np.stack([h for h, _ in halves])
+                scales[name] = [c for _, c in halves]
         header = {"format": FORMAT, "meta": self.meta, "half_scale": scales}
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
@@ -162,8 +188,12 @@ class BundleTable:
                 if header["format"] != READABLE[0]:
                     for name in HALF:
                         arrays[name] = from_half(arrays[name], header["half_scale"][name])
-                table = cls(**arrays, meta=header["meta"],
-                            **{k: z[k] if k in z.files else None for k in ("passthrough_theta", "single")})
+                optional = {k: z[k] if k in z.files else None for k in ("passthrough_theta", "single", "tail_ratio")}
+                for name in ORDER_ARRAYS:
+                    if name in z.files:
+                        optional[name] = np.stack([from_half(h, c) for h, c in
+                                                   zip(z[name], header["half_scale"][name], strict=True)])
+                table = cls(**arrays, meta=header["meta"], **optional)
             table.validate()
             if expand:  # expanded for a lookup
                 table.check_lookup()
@@ -204,6 +234,7 @@ class BundleTable:
                 raise ValueError(f"{name} reaches {float(np.max(getattr(self, name))):.4g}; a probability is at most 1")
         if self.single is not None and np.any(self.single > self.scattered * (1 + 1e-4) + 1e-6):
             raise ValueError("single exceeds the scattered light it is a part of")
+        self._validate_orders(shape)
         reductions = self.meta.get("reductions", {"phi_o": "relative"})
         for key, allowed in REDUCTIONS.items():
             if reductions.get(key) not in allowed:
@@ -211,6 +242,52 @@ class BundleTable:
         if reductions.get("theta_i") == "mirror" and not np.allclose(self.theta_o_edges, -self.theta_o_edges[::-1],
                                                                      atol=1e-9):
             raise ValueError("theta_o_edges are not symmetric about 0, which the theta_i mirror reduction needs")
+
+    def _validate_orders(self, shape) -> None:
+        present = [getattr(self, n) is not None for n in ORDER_ARRAYS + ("tail_ratio",)]
+        if not any(present):
+            return
+        if not all(present):
+            raise ValueError("orders, orders_stderr and tail_ratio come together (a torn order-resolved table)")
+        K = len(self.orders)
+        for name in ORDER_ARRAYS:
+            a = getattr(self, name)
+            if a.shape != (K,) + shape or K < 2:
+                raise ValueError(f"{name} has shape {a.shape}, the axes give (K >= 2,) + {shape}")
+            if not np.all(np.isfinite(a)) or np.any(a < 0):
+                raise ValueError(f"{name} holds NaN, Inf or negative numbers")
+        r = self.tail_ratio
+        if r.shape != shape[:2] + shape[4:] or not np.all((r >= 0) & (r < 1)):
+            raise ValueError(f"tail_ratio must be in [0, 1) with shape {shape[:2] + shape[4:]} (got {r.shape})")
+
+    def recolour(self, albedo) -> "BundleTable":
+        """The table of a dyed fiber: every fiber event keeps a fraction ``albedo`` of this
+        table's fiber's scattering (a number, or one per wavelength, in [0, 1]).
+
+        ``S_a = sum_{k<K} a^k S_k + a^K T (1 - rho) / (1 - a rho)``; the standard errors
+        combine per order (a path belongs to one order, so ``sum a^2k se_k^2`` bounds the
+        variance from above); ``single`` scales by ``a``, the light lost at the bounce cap as
+        the tail, and ``absorbed`` takes what the dye removes, so the balance stays closed.
+        The result has no orders (it is one dye's table).
+        """
+        if self.orders is None:
+            raise ValueError("this table has no orders of scattering to recolour: bake it with `bake.orders: K` "
+                             "(e.g. 8) in the config")
+        a = check_albedo(albedo, len(self.wavelength))
+        K = len(self.orders)
+        power = a[None, :] ** np.arange(1, K)[:, None]                   # [K - 1, lambda]
+        tail = a**K * tail_factor(a, self.tail_ratio)                     # [phi_i, theta_i, lambda]
+        o, e = self.orders.astype(np.float64), self.orders_stderr.astype(np.float64)
+        values = np.einsum("kabpql,kl->abpql", o[:-1], power) + o[-1] * tail[:, :, None, None, :]
+        var = np.einsum("kabpql,kl->abpql", e[:-1] ** 2, power**2) + (e[-1] * tail[:, :, None, None, :]) ** 2
+        out = self._replace(values=values.astype(np.float32), stderr=np.sqrt(var).astype(np.float32),
+                            single=None if self.single is None else self.single * a,
+                            orders=None, orders_stderr=None, tail_ratio=None,
+                            meta=dict(self.meta, albedo=a.tolist()))
+        total = self.energy_balance()["total"]
+        out.lost = self.lost * tail  # paths stopped at the cap made more than K events
+        out.absorbed = np.maximum(total - out.energy_balance()["passthrough"] - out.scattered - out.lost, 0.0)
+        return out
 
     def check_lookup(self) -> None:
         """What the lookups (numpy and Dr.Jit) assume beyond :meth:`validate`: equal steps in
@@ -224,6 +301,14 @@ class BundleTable:
     # -- symmetry ------------------------------------------------------------
     def expanded(self) -> "BundleTable":
         """Undo ``theta_i: mirror`` and ``phi_i: mirror_xz``; rotation stays reduced."""
+        if self.orders is not None and needs_expanding(self.meta.get("reductions", {})):
+            # each order (and the tail ratio, carried as ``absorbed``) as a table of its own
+            bare = dict(orders=None, orders_stderr=None, tail_ratio=None)
+            t = self._replace(**bare).expanded()
+            parts = [self._replace(values=o, stderr=e, absorbed=self.tail_ratio, **bare).expanded()
+                     for o, e in zip(self.orders, self.orders_stderr)]
+            return t._replace(orders=np.stack([p.values for p in parts]),
+                              orders_stderr=np.stack([p.stderr for p in parts]), tail_ratio=parts[0].absorbed)
         t = self
         red = dict(self.meta.get("reductions", {}))
         if red.get("theta_i") == "mirror":
@@ -236,8 +321,7 @@ class BundleTable:
         return t
 
     def _replace(self, **kw):
-        data = {k: getattr(self, k) for k in ARRAYS} | {"meta": dict(self.meta), "single": self.single,
-                                                        "passthrough_theta": self.passthrough_theta}
+        data = {k: getattr(self, k) for k in ARRAYS + OPTIONAL} | {"meta": dict(self.meta)}
         data.update(kw)
         return BundleTable(**data)
 

@@ -309,6 +309,11 @@ class BakeCfg(Strict):
     exit: Literal["auto", "uniform", "entry", "lobe", "curve"] = Field(
         "auto", description="where scattered light leaves a fiber (models/bake/baker.py); auto: lobe for ray fibers "
                             "of light transport, curve for those of camera transport, else uniform")
+    orders: int = Field(
+        0, ge=0, le=64, description="keep the orders of scattering apart (paths of 1 .. K-1 fiber events and the "
+                                    "tail of K and more): 0 none, else K >= 2. The table can then be recoloured "
+                                    "with a dye (BundleTable.recolour, fiber_bundle's albedo); 8 is plenty "
+                                    "(docs/DESIGN.md, Order-resolved tables)")
     seed: int = Field(1, ge=0, le=2**32 - 1)
     variant: Literal[BAKE_VARIANTS] = "llvm_ad_mono"
     checkpoint_every_s: float = Field(20.0, gt=0.0)
@@ -655,6 +660,11 @@ class Config(Strict):
         if b.exit == "lobe" and self.fiber.ray.transport == "camera":
             raise ValueError("bake.exit: lobe resolves the paths of light transport; fiber.ray.transport: camera "
                              "is tabulated h-averaged: use auto (curve), curve, uniform or entry")
+        if b.orders == 1:
+            raise ValueError("bake.orders: 0 (none) or K >= 2 (orders 1 .. K-1 and the tail); 1 would be the "
+                             "whole table")
+        if b.orders and b.estimator != "fast":
+            raise ValueError("bake.orders needs bake.estimator: fast")
         if b.exit in ("entry", "lobe", "curve") and b.estimator != "fast":
             raise ValueError(f"bake.exit: {b.exit} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
         if self.bundle is not None and self.bundle.twist is not None and b.estimator != "fast":

@@ -12,7 +12,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Modules whose tests load plugins in failing or evaluated-mode-only ways
-PLUGIN_MODULES = {"test_plugin", "test_closure", "test_render", "test_bad_input", "test_neural", "test_stability",
+PLUGIN_MODULES = {"test_dye", "test_plugin", "test_closure", "test_render", "test_bad_input", "test_neural", "test_stability",
                   "test_artifact_checks", "test_cloth", "test_scenes", "test_plugin_params"}
 
 

@@ -31,7 +31,7 @@ def config(tmp_path, name="b", **bake):
 
 
 def test_resume_gives_the_same_table(tmp_path, mi_llvm):
-    cfg = config(tmp_path)
+    cfg = config(tmp_path, orders=4)   # the orders of scattering kept too: checkpointed and expanded alike
     fiber_stage.run(cfg, tmp_path / "a")
     fiber_stage.run(cfg, tmp_path / "b")
     bake_stage.run(cfg, tmp_path / "a")
@@ -44,6 +44,7 @@ def test_resume_gives_the_same_table(tmp_path, mi_llvm):
     tb = BundleTable.load(tmp_path / "b" / "b" / "bake" / "bundle_table.npz")
     assert np.array_equal(ta.values, tb.values) and np.array_equal(ta.stderr, tb.stderr)
     assert np.array_equal(ta.passthrough, tb.passthrough) and np.array_equal(ta.single, tb.single)
+    assert np.array_equal(ta.orders, tb.orders) and np.array_equal(ta.tail_ratio, tb.tail_ratio)
     assert not (tmp_path / "b" / "b" / "bake" / "checkpoint.npz").exists()
     # the table describes itself and expands its reductions
     assert ta.meta["reductions"] == {"theta_i": "mirror", "phi_i": "mirror_xz", "phi_o": "absolute"}
@@ -56,6 +57,10 @@ def test_resume_gives_the_same_table(tmp_path, mi_llvm):
     assert np.array_equal(full.values[:, 2], full.values[:, 4][:, :, ::-1])
     assert full.single.shape == full.absorbed.shape and np.array_equal(full.single[:, 2], full.single[:, 4])
     assert np.array_equal(full.single[a315], full.single[a45])
+    assert np.array_equal(full.orders[:, a315], full.orders[:, a45][:, :, ::-1])
+    assert np.array_equal(full.orders[:, :, 2], full.orders[:, :, 4][:, :, :, ::-1])
+    # each order in half precision (2^-11), their sum the table's (itself in half precision)
+    assert np.all(np.abs(full.orders.sum(0) - full.values) <= 2.0**-9 * full.values + 1e-6 * full.values.max())
     pictures = list((tmp_path / "a" / "b" / "bake" / "slices").glob("*.png"))
     assert len(pictures) == 3 * 4 and (tmp_path / "a" / "b" / "bake" / "energy.png").exists()
 

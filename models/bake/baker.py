@@ -32,7 +32,8 @@ Estimators
 Tallies (per incident azimuth phi_i, normalized by the paths entering the bounding
 width ``2 R_b``): the summed weights and squared weights per output bin, the
 passthrough count, the absorbed weight (expected loss ``1 - albedo`` at every
-bounce) and the lost weight.
+bounce) and the lost weight; with ``BakeSpec.orders`` the escaping weight also by its
+number of fiber events (``Tally.add_orders``: the dye's order-resolved table).
 
 A circle (``relative_phi``) has one table for all incident azimuths: each path enters
 from its own azimuth (stratified over the circle) and is binned at ``phi_o - phi_i``,
@@ -239,7 +240,8 @@ class Baker:
         order = np.concatenate([esc, np.flatnonzero(capped), np.flatnonzero(~(escaped | capped))])
         n_esc, n_cap = len(esc), int(capped.sum())
         esc_bins = bin_of[esc]
-        esc_once = final["depth"][esc] == 1  # no fiber after the first: singly scattered
+        esc_depth = final["depth"][esc].astype(np.int64)  # fiber events of each escaped path
+        esc_once = esc_depth == 1  # no fiber after the first: singly scattered
         perm = to_drjit(mi.UInt32, order, np.uint32)
         per_path = [dr.gather(mi.Float, x, perm) for x in [theta1_d, dphi1_d, factor] + B + final["R"]]
         lobe_path = tuple(dr.gather(type(x), x, perm) for x in lobe_state)
@@ -263,6 +265,10 @@ class Baker:
                 sums_sq += one_hot @ np.square(W[:k], dtype=np.float64)
                 tally.single[phi_index] += W[:k][esc_once[lo:lo + k]].sum(axis=0, dtype=np.float64).reshape(
                     n_ti, self.n_lambda)
+                if tally.orders is not None:  # every path carries every theta_i: a row per (path, theta_i)
+                    tally.add_orders(phi_index, np.repeat(esc_depth[lo:lo + k], n_ti),
+                                     np.repeat(esc_bins[lo:lo + k], n_ti), np.tile(np.arange(n_ti), k),
+                                     W[:k].reshape(k * n_ti, self.n_lambda).astype(np.float64))
             c0, c1 = max(lo, n_esc) - lo, max(lo, min(hi, n_esc + n_cap)) - lo  # capped rows
             if c1 > c0:
                 tally.lost[phi_index] += W[c0:c1].sum(axis=0, dtype=np.float64).reshape(n_ti, self.n_lambda)

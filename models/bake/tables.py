@@ -40,6 +40,17 @@ def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: 
     # bake's is the same for every theta_i, and its table keeps the one per phi_i
     p_theta = tally.passthrough_theta / np.maximum(tally.paths_theta, 1)
     per_theta = not np.array_equal(p_theta, np.broadcast_to(p[:, None], p_theta.shape))
+    orders = {}
+    if tally.orders is not None:
+        o_mean = tally.orders / n[None]
+        o_var = np.maximum(tally.orders_sq / n[None] - o_mean**2, 0.0) / n[None]
+        # the tail's mean excess order m = sum (k - K) E_k / sum E_k, and the ratio rho of the
+        # geometric series with that mean, m = rho / (1 - rho) (models.bundle_table.tail_factor)
+        tail_energy = tally.orders[-1].sum(axis=(2, 3))
+        m = np.divide(tally.tail_excess, tail_energy, out=np.zeros_like(tail_energy), where=tail_energy > 0)
+        orders = {"orders": (o_mean / omega[None]).astype(np.float32),
+                  "orders_stderr": (np.sqrt(o_var) / omega[None]).astype(np.float32),
+                  "tail_ratio": m / (1 + m)}
     return BundleTable(
         values=(mean / omega).astype(np.float32), stderr=(np.sqrt(var) / omega).astype(np.float32),
         passthrough=p, passthrough_stderr=np.sqrt(p * (1 - p) / tally.paths),
@@ -48,4 +59,5 @@ def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: 
         single=tally.single / tally.paths[:, None, None],
         phi_i=spec.phi_i, theta_i=spec.theta_i, phi_o_edges=spec.phi_o_edges,
         theta_o_edges=spec.theta_o_edges, wavelength=fiber.wavelength.copy(),
-        meta={"reductions": reductions, "units": {"angles": "rad", "wavelength": "nm", "values": "1/sr"}})
+        meta={"reductions": reductions, "units": {"angles": "rad", "wavelength": "nm", "values": "1/sr"}},
+        **orders)

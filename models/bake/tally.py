@@ -15,6 +15,7 @@ from ..grid import Cells, bin_solid_angle, cell
 
 # exit models: where scattered light leaves a fiber (models.bake.baker)
 EXITS = ("uniform", "entry", "lobe", "curve")
+MAX_ORDERS = 64
 
 
 @dataclass
@@ -32,6 +33,9 @@ class BakeSpec:
     exit: str = "uniform"              # where scattered light leaves a fiber (module docstring)
     # theta_o bin edges (radians); None: n_theta_o equal bins (other layouts: models.grid.cone_edges)
     theta_o_edges: np.ndarray | None = None
+    # the orders of scattering kept apart (dye, docs/DESIGN.md "Order-resolved tables"):
+    # 0 none; K >= 2: paths of k = 1 .. K-1 fiber events each, and the tail k >= K
+    orders: int = 0
 
     def __post_init__(self):
         self.theta_i = np.atleast_1d(np.asarray(self.theta_i, dtype=np.float64))
@@ -42,6 +46,10 @@ class BakeSpec:
             raise ValueError(f"exit {self.exit!r}: use one of {', '.join(EXITS)}")
         if self.exit != "uniform" and self.estimator != "fast":
             raise ValueError(f"exit {self.exit!r} needs the fast estimator (the thesis baseline leaves uniformly)")
+        if self.orders and not 2 <= self.orders <= MAX_ORDERS:
+            raise ValueError(f"orders: 0 (none) or 2 .. {MAX_ORDERS} (got {self.orders})")
+        if self.orders and self.estimator != "fast":
+            raise ValueError("orders need the fast estimator")
         if self.max_bounces < 1:
             raise ValueError(f"the bounce cap must be at least 1 (got {self.max_bounces})")
         if np.any(np.abs(self.theta_i) > np.pi / 2):
@@ -73,6 +81,12 @@ class Tally:
     ``passthrough_theta``): the passthrough of a twisted ply depends on ``theta_i``.
     ``single`` is the part of ``sum`` (over every output bin) that left after exactly one
     fiber event: the singly scattered light.
+
+    With ``BakeSpec.orders = K`` the escaping weight is also kept by its number of fiber
+    events ``k``: ``orders[o]`` (``sum``'s layout) holds the paths of ``k = o + 1`` for
+    ``o < K - 1``, the last one every ``k >= K`` (the tail), ``orders_sq`` their squares,
+    and ``tail_excess`` the tail's weight times ``k - K`` over every bin, per (phi_i,
+    theta_i, lambda): its mean order, from which the table's tail ratio follows.
     """
 
     sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
@@ -86,18 +100,29 @@ class Tally:
     single: np.ndarray     # [phi_i, theta_i, lambda]
     vertices: int = 0
     extra: dict = field(default_factory=dict)
+    orders: np.ndarray | None = None       # [K, phi_i, theta_i, phi_o, theta_o, lambda]
+    orders_sq: np.ndarray | None = None
+    tail_excess: np.ndarray | None = None  # [phi_i, theta_i, lambda]
 
     SUMS = ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough", "paths_theta", "passthrough_theta",
             "single")
+    ORDER_SUMS = ("orders", "orders_sq", "tail_excess")
 
     @classmethod
     def zeros(cls, spec: BakeSpec, n_lambda: int):
         shape = (len(spec.phi_i), len(spec.theta_i))
-        return cls(np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
-                   np.zeros(shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)),
+        bins = shape + (spec.n_phi_o, spec.n_theta_o, n_lambda)
+        orders = {}
+        if spec.orders:
+            orders = {"orders": np.zeros((spec.orders,) + bins), "orders_sq": np.zeros((spec.orders,) + bins),
+                      "tail_excess": np.zeros(shape + (n_lambda,))}
+        return cls(np.zeros(bins), np.zeros(bins),
                    np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
                    np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)), np.zeros(shape), np.zeros(shape),
-                   np.zeros(shape + (n_lambda,)))
+                   np.zeros(shape + (n_lambda,)), **orders)
+
+    def _present(self) -> tuple:
+        return self.SUMS + (self.ORDER_SUMS if self.orders is not None else ())
 
     def count(self, phi_index: int, n_paths: int, passed: int) -> None:
         """Paths launched and passed through at azimuth ``phi_index``, each carrying every theta_i."""
@@ -107,16 +132,35 @@ class Tally:
         self.passthrough_theta[phi_index] += passed
 
     def add(self, other: "Tally") -> None:
-        for name in self.SUMS:
+        if (self.orders is None) != (other.orders is None):
+            raise ValueError("a tally with orders of scattering and one without do not add")
+        for name in self._present():
             getattr(self, name).__iadd__(getattr(other, name))
         self.vertices += other.vertices
 
     def arrays(self) -> dict:
-        return {k: getattr(self, k) for k in self.SUMS} | {"vertices": np.array(self.vertices)}
+        return {k: getattr(self, k) for k in self._present()} | {"vertices": np.array(self.vertices)}
 
     @classmethod
     def from_arrays(cls, a) -> "Tally":
-        return cls(*(np.array(a[k]) for k in cls.SUMS), int(a["vertices"]))
+        names = a.files if hasattr(a, "files") else a.keys()
+        return cls(*(np.array(a[k]) for k in cls.SUMS), int(a["vertices"]),
+                   **{k: np.array(a[k]) for k in cls.ORDER_SUMS if k in names})
+
+    def add_orders(self, phi_index: int, order, flat_bin, theta_index, W) -> None:
+        """Tally escaped paths by order: ``order`` their fiber events ``k`` (>= 1), ``flat_bin``
+        their output bins (``output_bin``), ``theta_index`` their theta_i nodes and ``W``
+        their weights [path, lambda] (numpy, float64 sums)."""
+        K, (n_ti, n_p, n_t, L) = len(self.orders), self.orders.shape[2:]
+        o = np.minimum(order, K) - 1
+        flat = (o * n_ti + theta_index) * (n_p * n_t) + flat_bin
+        size = K * n_ti * n_p * n_t
+        excess = np.maximum(order - K, 0).astype(np.float64)
+        for l in range(L):
+            w = W[:, l]
+            self.orders[:, phi_index, ..., l] += np.bincount(flat, w, size).reshape(K, n_ti, n_p, n_t)
+            self.orders_sq[:, phi_index, ..., l] += np.bincount(flat, w * w, size).reshape(K, n_ti, n_p, n_t)
+            self.tail_excess[phi_index, :, l] += np.bincount(theta_index, w * excess, n_ti)
 
 
 def output_bin(spec: BakeSpec, phi, theta, phi_i, xp=np):

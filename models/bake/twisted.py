@@ -214,6 +214,9 @@ class TwistedBaker:
                 n_ti, spec.n_phi_o, spec.n_theta_o)
             tally.sum_sq[phi_index, ..., l] += np.bincount(flat, W[esc, l] ** 2, n_ti * n_bins).reshape(
                 n_ti, spec.n_phi_o, spec.n_theta_o)
+        if tally.orders is not None:
+            tally.add_orders(phi_index, out["depth"][esc].astype(np.int64), bins[esc].astype(np.int64), j[esc],
+                             W[esc])
         once = esc & (out["depth"] == 1)  # one fiber event: singly scattered
         for l in range(L):
             tally.single[phi_index, :, l] += np.bincount(j[once], W[once, l], n_ti)

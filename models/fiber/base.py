@@ -33,7 +33,7 @@ import numpy as np
 
 from ..grid import linear
 from ..io import atomic_path, check_axis
-from ..queries import check_theta, directions, wavelengths
+from ..queries import check_albedo, check_theta, directions, wavelengths
 from .longitudinal import Longitudinal
 from .reciprocal import half_angle, scale_at
 
@@ -143,6 +143,15 @@ class FiberTable:
         i0, i1, w = linear(self.theta_i, np.abs(np.asarray(theta_i, dtype=np.float64)))
         E = self.energy()
         return (1 - w)[..., None] * E[i0] + w[..., None] * E[i1]  # [..., n_lambda]
+
+    def dyed(self, albedo) -> "FiberTable":
+        """This fiber with a dye: every event keeps a fraction ``albedo`` (a number, or one
+        per wavelength, in [0, 1]) of its scattering, the rest absorbed. What
+        ``BundleTable.recolour`` makes of an order-resolved bake of this fiber."""
+        a = check_albedo(albedo, len(self.wavelength)).astype(np.float32)
+        lobes = [Lobe(lobe.name, lobe.longitudinal, lobe.azimuthal * a, lobe.scale) for lobe in self.lobes]
+        return FiberTable(self.theta_i, self.theta_o, self.phi, self.wavelength, lobes,
+                          dict(self.meta, dye=a.astype(np.float64).tolist()))
 
     # -- energy ------------------------------------------------------------
     def energy(self) -> np.ndarray:

@@ -1,0 +1,239 @@
+"""Order-resolved bakes and dyes (docs/DESIGN.md, "Order-resolved tables").
+
+A bake with ``orders`` keeps each escaping path's weight also by its number of fiber events;
+the orders add up to the table, and ``BundleTable.recolour(a)`` (``sum_k a^k S_k``) must be
+what a direct bake of the dyed fiber (``FiberTable.dyed(a)``: every event keeps ``a`` of the
+scattering) measures, within the two bakes' standard errors: a grey, a published red dye
+(the ColorChecker's red patch, Ohta's measurement, as colour-science ships it) and a dark
+fiber. The direct bakes trace other paths (another seed, and Russian roulette plays on other
+weights), so nothing is shared but the geometry and the fiber."""
+
+import colour
+import numpy as np
+import pytest
+
+from models.bake import BakeSpec, bake_unreduced
+from models.bake.tally import Tally
+from models.bake.twisted import TwistedBaker
+from models.bundle import TwistedBundle, poisson
+from models.bundle_table import BundleTable, tail_factor
+from models.fiber.ray import RayFiber
+from pipeline import closure
+
+WL = np.array([450.0, 550.0, 650.0])
+THETA_I = np.deg2rad([0.0, 30.0, 70.0])
+PATHS = 150_000
+RED = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]["red"]
+DYES = {"grey 0.95": np.full(3, 0.95), "ColorChecker red": np.asarray(RED[WL]), "dark 0.3": np.full(3, 0.3)}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _variant(mi_llvm):
+    return mi_llvm
+
+
+@pytest.fixture(scope="module")
+def fiber():
+    return RayFiber(WL, eta=1.55, sigma_a=0.0, longitudinal_roughness=0.2, azimuthal_roughness=0.3,
+                    n_h=64, n_phi=180).tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
+
+
+@pytest.fixture(scope="module")
+def ply():
+    return poisson((120, 120), 10, seed=2)
+
+
+def spec(orders=0, **kw):
+    return BakeSpec(THETA_I, np.zeros(1), 12, 32, relative_phi=True, orders=orders, **kw)
+
+
+@pytest.fixture(scope="module")
+def resolved(ply, fiber):
+    return bake_unreduced(ply, fiber, spec(8), PATHS, seed=3)
+
+
+def test_the_orders_add_up_to_the_table_and_the_first_is_the_singly_scattered_light(resolved):
+    """Each path is tallied once in ``sum`` and once in its order (float64 sums of the same
+    float32 weights): the float32 tables agree to a few roundings of float32 (``K + 1``
+    additions and the division, relative to the bin). The first order is ``single``."""
+    T = resolved
+    o = T.orders.astype(np.float64)
+    eps = np.finfo(np.float32).eps
+    assert np.all(np.abs(o.sum(0) - T.values) <= (len(o) + 2) * eps * o.sum(0) + 1e-30)
+    first = np.einsum("abpql,pq->abl", o[0], T.solid_angle)
+    np.testing.assert_allclose(first, T.single, rtol=1e-5)
+    assert np.all(T.orders[1:].sum(axis=(0, 3, 4)) > 0) and np.all((T.tail_ratio > 0) & (T.tail_ratio < 1))
+
+
+def test_the_orders_are_each_paths_own_count(ply, fiber):
+    """The same paths (same seed) resolved to 3 and to 12 orders: orders 1 and 2 identical,
+    the tail of 3 the sum of orders 3 .. 12's (to float32 rounding); the tail ratio follows
+    the tail's mean order, which the finer bake resolves further."""
+    a, b = (bake_unreduced(ply, fiber, spec(K), 40_000, seed=5) for K in (3, 12))
+    np.testing.assert_array_equal(a.orders[:2], b.orders[:2])
+    np.testing.assert_allclose(a.orders[2], b.orders[2:].astype(np.float64).sum(0), rtol=1e-5, atol=1e-12)
+    np.testing.assert_array_equal(a.values, b.values)
+
+
+@pytest.mark.parametrize("dye", DYES)
+def test_a_recoloured_table_is_the_bake_of_the_dyed_fiber(ply, fiber, resolved, dye):
+    albedo = DYES[dye]
+    R = resolved.recolour(albedo)
+    D = bake_unreduced(ply, fiber.dyed(albedo), spec(), PATHS, seed=17)
+    assert not np.allclose(R.values, resolved.values)   # the dye changed it
+    # every bin with light: z of the difference in the two bakes' standard errors
+    se = np.sqrt(R.stderr.astype(np.float64) ** 2 + D.stderr.astype(np.float64) ** 2)
+    big = (D.values > 0.02 * D.values.max(axis=(2, 3), keepdims=True)) & (se > 0)
+    z = ((R.values - D.values) / np.where(se > 0, se, 1))[big]
+    n = z.size
+    print(dye, "bins", n, "mean z", z.mean(), "mean z^2", np.mean(z**2))
+    assert abs(z.mean()) < 5 / np.sqrt(n) and np.mean(z**2) < 1 + 5 * np.sqrt(2 / n)
+    # the balance stays what the bake's was (a Monte Carlo estimate of 1), the albedo agrees
+    # within the bins' combined errors
+    np.testing.assert_allclose(R.energy_balance()["total"], resolved.energy_balance()["total"], rtol=1e-9)
+    se = np.sqrt(np.einsum("abpql,pq->abl", R.stderr.astype(np.float64) ** 2 + D.stderr.astype(np.float64) ** 2,
+                           R.solid_angle**2))
+    assert np.all(np.abs(R.scattered - D.scattered) < 5 * se), (R.scattered, D.scattered, se)
+    np.testing.assert_allclose(R.single, D.single, rtol=0.05)
+
+
+def test_recolour_limits(resolved):
+    """A clear fiber gives the table back (the tail's factor is 1 at ``a = 1``); a black one
+    scatters nothing; the tail's factor is the geometric series'."""
+    same = resolved.recolour(1.0)
+    np.testing.assert_allclose(same.values, resolved.values, rtol=1e-5, atol=1e-30)
+    np.testing.assert_allclose(same.absorbed, resolved.absorbed, atol=1e-6)
+    black = resolved.recolour(0.0)
+    assert np.all(black.values == 0)
+    np.testing.assert_allclose(black.absorbed + black.energy_balance()["passthrough"],
+                               resolved.energy_balance()["total"], rtol=1e-12)
+    rho, a = 0.7, 0.6
+    series = sum((a * rho) ** j for j in range(200)) / sum(rho**j for j in range(200))
+    assert tail_factor(a, rho) == pytest.approx(series, rel=1e-12)
+
+
+def test_an_order_resolved_table_survives_saving_expanding_and_checkpoints(resolved, tmp_path, ply, fiber):
+    path = tmp_path / "t.npz"
+    resolved.meta["reductions"] = {"theta_i": None, "phi_i": "rotation", "phi_o": "relative"}
+    resolved.save(path)
+    back = BundleTable.load(path)
+    # half precision: 2^-11 of each value, each order with its own scale
+    assert np.all(np.abs(back.orders - resolved.orders) <= 2.0**-11 * resolved.orders + 1e-6 * resolved.orders.max())
+    np.testing.assert_allclose(back.recolour(DYES["dark 0.3"]).scattered, resolved.recolour(DYES["dark 0.3"]).scattered,
+                               rtol=2e-3)
+    # the theta mirror expands every order as it expands the table
+    half = bake_unreduced(ply, fiber, BakeSpec(np.deg2rad([0.0, 40.0]), np.zeros(1), 12, 32, orders=4), 5000)
+    half.meta["reductions"] = {"theta_i": "mirror", "phi_i": "rotation", "phi_o": "relative"}
+    full = half.expanded()
+    assert full.orders.shape[2] == 3 and full.tail_ratio.shape[1] == 3
+    np.testing.assert_array_equal(full.orders.sum(0) > 0, full.values > 0)
+    np.testing.assert_allclose(full.recolour(0.5).values, half.recolour(0.5).expanded().values, rtol=1e-6)
+    # a checkpoint's arrays carry the orders
+    t = Tally.zeros(spec(4), 3)
+    t.orders += 1.0
+    assert Tally.from_arrays(t.arrays()).orders.sum() == t.orders.sum()
+    assert Tally.from_arrays(Tally.zeros(spec(), 3).arrays()).orders is None
+
+
+def test_a_twisted_bake_resolves_its_orders(fiber):
+    ply = TwistedBundle(poisson((60, 60), 10, seed=1), pitch=600.0)
+    s = BakeSpec(THETA_I, np.zeros(1), 12, 32, relative_phi=True, orders=4)
+    tally = TwistedBaker(ply, fiber, s).trace(0, 20_000, np.random.SeedSequence(1))
+    assert tally.orders[:, 0].sum() > 0
+    np.testing.assert_allclose(tally.orders.sum(0), tally.sum, rtol=1e-9, atol=1e-12)
+
+
+def test_bad_dyes_and_tables_without_orders_are_refused(resolved, fiber, ply):
+    plain = bake_unreduced(ply, fiber, spec(), 2000)
+    with pytest.raises(ValueError, match="bake.orders"):
+        plain.recolour(0.5)
+    for bad, said in ((1.5, r"\[0, 1\]"), (-0.1, r"\[0, 1\]"), ([0.5, 0.5], "one per wavelength"),
+                      (np.nan, "not finite"), ("red", "number")):
+        with pytest.raises(ValueError, match=said):
+            resolved.recolour(bad)
+        with pytest.raises(ValueError, match=said):
+            fiber.dyed(bad)
+    with pytest.raises(ValueError, match="orders"):
+        BakeSpec(THETA_I, np.zeros(1), orders=1)
+    with pytest.raises(ValueError, match="fast"):
+        BakeSpec(THETA_I, np.zeros(1), orders=4, estimator="thesis")
+
+
+# ----------------------------------------------------------------------------------
+# The plugin: fiber_bundle's albedo
+# ----------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def resolved_file(ply, fiber, tmp_path_factory):
+    """An order-resolved table over every incidence (the closure's directions reach 88 deg)."""
+    s = BakeSpec(np.deg2rad(np.arange(0, 91, 15.0)), np.zeros(1), 18, 36, relative_phi=True, orders=8)
+    path = tmp_path_factory.mktemp("dye") / "resolved.npz"
+    bake_unreduced(ply, fiber, s, 100_000, seed=4).save(path)
+    return path
+
+
+@pytest.fixture
+def spectral(mi_llvm):
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    mi.set_variant("llvm_ad_spectral")
+    mitsuba_ext.register()
+    yield mi
+    mi.set_variant("llvm_ad_rgb")
+
+
+def test_a_dyed_bundle_renders_its_recoloured_table(spectral, resolved_file, tmp_path):
+    """The far-field closure (docs/DESIGN.md) of ``fiber_bundle`` with ``albedo`` a Mitsuba
+    spectrum (the ColorChecker red, irregular) in the spectral variant, against the lookup
+    of the table recoloured with that spectrum at the table's wavelengths, in the luminance
+    the spectral film records: within 1% at every direction pair. The recolouring itself
+    is held to direct bakes of the dyed fiber above."""
+    mi = spectral
+    nm = np.arange(380.0, 781.0, 20.0)
+    red = {"type": "spectrum", "value": [(float(w), float(RED[w])) for w in nm]}
+    recoloured = BundleTable.load(resolved_file).recolour(np.interp(WL, nm, RED[nm]))
+    recoloured.save(tmp_path / "recoloured.npz")
+    bsdf = {"type": "fiber_bundle", "table": str(resolved_file), "albedo": red, "up": closure.UP}
+    S = closure.evaluator(mi, "table", tmp_path / "recoloured.npz", None)
+    pairs = closure.direction_pairs(cone_offsets_deg=(0.8, -1.7))
+    rows = closure.far_field_ratios(mi, bsdf, 0.2, S, pairs, spp=64)
+    r = np.array([row[3] for row in rows])
+    print(np.round(r, 4))
+    assert len(r) >= 12 and np.allclose(r, 1.0, atol=0.01), r
+    # and the dye is seen: the undyed table's luminance is another
+    plain = closure.evaluator(mi, "table", resolved_file, None)
+    assert np.median(S(*np.asarray(pairs).T) / plain(*np.asarray(pairs).T)) < 0.6
+
+
+def test_the_plugins_albedo_in_rgb_and_what_it_refuses(mi_plugins, resolved_file, tmp_path):
+    """RGB variants upsample an sRGB albedo as Mitsuba's spectral variants do (Jakob and
+    Hanika): the loaded table is the recolouring with that spectrum; the spectral variant
+    evaluates the same ``srgb`` texture to the same spectrum. Bad albedos are refused."""
+    mi = mi_plugins
+    from mitsuba_ext.params import spectrum_at, srgb_upsampled
+
+    colour_ = {"type": "srgb", "color": [0.7, 0.2, 0.1]}
+    b = mi.load_dict({"type": "fiber_bundle", "table": str(resolved_file), "albedo": colour_})
+    a = srgb_upsampled([0.7, 0.2, 0.1], WL)
+    assert a[2] > 0.5 > a[0]   # red
+    want = BundleTable.load(resolved_file, expand=True).recolour(a)
+    np.testing.assert_allclose(b.backend.table.values, want.values, rtol=1e-6)
+    mi.set_variant("llvm_ad_spectral")
+    try:
+        np.testing.assert_allclose(spectrum_at("t", "albedo", mi.load_dict(colour_), WL), a, rtol=1e-5)
+    finally:
+        mi.set_variant("llvm_ad_rgb")
+    plain = tmp_path / "plain.npz"
+    t = BundleTable.load(resolved_file)
+    t.orders = t.orders_stderr = t.tail_ratio = None
+    t.save(plain)
+    for table, albedo, said in ((plain, 0.5, "bake.orders"), (resolved_file, 1.5, r"\[0, 1\]"),
+                                (resolved_file, {"type": "bitmap", "data": mi.TensorXf(np.full((2, 2, 3), 0.5))},
+                                 "uniform")):
+        with pytest.raises((ValueError, RuntimeError), match=said):
+            mi.load_dict({"type": "fiber_bundle", "table": str(table), "albedo": albedo})
+    (tmp_path / "weights.npz").write_bytes(b"")   # refused before it is read
+    with pytest.raises((ValueError, RuntimeError), match="holds the one dye"):
+        mi.load_dict({"type": "fiber_bundle", "backend": "mlp", "model": str(tmp_path / "weights.npz"), "albedo": 0.5})
