@@ -37,10 +37,11 @@ def iso_fiber():
 
 def bake(bundle, fiber, estimator="fast", paths=100_000, theta_i=(0.0, 30.0, 60.0), phi_i=(0.0,),
          relative=None, n_theta_o=12, n_phi_o=32, max_bounces=500, seed=3, exit_model="uniform",
-         theta_o_edges=None) -> BundleTable:
+         theta_o_edges=None, orders=0) -> BundleTable:
     spec = BakeSpec(np.deg2rad(theta_i), np.deg2rad(phi_i), n_theta_o, n_phi_o,
                     relative_phi=bundle.is_circle if relative is None else relative,
-                    estimator=estimator, max_bounces=max_bounces, exit=exit_model, theta_o_edges=theta_o_edges)
+                    estimator=estimator, max_bounces=max_bounces, exit=exit_model, theta_o_edges=theta_o_edges,
+                    orders=orders)
     return bake_unreduced(bundle, fiber, spec, paths, seed)
 
 

@@ -419,12 +419,14 @@ def test_the_last_node_held_along_its_cone_reads_the_pole_gap(mono, tmp_path):
 # Explicit fibers against the bake (light version; the full sweep: pipeline.bench.closure)
 # ----------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("plugin,exit_model", [("fiber_table", "uniform"), ("fiber_ray", "lobe")])
-def test_explicit_ply_renders_its_bake(mono, tmp_path, plugin, exit_model):
+@pytest.mark.parametrize("plugin,exit_model,dye", [("fiber_table", "uniform", 0.6), ("fiber_ray", "lobe", None)])
+def test_explicit_ply_renders_its_bake(mono, tmp_path, plugin, exit_model, dye):
     """Six ray-optics fibers in a circle, every one its own cylinder with ``fiber_table``
     (light leaves from the uniform displaced exit) or ``fiber_ray`` (each path from its own
     exit), against the bundle table baked from the same arrangement with the same exit
-    model, bin by bin: 16 turns of the
+    model, bin by bin. The ``fiber_table`` fibers are dyed (every event keeps ``dye`` of the
+    fiber's scattering, ``FiberTable.dyed``) and their table is the undyed fiber's
+    order-resolved bake recoloured (``BundleTable.recolour``): the dye's closure. 16 turns of the
     arrangement, each seen from its own direction of a 4 x 4 stratification of the bin,
     estimate the rotation-averaged bin average that the bake holds. Within 3 standard
     errors (bake and render) + 2%, at 20 (theta_i node, bin) pairs: on the cone (the bins
@@ -437,11 +439,12 @@ def test_explicit_ply_renders_its_bake(mono, tmp_path, plugin, exit_model):
     from tests.test_bake import bake
 
     fiber = RayFiber(WL, [1.56] * 3, [0.3, 0.1, 0.0], 0.3, 0.3, 0.0, n_h=64).tabulate(NODES)
-    fiber.save(tmp_path / "fiber.npz")
+    (fiber if dye is None else fiber.dyed(dye)).save(tmp_path / "fiber.npz")
     bundle = poisson((80.0, 80.0), 20.0, packing=0.4, seed=2)
     mi.set_variant("llvm_ad_rgb")  # the baker's own variant
     table = bake(bundle, fiber, paths=2_000_000, theta_i=(10, 30, 60, 80), n_theta_o=18, n_phi_o=36,
-                 exit_model=exit_model)
+                 exit_model=exit_model, orders=0 if dye is None else 8)
+    table = table if dye is None else table.recolour(dye)
     mi.set_variant("llvm_ad_mono")
     mitsuba_ext.register()
     lam = list(WL).index(LAM)
