@@ -69,7 +69,7 @@ class TableBackend:
             raise ValueError(f"fiber_bundle: lookup {lookup!r}; use 'linear' (default) or 'nearest'")
         self.Float = Float
         self.table = BundleTable.load(table_path, expand=True)
-        if dye is not None:  # a dye: the order-resolved table recoloured once, at load
+        if dye is not None:  # a uniform dye: the order-resolved table recoloured once, at load
             try:
                 self.table = self.table.recolour(dye(self.table.wavelength))
             except ValueError as e:
@@ -80,6 +80,31 @@ class TableBackend:
         self.relative = self.dj.relative
         self.nbytes = self.dj.nbytes
         self.single_share = self.table.single_share()
+        self.orders = None   # upload_orders: the orders of scattering, for a dye that varies over the shape
+
+    def upload_orders(self):
+        """Upload the table's orders as one lookup of ``K x n_lambda`` channels (the cells
+        and weights are shared; each order keeps its own slopes), for a dye applied per hit
+        (:meth:`eval_orders`)."""
+        t = self.table
+        if t.orders is None:
+            raise ValueError("fiber_bundle: an 'albedo' texture recolours an order-resolved table: bake it with "
+                             "`bake.orders: K` (e.g. 8) in the config")
+        K, L = len(t.orders), len(t.wavelength)
+        channels = np.moveaxis(t.orders, 0, -2).reshape(t.values.shape[:4] + (K * L,))
+        self.orders = DrJitTable(t._replace(values=channels, stderr=channels), self.Float)
+        self.nbytes += self.orders.nbytes
+
+    def eval_orders(self, phi_i, theta_i, phi_o, theta_o):
+        """``(S_k, rho)``: the orders ``S_1 .. S_{K-1}``, the tail ``T`` (each a list over the
+        table's wavelengths) and the tail's ratio (a list over them, bilinear in the
+        incident direction's nodes)."""
+        t, L = self.table, len(self.table.wavelength)
+        flat = self.orders.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup)
+        orders = [flat[k * L:(k + 1) * L] for k in range(len(t.orders))]
+        rho = [passthrough_at(self.Float, None, t.phi_i, phi_i, theta_i, t.tail_ratio[..., l], t.theta_i)
+               for l in range(L)]
+        return orders, rho
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         return self.dj.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup)
@@ -177,13 +202,18 @@ class OnnxBackend(_NeuralBackend):
 def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "linear", dye=None):
     """Build the backend ``kind`` ('table', 'mlp' or 'onnx') from its file; ``dye``: a
     function of the table's wavelengths giving the per-event albedo that recolours an
-    order-resolved table (``BundleTable.recolour``)."""
+    order-resolved table once (``BundleTable.recolour``), or a Mitsuba texture that varies
+    over the shape (then the orders are uploaded for a per-hit dye)."""
     if kind not in BACKENDS:
         raise ValueError(f"fiber_bundle: backend {kind!r}; use one of {', '.join(BACKENDS)}")
     if kind == "table":
         if not table:
             raise ValueError("fiber_bundle: backend 'table' needs the parameter 'table' "
                              "(a bundle_table.npz written by `bcsdf bake`)")
+        if dye is not None and not callable(dye):   # a texture varying over the shape: per hit
+            backend = TableBackend(table, Float, lookup)
+            backend.upload_orders()
+            return backend
         return TableBackend(table, Float, lookup, dye)
     if dye is not None:
         raise ValueError(f"fiber_bundle: 'albedo' recolours an order-resolved table (backend 'table', baked with "

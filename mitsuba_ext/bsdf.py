@@ -196,10 +196,12 @@ class FiberBundleBSDF(CurveBSDF):
          - fraction
          - A dye: every fiber event keeps this fraction of the baked fiber's scattering
            (``BundleTable.recolour``; table backend, a table baked with
-           ``bake.orders``). A number, or a spatially uniform Mitsuba spectrum
-           (``spectrum``, ``srgb``, ...): spectral variants evaluate it at the table's
-           wavelengths, RGB variants upsample its colour as Mitsuba's spectral
-           variants do (Jakob and Hanika 2019).
+           ``bake.orders``). A number or a uniform Mitsuba spectrum (``spectrum``,
+           ``srgb``, ...) recolours the table once, at load: spectral variants
+           evaluate it at the table's wavelengths, RGB variants upsample its colour
+           as Mitsuba's spectral variants do (Jakob and Hanika 2019). A texture on
+           the shape's UV (space-dyed yarn, e.g. a ``bitmap``) is applied per hit to
+           the orders (K lookups); in RGB variants then per channel.
        * - passthrough
          - boolean
          - ``true``
@@ -312,12 +314,17 @@ class FiberBundleBSDF(CurveBSDF):
 
     def __init__(self, props):
         super().__init__(props)
+        # a dye: uniform, the table recoloured once at load; varying over the shape (a texture
+        # on its UV), the orders looked up and weighted by the texture's albedo per hit
         albedo = spectrum_property(props, "albedo") if "albedo" in props else None
+        varying = isinstance(albedo, mi.Texture) and albedo.is_spatially_varying()
+        self.dye = albedo if varying else None
         self.backend = load_backend(props.get("backend", "table"), mi.Float,
                                     table=resolve_path(self.plugin, "table", props.get("table", None)),
                                     model=resolve_path(self.plugin, "model", props.get("model", None)),
                                     lookup=props.get("lookup", "linear"),
-                                    dye=None if albedo is None else partial(spectrum_at, self.plugin, "albedo", albedo))
+                                    dye=None if albedo is None else
+                                    self.dye if varying else partial(spectrum_at, self.plugin, "albedo", albedo))
         uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
         self.grid = self.backend.sampling_grid(uniform)
         self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
@@ -346,8 +353,25 @@ class FiberBundleBSDF(CurveBSDF):
         w_light, w_camera, radiance = light_and_camera(ctx, si, wo)
         phi_l, theta_l = angles(si.to_world(w_light), frame)
         phi_c, theta_c = angles(si.to_world(w_camera), frame)
-        value = self._spectrum(self.backend.eval(phi_l, theta_l, phi_c, theta_c), si)
+        if self.dye is None:
+            value = self._spectrum(self.backend.eval(phi_l, theta_l, phi_c, theta_c), si)
+        else:
+            value = self._dyed(si, phi_l, theta_l, phi_c, theta_c)
         return value * adjoint_factor(theta_l, theta_c) if radiance else value
+
+    def _dyed(self, si, phi_l, theta_l, phi_c, theta_c):
+        """``sum_{k<K} a^k S_k + a^K T (1 - rho) / (1 - a rho)`` with the texture's albedo ``a``
+        at this hit and this path's wavelengths (``BundleTable.recolour``, per hit): each
+        order is mapped to the render's spectrum first (in RGB variants the dye then acts
+        per channel, an approximation of the spectral product)."""
+        orders, rho = self.backend.eval_orders(phi_l, theta_l, phi_c, theta_c)
+        a = dr.clip(mi.UnpolarizedSpectrum(self.dye.eval(si)), 0.0, 1.0)
+        value, power = dr.zeros(mi.UnpolarizedSpectrum, dr.width(theta_c)), mi.UnpolarizedSpectrum(1.0)
+        for S_k in orders[:-1]:
+            power = power * a
+            value += power * self._spectrum(S_k, si)
+        r = self._spectrum(rho, si)
+        return value + power * a * (1 - r) / dr.maximum(1 - a * r, 1e-6) * self._spectrum(orders[-1], si)
 
     # -- the BSDF interface ---------------------------------------------
     def eval(self, ctx, si, wo, active=True):

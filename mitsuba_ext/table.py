@@ -27,7 +27,7 @@ class DrJitTable:
             raise ValueError("DrJitTable needs an expanded table: BundleTable.load(path, expand=True)")
         self.Float = Float
         self.relative = red["phi_o"] == "relative"
-        self.n_lambda = len(table.wavelength)
+        self.n_lambda = table.values.shape[-1]   # channels: the wavelengths (or orders x wavelengths)
         self.phi_i = np.asarray(table.phi_i, float)
         self.theta_i = np.asarray(table.theta_i, float)
         self.shape = table.values.shape[:4]
@@ -42,7 +42,8 @@ class DrJitTable:
         self.nbytes = 3 * table.values.astype(np.float32).nbytes
 
     def eval(self, phi_i, theta_i, phi_o, theta_o, mode: str = "linear") -> list:
-        """``S`` at every table wavelength (a list of arrays) for Dr.Jit arrays of angles."""
+        """``S`` at every table wavelength (a list of arrays, one per channel of ``values``)
+        for Dr.Jit arrays of angles."""
         if mode not in ("nearest", "linear"):
             raise ValueError(f"lookup mode {mode!r}: use 'nearest' or 'linear'")
         if self.relative:

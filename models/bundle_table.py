@@ -260,6 +260,14 @@ class BundleTable:
         if r.shape != shape[:2] + shape[4:] or not np.all((r >= 0) & (r < 1)):
             raise ValueError(f"tail_ratio must be in [0, 1) with shape {shape[:2] + shape[4:]} (got {r.shape})")
 
+    def order(self, k: int) -> "BundleTable":
+        """The table of order ``k`` alone (``1 .. K-1``; ``K``: the tail), without orders."""
+        K = 0 if self.orders is None else len(self.orders)
+        if not 1 <= k <= K:
+            raise ValueError(f"order {k}: this table holds orders 1 .. {K}")
+        return self._replace(values=self.orders[k - 1], stderr=self.orders_stderr[k - 1], orders=None,
+                             orders_stderr=None, tail_ratio=None, single=None)
+
     def recolour(self, albedo) -> "BundleTable":
         """The table of a dyed fiber: every fiber event keeps a fraction ``albedo`` of this
         table's fiber's scattering (a number, or one per wavelength, in [0, 1]).

@@ -229,11 +229,51 @@ def test_the_plugins_albedo_in_rgb_and_what_it_refuses(mi_plugins, resolved_file
     t = BundleTable.load(resolved_file)
     t.orders = t.orders_stderr = t.tail_ratio = None
     t.save(plain)
+    def bitmap():   # a fresh one each time: loading takes its tensor
+        return {"type": "bitmap", "data": mi.TensorXf(np.full((2, 2, 3), 0.5))}
     for table, albedo, said in ((plain, 0.5, "bake.orders"), (resolved_file, 1.5, r"\[0, 1\]"),
-                                (resolved_file, {"type": "bitmap", "data": mi.TensorXf(np.full((2, 2, 3), 0.5))},
-                                 "uniform")):
+                                (plain, bitmap(), "bake.orders")):
         with pytest.raises((ValueError, RuntimeError), match=said):
             mi.load_dict({"type": "fiber_bundle", "table": str(table), "albedo": albedo})
     (tmp_path / "weights.npz").write_bytes(b"")   # refused before it is read
-    with pytest.raises((ValueError, RuntimeError), match="holds the one dye"):
-        mi.load_dict({"type": "fiber_bundle", "backend": "mlp", "model": str(tmp_path / "weights.npz"), "albedo": 0.5})
+    for albedo in (0.5, bitmap()):
+        with pytest.raises((ValueError, RuntimeError), match="holds the one dye"):
+            mi.load_dict({"type": "fiber_bundle", "backend": "mlp", "model": str(tmp_path / "weights.npz"),
+                          "albedo": albedo})
+
+
+def test_a_space_dyed_bundle_renders_each_dye_where_the_texture_puts_it(mono, resolved_file, tmp_path):
+    """``albedo`` a bitmap on the cylinder's UV: the orders are looked up and weighted per
+    hit, ``sum_{k<K} a^k S_k + a^K T (1 - rho) / (1 - a rho)`` with each order read as the
+    table backend reads a table (its own limited slopes) and ``rho`` linear between the
+    theta_i nodes. The far-field closure against that model, evaluated here in numpy from
+    the tables of each order (within 1%): a uniform bitmap, and one of 512 stripes around
+    the cylinder (its ``u``) dyed 0.2 and 0.9 in turn, which renders the mean of the two
+    dyes (the half of the circumference in view holds 256 stripes)."""
+    mi = mono
+    full = BundleTable.load(resolved_file, expand=True)
+    K, lam = len(full.orders), list(full.wavelength).index(550.0)
+    S_k = []
+    for k in range(1, K + 1):
+        full.order(k).save(tmp_path / f"order{k}.npz")
+        S_k.append(closure.evaluator(mi, "table", tmp_path / f"order{k}.npz", 550.0))
+
+    def dyed(a):
+        def S_of(pi_, ti, po, to):
+            rho = np.interp(np.abs(ti), full.theta_i, full.tail_ratio[0, :, lam])
+            tail = a**K * (1 - rho) / (1 - a * rho) * S_k[-1](pi_, ti, po, to)
+            return sum(a ** (k + 1) * S_k[k](pi_, ti, po, to) for k in range(K - 1)) + tail
+        return S_of
+
+    def bitmap(columns):
+        data = np.repeat(np.asarray(columns, np.float32)[None, :, None], 3, axis=2)  # (v, u, rgb)
+        return {"type": "bitmap", "data": mi.TensorXf(data), "filter_type": "nearest", "raw": True}
+
+    pairs = closure.direction_pairs(cone_offsets_deg=(0.8, -1.7))[::2]
+    striped = lambda *d: 0.5 * (dyed(0.2)(*d) + dyed(0.9)(*d))  # noqa: E731
+    for columns, S_of in (([0.6, 0.6], dyed(0.6)), ([0.2, 0.9] * 256, striped)):
+        bsdf = {"type": "fiber_bundle", "table": str(resolved_file), "albedo": bitmap(columns), "wavelength": 550.0,
+                "up": closure.UP}
+        r = np.array([row[3] for row in closure.far_field_ratios(mi, bsdf, 0.2, S_of, pairs, spp=64)])
+        print(len(columns), "columns:", np.round(r, 4))
+        assert len(r) >= 6 and np.allclose(r, 1.0, atol=0.01), r
