@@ -95,6 +95,25 @@ def test_a_ply_of_ones_own_runs_as_printed(tmp_path):
     assert (repo / "artifacts" / "my_ply.exr").stat().st_size > 10_000 and png.stat().st_size > 10_000
 
 
+@pytest.mark.slow
+def test_the_dye_commands_and_snippet_run_as_printed(tmp_path):
+    repo = _clone(tmp_path)
+    for line in _commands(block("**Dyes.**", "bash")):
+        r = _run(line, repo)
+        assert r.returncode == 0, line + "\n" + r.stdout[-3000:] + r.stderr[-3000:]
+    script = repo / "dye_snippet.py"
+    script.write_text(block("**Dyes.**", "python"))
+    r = _run(f"{sys.executable} {script}", repo)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    from models.bundle_table import BundleTable
+
+    red = BundleTable.load(repo / "artifacts" / "dyed" / "red.npz")
+    plain = BundleTable.load(repo / "artifacts" / "dyed" / "bake" / "bundle_table.npz")
+    assert red.orders is None and plain.orders.shape[0] == 8
+    s_red, s_plain = red.scattered.mean(axis=(0, 1)), plain.scattered.mean(axis=(0, 1))
+    assert s_red[-1] / s_plain[-1] > 3 * s_red[0] / s_plain[0]   # red keeps red light, not blue
+
+
 def test_the_documents_quote_only_recorded_figures():
     """Every measured figure in README.md and docs/ is a bench's record, copied by
     ``python -m pipeline.figures``: a stale block or a figure typed by hand fails here."""
