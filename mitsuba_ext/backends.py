@@ -64,7 +64,7 @@ class TableBackend:
 
     name = "table"
 
-    def __init__(self, table_path, Float, lookup: str = "linear", dye=None):
+    def __init__(self, table_path, Float, lookup: str = "linear", dye=None, near_field: bool = True):
         if lookup not in ("linear", "nearest"):
             raise ValueError(f"fiber_bundle: lookup {lookup!r}; use 'linear' (default) or 'nearest'")
         self.Float = Float
@@ -81,6 +81,27 @@ class TableBackend:
         self.nbytes = self.dj.nbytes
         self.single_share = self.table.single_share()
         self.orders = None   # upload_orders: the orders of scattering, for a dye that varies over the shape
+        self.near = None     # the near field, where the table holds it (eval_near, passthrough_near)
+        if near_field and self.table.near is not None:
+            t, (N, L) = self.table, (len(self.table.near), len(self.table.wavelength))
+            channels = np.moveaxis(t.near, 0, -2).reshape(t.values.shape[:4] + (N * L,))
+            self.near = DrJitTable(t._replace(values=channels, stderr=channels), Float, block=L)
+            self.n_cells = N
+            self.near_passthrough = Float(np.asarray(t.near_passthrough[0], np.float32))  # a circle: one phi_i
+            self.nbytes += self.near.nbytes
+
+    def offset_cell(self, h):
+        """The near-field cell of an offset ``h`` in [-1, 1] (``models.bake.tally.offset_cell``'s cells)."""
+        UInt = dr.uint32_array_t(self.Float)
+        return UInt(dr.clip(dr.floor((h + 1.0) * (0.5 * self.n_cells)), 0, self.n_cells - 1))
+
+    def eval_near(self, phi_i, theta_i, phi_o, theta_o, h):
+        """``S_h``: the light leaving along ``phi_o, theta_o`` on the line at offset ``h``."""
+        return self.near.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup, block=self.offset_cell(h))
+
+    def passthrough_near(self, h):
+        """``P_pass`` of a ray entering on the line at offset ``h`` (its direction of travel's)."""
+        return dr.gather(self.Float, self.near_passthrough, self.offset_cell(h))
 
     def upload_orders(self):
         """Upload the table's orders as one lookup of ``K x n_lambda`` channels (the cells
@@ -199,7 +220,8 @@ class OnnxBackend(_NeuralBackend):
         return [to_drjit(self.Float, out[:, k]) for k in range(out.shape[1])]
 
 
-def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "linear", dye=None):
+def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "linear", dye=None,
+                 near_field: bool = True):
     """Build the backend ``kind`` ('table', 'mlp' or 'onnx') from its file; ``dye``: a
     function of the table's wavelengths giving the per-event albedo that recolours an
     order-resolved table once (``BundleTable.recolour``), or a Mitsuba texture that varies
@@ -211,10 +233,10 @@ def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "lin
             raise ValueError("fiber_bundle: backend 'table' needs the parameter 'table' "
                              "(a bundle_table.npz written by `bcsdf bake`)")
         if dye is not None and not callable(dye):   # a texture varying over the shape: per hit
-            backend = TableBackend(table, Float, lookup)
+            backend = TableBackend(table, Float, lookup, near_field=near_field)
             backend.upload_orders()
             return backend
-        return TableBackend(table, Float, lookup, dye)
+        return TableBackend(table, Float, lookup, dye, near_field)
     if dye is not None:
         raise ValueError(f"fiber_bundle: 'albedo' recolours an order-resolved table (backend 'table', baked with "
                          f"bake.orders); a neural model holds the one dye it was trained on (backend {kind!r})")

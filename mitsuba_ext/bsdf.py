@@ -18,7 +18,8 @@ import numpy as np
 
 from mitsuba_ext.backends import load_backend
 from mitsuba_ext.crossing import refuse_other_integrators
-from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, resolve_path,
+from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, line_offset,
+                               resolve_path,
                                spectral_weights, split_uniform)
 from mitsuba_ext.params import boolean, jit_variant_only, number, spectrum_at, spectrum_property, vector3
 from models.fiber import lobes
@@ -202,6 +203,14 @@ class FiberBundleBSDF(CurveBSDF):
            as Mitsuba's spectral variants do (Jakob and Hanika 2019). A texture on
            the shape's UV (space-dyed yarn, e.g. a ``bitmap``) is applied per hit to
            the orders (K lookups); in RGB variants then per channel.
+       * - near_field
+         - boolean
+         - ``true``
+         - 
+         - Where the table holds the near field (``bake.offsets``): evaluate the light
+           leaving on the camera ray's own line across the ply (its offset ``h`` from
+           the axis) and let a ray through with the passthrough of its own offset; else
+           (or ``false``) the far field, the same at every offset.
        * - passthrough
          - boolean
          - ``true``
@@ -324,7 +333,8 @@ class FiberBundleBSDF(CurveBSDF):
                                     model=resolve_path(self.plugin, "model", props.get("model", None)),
                                     lookup=props.get("lookup", "linear"),
                                     dye=None if albedo is None else
-                                    self.dye if varying else partial(spectrum_at, self.plugin, "albedo", albedo))
+                                    self.dye if varying else partial(spectrum_at, self.plugin, "albedo", albedo),
+                                    near_field=boolean(self.plugin, "near_field", props.get("near_field", True)))
         uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
         self.grid = self.backend.sampling_grid(uniform)
         self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
@@ -345,7 +355,12 @@ class FiberBundleBSDF(CurveBSDF):
     def _passthrough(self, si, phi_i, theta_i, inside):
         if not self.use_passthrough:
             return dr.select(inside, 1.0, 0.0)
-        return dr.select(inside, 1.0, dr.clip(self.backend.passthrough(phi_i, theta_i), 0.0, 1.0))
+        if getattr(self.backend, "near", None) is not None:   # the arriving ray's own offset, as it travels
+            frame = bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
+            P = self.backend.passthrough_near(-line_offset(si, frame, phi_i))
+        else:
+            P = self.backend.passthrough(phi_i, theta_i)
+        return dr.select(inside, 1.0, dr.clip(P, 0.0, 1.0))
 
     def _value(self, ctx, si, frame, wo):
         """The BSDF value for local ``wo``: the table's ``S(w_i -> w_o)`` with ``w_i``
@@ -353,7 +368,10 @@ class FiberBundleBSDF(CurveBSDF):
         w_light, w_camera, radiance = light_and_camera(ctx, si, wo)
         phi_l, theta_l = angles(si.to_world(w_light), frame)
         phi_c, theta_c = angles(si.to_world(w_camera), frame)
-        if self.dye is None:
+        if getattr(self.backend, "near", None) is not None:   # the near field: the camera ray's own offset
+            h = line_offset(si, frame, phi_c)
+            value = self._spectrum(self.backend.eval_near(phi_l, theta_l, phi_c, theta_c, h), si)
+        elif self.dye is None:
             value = self._spectrum(self.backend.eval(phi_l, theta_l, phi_c, theta_c), si)
         else:
             value = self._dyed(si, phi_l, theta_l, phi_c, theta_c)

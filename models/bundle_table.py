@@ -78,7 +78,9 @@ def needs_expanding(reductions: dict) -> bool:
 ARRAYS = ("values", "stderr", "passthrough", "passthrough_stderr", "absorbed", "lost",
           "phi_i", "theta_i", "phi_o_edges", "theta_o_edges", "wavelength")
 ORDER_ARRAYS = ("orders", "orders_stderr")  # stored in half precision, a scale per order
-OPTIONAL = ("passthrough_theta", "single") + ORDER_ARRAYS + ("tail_ratio",)
+NEAR_ARRAYS = ("near", "near_stderr")       # the same, a scale per offset cell
+SPLIT = ORDER_ARRAYS + NEAR_ARRAYS          # S split along a leading axis
+OPTIONAL = ("passthrough_theta", "single") + SPLIT + ("tail_ratio", "near_passthrough")
 
 
 def tail_factor(a, rho):
@@ -109,6 +111,9 @@ class BundleTable:
     orders: np.ndarray | None = None         # [K, phi_i, theta_i, phi_o, theta_o, lambda]: S by fiber events
     orders_stderr: np.ndarray | None = None  # same shape
     tail_ratio: np.ndarray | None = None     # [phi_i, theta_i, lambda]: rho of the tail k >= K
+    near: np.ndarray | None = None           # [N, phi_i, theta_i, phi_o, theta_o, lambda]: S by exit offset
+    near_stderr: np.ndarray | None = None
+    near_passthrough: np.ndarray | None = None  # [phi_i, N]: P_pass by entry offset
 
     # -- derived axes --------------------------------------------------------
     @property
@@ -163,10 +168,10 @@ class BundleTable:
         scales = {}
         for name in HALF:
             arrays[name], scales[name] = to_half(arrays[name])
-        for name in ("passthrough_theta", "single", "tail_ratio"):
+        for name in ("passthrough_theta", "single", "tail_ratio", "near_passthrough"):
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)
-        for name in ORDER_ARRAYS:  # each order its own scale: the orders fall by decades
+        for name in SPLIT:  # each order (offset cell) its own scale: the orders fall by decades
             if getattr(self, name) is not None:
                 halves = [to_half(o) for o in getattr(self, name)]
                 arrays[name] = np.stack([h for h, _ in halves])
@@ -188,8 +193,9 @@ class BundleTable:
                 if header["format"] != READABLE[0]:
                     for name in HALF:
                         arrays[name] = from_half(arrays[name], header["half_scale"][name])
-                optional = {k: z[k] if k in z.files else None for k in ("passthrough_theta", "single", "tail_ratio")}
-                for name in ORDER_ARRAYS:
+                optional = {k: z[k] if k in z.files else None
+                            for k in ("passthrough_theta", "single", "tail_ratio", "near_passthrough")}
+                for name in SPLIT:
                     if name in z.files:
                         optional[name] = np.stack([from_half(h, c) for h, c in
                                                    zip(z[name], header["half_scale"][name], strict=True)])
@@ -235,6 +241,7 @@ class BundleTable:
         if self.single is not None and np.any(self.single > self.scattered * (1 + 1e-4) + 1e-6):
             raise ValueError("single exceeds the scattered light it is a part of")
         self._validate_orders(shape)
+        self._validate_near(shape)
         reductions = self.meta.get("reductions", {"phi_o": "relative"})
         for key, allowed in REDUCTIONS.items():
             if reductions.get(key) not in allowed:
@@ -242,6 +249,23 @@ class BundleTable:
         if reductions.get("theta_i") == "mirror" and not np.allclose(self.theta_o_edges, -self.theta_o_edges[::-1],
                                                                      atol=1e-9):
             raise ValueError("theta_o_edges are not symmetric about 0, which the theta_i mirror reduction needs")
+
+    def _validate_near(self, shape) -> None:
+        present = [getattr(self, n) is not None for n in NEAR_ARRAYS + ("near_passthrough",)]
+        if not any(present):
+            return
+        if not all(present):
+            raise ValueError("near, near_stderr and near_passthrough come together (a torn near-field table)")
+        N = len(self.near)
+        for name in NEAR_ARRAYS:
+            a = getattr(self, name)
+            if a.shape != (N,) + shape or N < 2:
+                raise ValueError(f"{name} has shape {a.shape}, the axes give (N >= 2,) + {shape}")
+            if not np.all(np.isfinite(a)) or np.any(a < 0):
+                raise ValueError(f"{name} holds NaN, Inf or negative numbers")
+        p = self.near_passthrough
+        if p.shape != (shape[0], N) or not np.all((p >= 0) & (p <= 1)):
+            raise ValueError(f"near_passthrough must be probabilities with shape {(shape[0], N)} (got {p.shape})")
 
     def _validate_orders(self, shape) -> None:
         present = [getattr(self, n) is not None for n in ORDER_ARRAYS + ("tail_ratio",)]
@@ -290,8 +314,8 @@ class BundleTable:
         var = np.einsum("kabpql,kl->abpql", e[:-1] ** 2, power**2) + (e[-1] * tail[:, :, None, None, :]) ** 2
         out = self._replace(values=values.astype(np.float32), stderr=np.sqrt(var).astype(np.float32),
                             single=None if self.single is None else self.single * a,
-                            orders=None, orders_stderr=None, tail_ratio=None,
-                            meta=dict(self.meta, albedo=a.tolist()))
+                            orders=None, orders_stderr=None, tail_ratio=None, near=None, near_stderr=None,
+                            near_passthrough=None, meta=dict(self.meta, albedo=a.tolist()))
         total = self.energy_balance()["total"]
         out.lost = self.lost * tail  # paths stopped at the cap made more than K events
         out.absorbed = np.maximum(total - out.energy_balance()["passthrough"] - out.scattered - out.lost, 0.0)
@@ -309,14 +333,26 @@ class BundleTable:
     # -- symmetry ------------------------------------------------------------
     def expanded(self) -> "BundleTable":
         """Undo ``theta_i: mirror`` and ``phi_i: mirror_xz``; rotation stays reduced."""
-        if self.orders is not None and needs_expanding(self.meta.get("reductions", {})):
-            # each order (and the tail ratio, carried as ``absorbed``) as a table of its own
-            bare = dict(orders=None, orders_stderr=None, tail_ratio=None)
+        red = self.meta.get("reductions", {})
+        if self.near is not None and red.get("phi_i") in PHI_I_FOLDS:
+            raise ValueError("a near-field table of a folded ply: the offset's sign turns with the mirrors (not "
+                             "supported; near-field tables are baked for circular plies)")
+        if (self.orders is not None or self.near is not None) and needs_expanding(red):
+            # each order or offset cell (and the tail ratio, carried as ``absorbed``) as a table of its own;
+            # the theta mirror keeps the offset (it mirrors along the axis, not across it)
+            bare = {name: None for name in SPLIT + ("tail_ratio",)}
             t = self._replace(**bare).expanded()
-            parts = [self._replace(values=o, stderr=e, absorbed=self.tail_ratio, **bare).expanded()
-                     for o, e in zip(self.orders, self.orders_stderr)]
-            return t._replace(orders=np.stack([p.values for p in parts]),
-                              orders_stderr=np.stack([p.stderr for p in parts]), tail_ratio=parts[0].absorbed)
+            out = {}
+            for values, errors, ratio in ((ORDER_ARRAYS + ("tail_ratio",)), (NEAR_ARRAYS + (None,))):
+                if getattr(self, values) is None:
+                    continue
+                carried = getattr(self, ratio) if ratio else self.absorbed
+                parts = [self._replace(values=v, stderr=e, absorbed=carried, **bare).expanded()
+                         for v, e in zip(getattr(self, values), getattr(self, errors))]
+                out |= {values: np.stack([p.values for p in parts]), errors: np.stack([p.stderr for p in parts])}
+                if ratio:
+                    out[ratio] = parts[0].absorbed
+            return t._replace(**out)
         t = self
         red = dict(self.meta.get("reductions", {}))
         if red.get("theta_i") == "mirror":

@@ -193,7 +193,8 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     phi_reduction = "rotation" if bundle.is_circle else "half_turns" if twisted else "mirror_xz"
     spec = BakeSpec(theta_i, phi_i, c.n_theta_o, c.n_phi_o, relative_phi=bundle.is_circle,
                     estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
-                    exit=exit_model(c.exit, fiber, c.estimator), theta_o_edges=c.theta_o_edges(), orders=c.orders)
+                    exit=exit_model(c.exit, fiber, c.estimator), theta_o_edges=c.theta_o_edges(), orders=c.orders,
+                    offsets=c.offsets)
     reductions = {"theta_i": "mirror" if mirror_theta else None, "phi_i": phi_reduction,
                   "phi_o": "relative" if bundle.is_circle else "absolute"}
     return spec, reductions

@@ -166,6 +166,21 @@ def intensity(img: np.ndarray, w_o, half_size) -> float:
     return float(img.sum() * pixel_area / visible_length(half_size, theta_o))
 
 
+def profile(img: np.ndarray, w_o, half_size, radius, n_cells: int) -> np.ndarray:
+    """The intensity of an image seen along ``w_o`` by ``n_cells`` equal cells across the
+    ply's width ``2 radius`` (film columns; the axis runs up the film): each cell's share of
+    :func:`intensity` times ``n_cells``, so that their mean is the intensity of the width."""
+    n = img.shape[1]
+    x = (np.arange(n) + 0.5) / n * 2 * half_size - half_size      # film x of each column
+    cell = np.floor((x / radius + 1) * 0.5 * n_cells).astype(int)
+    inside = (cell >= 0) & (cell < n_cells)
+    columns = img.sum(axis=0)
+    pixel_area = (2.0 * half_size / img.shape[0]) ** 2
+    theta_o = np.arcsin(np.clip(np.asarray(w_o, float)[1], -1, 1))
+    per_cell = np.bincount(cell[inside], columns[inside], n_cells)
+    return per_cell * pixel_area / visible_length(half_size, theta_o) * n_cells
+
+
 def rendered_intensity(mi, scene, w_o, half_size) -> float:
     """Render ``scene`` (a dict or a loaded scene) and measure ``sum(pixels) pixel_area /
     visible_length``."""
@@ -363,11 +378,12 @@ def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, 
 
 def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, resolution: int = 48,
                          unit: float = 1e-3, turns: bool = True, curves: bool = False,
-                         integrator: str = "bundle_path") -> list:
+                         integrator: str = "bundle_path", cells: int = 0) -> list:
     """:func:`explicit_intensity` for many ``(w_i, views)`` at once (every ``views`` as
     long): each turn of the arrangement is loaded once, and the sun and the camera are
     moved between requests (``mi.traverse``), as a fresh scene would place them; the
-    scenes' loads and kernels, not their pixels, are what explicit fibers cost here."""
+    scenes' loads and kernels, not their pixels, are what explicit fibers cost here.
+    ``cells``: the :func:`profile` across the ply's bounding width instead (arrays)."""
 
     twisted = isinstance(bundle, TwistedBundle)
     section = bundle.bundle if twisted else bundle
@@ -379,7 +395,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     placements = view_placements(bundle, n_views, unit, turns)
     if any(len(views) != n_views for _, views in requests):
         raise ValueError("explicit_intensities: every request needs as many views")
-    values = np.zeros((len(requests), n_views))
+    values = np.zeros((len(requests), n_views) + ((cells,) if cells else ()))
     suns = [_sun(mi, w_i) for w_i, _ in requests]
     with tempfile.TemporaryDirectory(prefix="bcsdf-helices-") as tmp:
         curve_file = Path(tmp) / "helices.txt"
@@ -401,7 +417,11 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
                 params["sensor.to_world"] = _camera(mi, views[k], hs)[2]
                 params["sun.to_world"] = suns[r]
                 params.update()
-                values[r, k] = intensity(render_image(mi, loaded, seed=k), views[k], hs)
+                img = render_image(mi, loaded, seed=k)
+                values[r, k] = (profile(img, views[k], hs, section.bounding_radius * unit, cells) if cells
+                                else intensity(img, views[k], hs))
+    if cells:
+        return [(v.mean(axis=0), abs(v[0::2].mean(axis=0) - v[1::2].mean(axis=0)) / 2) for v in values]
     return [(float(v.mean()), float(abs(v[0::2].mean() - v[1::2].mean()) / 2)) for v in values]
 
 

@@ -82,7 +82,7 @@ from ..jit import to_drjit
 from . import weights
 from .rounds import LoopState, in_rounds
 from .scene import BundleScene
-from .tally import BakeSpec, Tally, output_bin
+from .tally import BakeSpec, Tally, offset_cell, output_bin
 
 # how a path of the fast estimator ended
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
@@ -163,6 +163,11 @@ class Baker:
         origin, phi_t = self.geometry.entry(phi_i, t)
         hit, fiber = self.geometry.cast(origin, phi_t)
         tally.count(phi_index, n_paths, int(np.sum(~hit)))
+        if self.spec.offsets:  # the near field: paths and passthrough by their entry offset
+            N = self.spec.offsets
+            cell = offset_cell(N, origin[:, 0], origin[:, 1], phi_t, Rb)
+            tally.paths_h[phi_index] += np.bincount(cell, minlength=N)
+            tally.passthrough_h[phi_index] += np.bincount(cell[~hit], minlength=N)
         tally.vertices += n_paths
         if self.spec.estimator == "fast":
             self._trace_fast(tally, phi_index, origin[hit], phi_t[hit], fiber[hit], phi_i[hit], rng)
@@ -240,6 +245,8 @@ class Baker:
         order = np.concatenate([esc, np.flatnonzero(capped), np.flatnonzero(~(escaped | capped))])
         n_esc, n_cap = len(esc), int(capped.sum())
         esc_bins = bin_of[esc]
+        if spec.offsets:  # the loop put the exit offset's cell above the output bin
+            esc_cells, esc_bins = np.divmod(esc_bins, spec.n_phi_o * spec.n_theta_o)
         esc_depth = final["depth"][esc].astype(np.int64)  # fiber events of each escaped path
         esc_once = esc_depth == 1  # no fiber after the first: singly scattered
         perm = to_drjit(mi.UInt32, order, np.uint32)
@@ -265,6 +272,10 @@ class Baker:
                 sums_sq += one_hot @ np.square(W[:k], dtype=np.float64)
                 tally.single[phi_index] += W[:k][esc_once[lo:lo + k]].sum(axis=0, dtype=np.float64).reshape(
                     n_ti, self.n_lambda)
+                if tally.near is not None:
+                    tally.add_offsets(phi_index, np.repeat(esc_cells[lo:lo + k], n_ti),
+                                      np.repeat(esc_bins[lo:lo + k], n_ti), np.tile(np.arange(n_ti), k),
+                                      W[:k].reshape(k * n_ti, self.n_lambda).astype(np.float64))
                 if tally.orders is not None:  # every path carries every theta_i: a row per (path, theta_i)
                     tally.add_orders(phi_index, np.repeat(esc_depth[lo:lo + k], n_ti),
                                      np.repeat(esc_bins[lo:lo + k], n_ti), np.tile(np.arange(n_ti), k),
@@ -376,7 +387,11 @@ class Baker:
         hit = p.active & hit_info.is_valid()
         escaped = p.active & ~hit
         p.status = dr.select(escaped, ESCAPED, p.status)
-        p.bin = dr.select(escaped, self._bin(p.phi, p.theta, p.phi_i, xp=dr), p.bin)
+        out_bin = self._bin(p.phi, p.theta, p.phi_i, xp=dr)
+        if spec.offsets:  # the exit offset's cell, above the output bins (split in _trace_fast)
+            cell = offset_cell(spec.offsets, p.ox, p.oz, p.phi, self.bundle.bounding_radius, dr)
+            out_bin = out_bin + cell * (spec.n_phi_o * spec.n_theta_o)
+        p.bin = dr.select(escaped, out_bin, p.bin)
         capped = hit & (p.depth >= spec.max_bounces)
         p.status = dr.select(capped, CAPPED, p.status)
         go = hit & ~capped

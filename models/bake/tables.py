@@ -51,6 +51,15 @@ def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: 
         orders = {"orders": (o_mean / omega[None]).astype(np.float32),
                   "orders_stderr": (np.sqrt(o_var) / omega[None]).astype(np.float32),
                   "tail_ratio": m / (1 + m)}
+    if tally.near is not None:
+        # S_h: each cell's light over the paths, per solid angle and per share of the width
+        # (2 / N of it), so that the mean over the cells is S
+        N = len(tally.near)
+        h_mean = tally.near / n[None]
+        h_var = np.maximum(tally.near_sq / n[None] - h_mean**2, 0.0) / n[None]
+        orders |= {"near": (h_mean / omega[None] * N).astype(np.float32),
+                   "near_stderr": (np.sqrt(h_var) / omega[None] * N).astype(np.float32),
+                   "near_passthrough": tally.passthrough_h / np.maximum(tally.paths_h, 1)}
     return BundleTable(
         values=(mean / omega).astype(np.float32), stderr=(np.sqrt(var) / omega).astype(np.float32),
         passthrough=p, passthrough_stderr=np.sqrt(p * (1 - p) / tally.paths),

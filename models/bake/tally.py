@@ -16,6 +16,7 @@ from ..grid import Cells, bin_solid_angle, cell
 # exit models: where scattered light leaves a fiber (models.bake.baker)
 EXITS = ("uniform", "entry", "lobe", "curve")
 MAX_ORDERS = 64
+MAX_OFFSETS = 64
 
 
 @dataclass
@@ -36,6 +37,10 @@ class BakeSpec:
     # the orders of scattering kept apart (dye, docs/DESIGN.md "Order-resolved tables"):
     # 0 none; K >= 2: paths of k = 1 .. K-1 fiber events each, and the tail k >= K
     orders: int = 0
+    # the near field (docs/DESIGN.md "Near-field tables"): 0 none; N >= 2 cells of the exit
+    # offset h_o in [-1, 1] (the escaping ray's line's signed distance from the ply axis over
+    # the bounding radius), and the passthrough per entry offset
+    offsets: int = 0
 
     def __post_init__(self):
         self.theta_i = np.atleast_1d(np.asarray(self.theta_i, dtype=np.float64))
@@ -50,6 +55,10 @@ class BakeSpec:
             raise ValueError(f"orders: 0 (none) or 2 .. {MAX_ORDERS} (got {self.orders})")
         if self.orders and self.estimator != "fast":
             raise ValueError("orders need the fast estimator")
+        if self.offsets and not 2 <= self.offsets <= MAX_OFFSETS:
+            raise ValueError(f"offsets: 0 (none) or 2 .. {MAX_OFFSETS} cells (got {self.offsets})")
+        if self.offsets and (self.estimator != "fast" or not self.relative_phi or self.orders):
+            raise ValueError("offsets need the fast estimator and a circular ply, without orders")
         if self.max_bounces < 1:
             raise ValueError(f"the bounce cap must be at least 1 (got {self.max_bounces})")
         if np.any(np.abs(self.theta_i) > np.pi / 2):
@@ -87,6 +96,11 @@ class Tally:
     ``o < K - 1``, the last one every ``k >= K`` (the tail), ``orders_sq`` their squares,
     and ``tail_excess`` the tail's weight times ``k - K`` over every bin, per (phi_i,
     theta_i, lambda): its mean order, from which the table's tail ratio follows.
+
+    With ``BakeSpec.offsets = N`` the escaping weight is also kept by the cell of its exit
+    offset ``h_o`` (``near``, ``near_sq``; ``sum``'s layout after a leading cell axis), and
+    the paths and passthrough by the cell of their entry offset (``paths_h``,
+    ``passthrough_h``, [phi_i, N]).
     """
 
     sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
@@ -103,10 +117,15 @@ class Tally:
     orders: np.ndarray | None = None       # [K, phi_i, theta_i, phi_o, theta_o, lambda]
     orders_sq: np.ndarray | None = None
     tail_excess: np.ndarray | None = None  # [phi_i, theta_i, lambda]
+    near: np.ndarray | None = None         # [N, phi_i, theta_i, phi_o, theta_o, lambda]
+    near_sq: np.ndarray | None = None
+    paths_h: np.ndarray | None = None      # [phi_i, N]
+    passthrough_h: np.ndarray | None = None
 
     SUMS = ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough", "paths_theta", "passthrough_theta",
             "single")
     ORDER_SUMS = ("orders", "orders_sq", "tail_excess")
+    NEAR_SUMS = ("near", "near_sq", "paths_h", "passthrough_h")
 
     @classmethod
     def zeros(cls, spec: BakeSpec, n_lambda: int):
@@ -116,13 +135,18 @@ class Tally:
         if spec.orders:
             orders = {"orders": np.zeros((spec.orders,) + bins), "orders_sq": np.zeros((spec.orders,) + bins),
                       "tail_excess": np.zeros(shape + (n_lambda,))}
+        if spec.offsets:
+            N = spec.offsets
+            orders |= {"near": np.zeros((N,) + bins), "near_sq": np.zeros((N,) + bins),
+                       "paths_h": np.zeros((len(spec.phi_i), N)), "passthrough_h": np.zeros((len(spec.phi_i), N))}
         return cls(np.zeros(bins), np.zeros(bins),
                    np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
                    np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)), np.zeros(shape), np.zeros(shape),
                    np.zeros(shape + (n_lambda,)), **orders)
 
     def _present(self) -> tuple:
-        return self.SUMS + (self.ORDER_SUMS if self.orders is not None else ())
+        return (self.SUMS + (self.ORDER_SUMS if self.orders is not None else ())
+                + (self.NEAR_SUMS if self.near is not None else ()))
 
     def count(self, phi_index: int, n_paths: int, passed: int) -> None:
         """Paths launched and passed through at azimuth ``phi_index``, each carrying every theta_i."""
@@ -132,8 +156,8 @@ class Tally:
         self.passthrough_theta[phi_index] += passed
 
     def add(self, other: "Tally") -> None:
-        if (self.orders is None) != (other.orders is None):
-            raise ValueError("a tally with orders of scattering and one without do not add")
+        if (self.orders is None) != (other.orders is None) or (self.near is None) != (other.near is None):
+            raise ValueError("tallies of other resolutions (orders, offsets) do not add")
         for name in self._present():
             getattr(self, name).__iadd__(getattr(other, name))
         self.vertices += other.vertices
@@ -145,22 +169,44 @@ class Tally:
     def from_arrays(cls, a) -> "Tally":
         names = a.files if hasattr(a, "files") else a.keys()
         return cls(*(np.array(a[k]) for k in cls.SUMS), int(a["vertices"]),
-                   **{k: np.array(a[k]) for k in cls.ORDER_SUMS if k in names})
+                   **{k: np.array(a[k]) for k in cls.ORDER_SUMS + cls.NEAR_SUMS if k in names})
 
     def add_orders(self, phi_index: int, order, flat_bin, theta_index, W) -> None:
         """Tally escaped paths by order: ``order`` their fiber events ``k`` (>= 1), ``flat_bin``
         their output bins (``output_bin``), ``theta_index`` their theta_i nodes and ``W``
         their weights [path, lambda] (numpy, float64 sums)."""
-        K, (n_ti, n_p, n_t, L) = len(self.orders), self.orders.shape[2:]
-        o = np.minimum(order, K) - 1
-        flat = (o * n_ti + theta_index) * (n_p * n_t) + flat_bin
-        size = K * n_ti * n_p * n_t
+        K, n_ti = len(self.orders), self.orders.shape[2]
+        _add_split(self.orders, self.orders_sq, phi_index, np.minimum(order, K) - 1, flat_bin, theta_index, W)
         excess = np.maximum(order - K, 0).astype(np.float64)
-        for l in range(L):
-            w = W[:, l]
-            self.orders[:, phi_index, ..., l] += np.bincount(flat, w, size).reshape(K, n_ti, n_p, n_t)
-            self.orders_sq[:, phi_index, ..., l] += np.bincount(flat, w * w, size).reshape(K, n_ti, n_p, n_t)
-            self.tail_excess[phi_index, :, l] += np.bincount(theta_index, w * excess, n_ti)
+        for l in range(W.shape[1]):
+            self.tail_excess[phi_index, :, l] += np.bincount(theta_index, W[:, l] * excess, n_ti)
+
+    def add_offsets(self, phi_index: int, cell, flat_bin, theta_index, W) -> None:
+        """Tally escaped paths by the cell of their exit offset (``offset_cell``), as
+        :meth:`add_orders` by order."""
+        _add_split(self.near, self.near_sq, phi_index, cell, flat_bin, theta_index, W)
+
+
+def _add_split(sums, squares, phi_index, part, flat_bin, theta_index, W) -> None:
+    """Add weights ``W`` [path, lambda] to ``sums[part, phi_index, theta_index, bin]`` (and
+    their squares): float64 sums, one ``bincount`` per wavelength."""
+    K, (n_ti, n_p, n_t, L) = len(sums), sums.shape[2:]
+    flat = (part * n_ti + theta_index) * (n_p * n_t) + flat_bin
+    size = K * n_ti * n_p * n_t
+    for l in range(L):
+        w = W[:, l]
+        sums[:, phi_index, ..., l] += np.bincount(flat, w, size).reshape(K, n_ti, n_p, n_t)
+        squares[:, phi_index, ..., l] += np.bincount(flat, w * w, size).reshape(K, n_ti, n_p, n_t)
+
+
+def offset_cell(n_cells: int, ox, oz, phi, bounding_radius: float, xp=np):
+    """The cell of the offset ``h = (x sin(phi) - z cos(phi)) / R_b`` in [-1, 1] of a ray
+    from ``(x, z)`` along azimuth ``phi`` (the signed distance of its line from the ply
+    axis; the plugin takes the camera ray's the same way), ``n_cells`` equal cells."""
+    h = (ox * xp.sin(phi) - oz * xp.cos(phi)) * (1.0 / bounding_radius)
+    c = xp.floor((h + 1.0) * (0.5 * n_cells))
+    c = xp.clip(c, 0, n_cells - 1)
+    return c.astype(np.int64) if xp is np else xp.uint32_array_t(type(c))(c)
 
 
 def output_bin(spec: BakeSpec, phi, theta, phi_i, xp=np):

@@ -160,6 +160,9 @@ class TwistedBaker:
     def __init__(self, ply: TwistedBundle, fiber: FiberTable, spec: BakeSpec):
         if spec.estimator != "fast":
             raise ValueError(f"a twisted ply is traced with the fast estimator (got {spec.estimator!r})")
+        if spec.offsets:
+            raise ValueError("offsets (the near field) are baked for parallel plies; a twisted ply's exit offset "
+                             "goes with its phase along the twist, which is not tallied yet")
         lobes.check_exit(fiber.meta, spec.exit)
         self.ply, self.fiber, self.spec = ply, fiber, spec
         self.geometry = TwistedScene(ply)

@@ -1,0 +1,162 @@
+"""Near-field tables: the light a ply sends from each offset across its width
+(docs/DESIGN.md, "Near-field tables").
+
+A bake with ``offsets`` keeps each escaping path's weight also by the cell of its exit
+offset ``h_o`` (the signed distance of its line from the ply axis, over the bounding
+radius) and the passthrough by the entry offset. The cells average to the far-field table;
+the passthrough per cell is what plain geometry says (lines against circles, here in
+numpy); and ``fiber_bundle`` on a near-field table renders, column by column across the
+ply, what explicit fibers render (the closure of the near field), where the far-field
+table renders a flat profile that the explicit fibers' lit and shadowed sides refute."""
+
+import numpy as np
+import pytest
+
+from models.bake import BakeSpec, bake_unreduced
+from models.bake.tally import offset_cell
+from models.bundle import poisson
+from models.bundle_table import BundleTable
+from models.fiber.ray import RayFiber
+from pipeline import closure
+
+WL = np.array([450.0, 550.0, 650.0])
+NODES = np.deg2rad(np.arange(0, 91, 5.0))
+CELLS = 8
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _variant(mi_llvm):
+    return mi_llvm
+
+
+@pytest.fixture(scope="module")
+def fiber():
+    return RayFiber(WL, [1.56] * 3, [0.3, 0.1, 0.0], 0.3, 0.3, 0.0, n_h=64).tabulate(NODES)
+
+
+@pytest.fixture(scope="module")
+def ply():
+    return poisson((80.0, 80.0), 20.0, packing=0.4, seed=2)
+
+
+def test_the_cells_average_to_the_table_and_pass_what_geometry_passes(ply, fiber, tmp_path):
+    """The mean of ``S_h`` over the cells is ``S`` (the same float64 sums, to float32
+    rounding); the passthrough per entry cell is the share of lines at that offset that miss
+    every fiber, over every orientation (numpy, within binomial errors); the theta mirror and
+    the half-precision file keep the cells."""
+    spec = BakeSpec(np.deg2rad([0.0, 40.0]), np.zeros(1), 12, 32, offsets=CELLS)
+    T = bake_unreduced(ply, fiber, spec, 200_000, seed=5)
+    eps = np.finfo(np.float32).eps
+    assert np.all(np.abs(T.near.astype(np.float64).mean(0) - T.values) <= 4 * eps * T.values + 1e-30)
+    # geometry: a line at offset h R_b (x sin phi - z cos phi = h R_b) misses a fiber at c unless
+    # |c_x sin phi - c_z cos phi - h R_b| < r
+    rng = np.random.default_rng(0)
+    n = 400_000
+    phi, h = rng.uniform(0, 2 * np.pi, n), rng.uniform(-1, 1, n)
+    R = ply.bounding_radius
+    d = ply.centers[:, 0][None] * np.sin(phi)[:, None] - ply.centers[:, 1][None] * np.cos(phi)[:, None]
+    missed = np.all(np.abs(d - h[:, None] * R) >= ply.radii[None], axis=1)
+    cell = np.minimum(((h + 1) * CELLS / 2).astype(int), CELLS - 1)
+    geometric = np.bincount(cell, missed, CELLS) / np.bincount(cell, minlength=CELLS)
+    p = T.near_passthrough[0]
+    se = np.sqrt(p * (1 - p) / (200_000 / CELLS) + geometric * (1 - geometric) / (n / CELLS)) + 1e-9
+    print("passthrough by cell", np.round(p, 3), "geometry", np.round(geometric, 3))
+    assert np.all(np.abs(p - geometric) < 4 * se), (p, geometric)
+    assert p[0] > 0.1 and p[CELLS // 2] < p[0]           # the rims pass more than the core
+    # kept through the file and the theta mirror (h is unchanged by a mirror along the axis)
+    T.meta["reductions"] = {"theta_i": "mirror", "phi_i": "rotation", "phi_o": "relative"}
+    T.save(tmp_path / "near.npz")
+    full = BundleTable.load(tmp_path / "near.npz", expand=True)
+    assert full.near.shape == (CELLS, 1, 3) + T.values.shape[2:]
+    np.testing.assert_array_equal(full.near[:, :, 0], full.near[:, :, 2][:, :, :, ::-1])
+    assert np.all(np.abs(full.near.mean(0) - full.values) <= 2.0**-9 * full.values + 1e-6 * full.values.max())
+
+
+def test_offset_cells_in_numpy_and_drjit_agree():
+    import drjit as dr
+    import mitsuba as mi
+
+    rng = np.random.default_rng(1)
+    x, z, phi = rng.uniform(-1, 1, 1000), rng.uniform(-1, 1, 1000), rng.uniform(0, 2 * np.pi, 1000)
+    ref = np.clip(np.floor(((x * np.sin(phi) - z * np.cos(phi)) / 1.5 + 1) * CELLS / 2), 0, CELLS - 1)
+    np.testing.assert_array_equal(offset_cell(CELLS, x, z, phi, 1.5), ref)
+    mi.set_variant("llvm_ad_rgb")
+    dj = offset_cell(CELLS, mi.Float(x), mi.Float(z), mi.Float(phi), 1.5, dr).numpy()
+    assert np.mean(dj == ref) > 0.995   # float32 at the cells' edges
+
+
+def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, ply, fiber, tmp_path):
+    """Six ray-optics fibers, every one its own cylinder (``fiber_table``, the uniform exit),
+    against ``fiber_bundle`` on the near-field bake of the same arrangement: the intensity in
+    8 cells across the width, each averaged over 16 turns of the arrangement and a 4 x 4
+    stratification of the table bin, side, back- and forward-lit at two incidences: within
+    5% + 3 standard errors (explicit renders and the bake's cell) in every cell. The same
+    table read as a far field (``near_field: false``) is outside in many cells. Seen against
+    a lit background, the bundle lets through what ``near_passthrough`` says per cell."""
+    mi = mono
+    mi.set_variant("llvm_ad_rgb")   # the baker's own variant
+    spec = BakeSpec(np.deg2rad([10, 30, 60, 80]), np.zeros(1), 18, 36, offsets=CELLS)
+    table = bake_unreduced(ply, fiber, spec, 2_000_000, seed=3)
+    table.meta["reductions"] = {"theta_i": None, "phi_i": "rotation", "phi_o": "relative"}
+    table.save(tmp_path / "near.npz")
+    fiber.save(tmp_path / "fiber.npz")
+    mi.set_variant("llvm_ad_mono")
+    import mitsuba_ext
+
+    mitsuba_ext.register()
+    lam, n_t = 1, 18
+    cases = [(j, k_phi, int(np.floor((np.pi / 2 - table.theta_i[j]) / np.pi * n_t)))
+             for j in (1, 2) for k_phi in (1, 9, 15)]
+    requests = [(closure.direction(0.0, table.theta_i[j]), closure.bin_views(table, 0.0, k_phi, k_theta))
+                for j, k_phi, k_theta in cases]
+    explicit = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": 550.0, "up": closure.UP}
+    measured = closure.explicit_intensities(mi, ply, explicit, requests, spp=8, resolution=64, cells=CELLS)
+    R = ply.bounding_radius * 1e-3
+    hs = 1.2 * R
+    outside = {}
+    for near in (True, False):
+        bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "near.npz"), "wavelength": 550.0, "up": closure.UP,
+                "near_field": near}
+        shape = closure.cylinder(R, bsdf, half_length=closure.fiber_half_length(hs, 1.4))
+        w_i, w_o = requests[0][0], requests[0][1][0]
+        loaded = mi.load_dict(closure.scene(mi, {"f": shape}, w_i, w_o, hs, resolution=64, spp=32))
+        params = mi.traverse(loaded)
+        outside[near] = 0
+        for (w_i, views), (I, se), (j, k_phi, k_theta) in zip(requests, measured, cases):
+            rendered = []
+            for k, view in enumerate(views):
+                params["sensor.to_world"] = closure._camera(mi, view, hs)[2]
+                params["sun.to_world"] = closure._sun(mi, w_i)
+                params.update()
+                rendered.append(closure.profile(closure.render_image(mi, loaded, seed=k), view, hs, R, CELLS))
+            ratio = np.mean(rendered, axis=0) / I
+            S, S_se = table.near[:, 0, j, k_phi, k_theta, lam], table.near_stderr[:, 0, j, k_phi, k_theta, lam]
+            sigma = np.hypot(se / I, S_se / S)
+            out = np.abs(ratio - 1) > 0.05 + 3 * sigma
+            print("near" if near else "far", (j, k_phi, k_theta), "bundle / explicit", np.round(ratio, 2),
+                  "sigma", np.round(sigma, 2))
+            outside[near] += int(out.sum())
+    assert outside[True] == 0 and outside[False] >= 12, outside
+    # the null lobe per offset: a lit background seen through the ply
+    bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "near.npz"), "wavelength": 550.0, "up": closure.UP}
+    w_o = closure.direction(0.4, 0.3)
+    sc = closure.scene(mi, {"f": closure.cylinder(R, bsdf, half_length=40 * hs)}, -w_o, w_o, hs, irradiance=0.0,
+                       background=1.0, spp=16, resolution=64)
+    seen = closure.profile(closure.render_image(mi, sc), w_o, hs, R, CELLS)
+    clear = closure.profile(np.ones((64, 64)), w_o, hs, R, CELLS)
+    np.testing.assert_allclose(seen / clear, table.near_passthrough[0], atol=0.03)
+
+
+def test_near_field_bakes_are_refused_where_they_are_not_defined():
+    from pipeline.config import ConfigError
+    from pipeline.loading import load_config
+
+    for config in ("configs/twisted_cotton1.yaml", "configs/thesis_ellipse.yaml"):
+        with pytest.raises(ConfigError, match="circular parallel plies"):
+            load_config(config, ["bake.offsets=8"])
+    assert load_config("configs/default.yaml", ["bake.offsets=8"]).bake.offsets == 8
+    with pytest.raises(ValueError, match="offsets"):
+        BakeSpec(np.zeros(1), np.zeros(1), offsets=1)
+    for kw in ({"estimator": "thesis"}, {"relative_phi": False}, {"orders": 4}):
+        with pytest.raises(ValueError, match="offsets need"):
+            BakeSpec(np.zeros(1), np.zeros(1), offsets=8, **kw)
