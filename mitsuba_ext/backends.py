@@ -87,7 +87,7 @@ class TableBackend:
             channels = np.moveaxis(t.near, 0, -2).reshape(t.values.shape[:4] + (N * L,))
             self.near = DrJitTable(t._replace(values=channels, stderr=channels), Float, block=L)
             self.n_cells = N
-            self.near_passthrough = Float(np.asarray(t.near_passthrough[0], np.float32))  # a circle: one phi_i
+            self.near_passthrough = Float(np.asarray(t.near_passthrough[0], np.float32).ravel())  # a circle: one phi_i
             self.nbytes += self.near.nbytes
 
     def offset_cell(self, h):
@@ -99,9 +99,13 @@ class TableBackend:
         """``S_h``: the light leaving along ``phi_o, theta_o`` on the line at offset ``h``."""
         return self.near.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup, block=self.offset_cell(h))
 
-    def passthrough_near(self, h):
-        """``P_pass`` of a ray entering on the line at offset ``h`` (its direction of travel's)."""
-        return dr.gather(self.Float, self.near_passthrough, self.offset_cell(h))
+    def passthrough_near(self, theta_i, h):
+        """``P_pass`` of a ray entering on the line at offset ``h`` (its direction of travel's),
+        linear between the theta_i nodes (a twisted ply's depends on them)."""
+        b0, b1, w = linear(np.asarray(self.table.theta_i, float), theta_i, xp=dr)
+        cell, N = self.offset_cell(h), self.n_cells
+        return dr.lerp(dr.gather(self.Float, self.near_passthrough, b0 * N + cell),
+                       dr.gather(self.Float, self.near_passthrough, b1 * N + cell), w)
 
     def upload_orders(self):
         """Upload the table's orders as one lookup of ``K x n_lambda`` channels (the cells

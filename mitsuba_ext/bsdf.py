@@ -357,7 +357,7 @@ class FiberBundleBSDF(CurveBSDF):
             return dr.select(inside, 1.0, 0.0)
         if getattr(self.backend, "near", None) is not None:   # the arriving ray's own offset, as it travels
             frame = bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
-            P = self.backend.passthrough_near(-line_offset(si, frame, phi_i))
+            P = self.backend.passthrough_near(theta_i, -line_offset(si, frame, phi_i))
         else:
             P = self.backend.passthrough(phi_i, theta_i)
         return dr.select(inside, 1.0, dr.clip(P, 0.0, 1.0))

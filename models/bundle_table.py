@@ -113,7 +113,7 @@ class BundleTable:
     tail_ratio: np.ndarray | None = None     # [phi_i, theta_i, lambda]: rho of the tail k >= K
     near: np.ndarray | None = None           # [N, phi_i, theta_i, phi_o, theta_o, lambda]: S by exit offset
     near_stderr: np.ndarray | None = None
-    near_passthrough: np.ndarray | None = None  # [phi_i, N]: P_pass by entry offset
+    near_passthrough: np.ndarray | None = None  # [phi_i, theta_i, N]: P_pass by entry offset
 
     # -- derived axes --------------------------------------------------------
     @property
@@ -263,9 +263,9 @@ class BundleTable:
                 raise ValueError(f"{name} has shape {a.shape}, the axes give (N >= 2,) + {shape}")
             if not np.all(np.isfinite(a)) or np.any(a < 0):
                 raise ValueError(f"{name} holds NaN, Inf or negative numbers")
-        p = self.near_passthrough
-        if p.shape != (shape[0], N) or not np.all((p >= 0) & (p <= 1)):
-            raise ValueError(f"near_passthrough must be probabilities with shape {(shape[0], N)} (got {p.shape})")
+        p, want = self.near_passthrough, shape[:2] + (N,)
+        if p.shape != want or not np.all((p >= 0) & (p <= 1)):
+            raise ValueError(f"near_passthrough must be probabilities with shape {want} (got {p.shape})")
 
     def _validate_orders(self, shape) -> None:
         present = [getattr(self, n) is not None for n in ORDER_ARRAYS + ("tail_ratio",)]
@@ -381,7 +381,8 @@ class BundleTable:
             values=cat(self.values, 1, 3), stderr=cat(self.stderr, 1, 3),
             absorbed=cat(self.absorbed, 1), lost=cat(self.lost, 1),
             single=None if self.single is None else cat(self.single, 1),
-            passthrough_theta=None if self.passthrough_theta is None else cat(self.passthrough_theta, 1))
+            passthrough_theta=None if self.passthrough_theta is None else cat(self.passthrough_theta, 1),
+            near_passthrough=None if self.near_passthrough is None else cat(self.near_passthrough, 1))
 
     def _mirror_phi(self, twisted: bool = False):
         """Ellipse: from phi_i in [0, pi/2] to [0, 2 pi) by its symmetries.

@@ -317,7 +317,7 @@ class BakeCfg(Strict):
     offsets: int = Field(
         0, ge=0, le=64, description="the near field: keep the light also by the cell of its exit offset across the "
                                     "ply (N equal cells of h in [-1, 1]) and the passthrough by the entry offset; 0 "
-                                    "none. Circular parallel plies (docs/DESIGN.md, Near-field tables)")
+                                    "none. Circular plies (docs/DESIGN.md, Near-field tables)")
     seed: int = Field(1, ge=0, le=2**32 - 1)
     variant: Literal[BAKE_VARIANTS] = "llvm_ad_mono"
     checkpoint_every_s: float = Field(20.0, gt=0.0)
@@ -672,9 +672,9 @@ class Config(Strict):
         if b.offsets == 1 or (b.offsets and (b.orders or b.estimator != "fast")):
             raise ValueError("bake.offsets: 0 (none) or N >= 2 cells, with bake.estimator: fast and without "
                              "bake.orders")
-        if b.offsets and self.bundle is not None and (self.bundle.twist is not None or self.bundle.shape != "circle"):
-            raise ValueError("bake.offsets: the near field is baked for circular parallel plies (a twisted ply's "
-                             "offset goes with its phase, an ellipse's with its orientation: not tallied yet)")
+        if b.offsets and self.bundle is not None and self.bundle.shape != "circle":
+            raise ValueError("bake.offsets: the near field is baked for circular plies (an ellipse's offset goes "
+                             "with its orientation: not tallied yet)")
         if b.exit in ("entry", "lobe", "curve") and b.estimator != "fast":
             raise ValueError(f"bake.exit: {b.exit} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
         if self.bundle is not None and self.bundle.twist is not None and b.estimator != "fast":

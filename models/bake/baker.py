@@ -166,7 +166,7 @@ class Baker:
         if self.spec.offsets:  # the near field: paths and passthrough by their entry offset
             N = self.spec.offsets
             cell = offset_cell(N, origin[:, 0], origin[:, 1], phi_t, Rb)
-            tally.paths_h[phi_index] += np.bincount(cell, minlength=N)
+            tally.paths_h[phi_index] += np.bincount(cell, minlength=N)   # every theta_i alike
             tally.passthrough_h[phi_index] += np.bincount(cell[~hit], minlength=N)
         tally.vertices += n_paths
         if self.spec.estimator == "fast":

@@ -100,7 +100,7 @@ class Tally:
     With ``BakeSpec.offsets = N`` the escaping weight is also kept by the cell of its exit
     offset ``h_o`` (``near``, ``near_sq``; ``sum``'s layout after a leading cell axis), and
     the paths and passthrough by the cell of their entry offset (``paths_h``,
-    ``passthrough_h``, [phi_i, N]).
+    ``passthrough_h``, [phi_i, theta_i, N]).
     """
 
     sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
@@ -119,7 +119,7 @@ class Tally:
     tail_excess: np.ndarray | None = None  # [phi_i, theta_i, lambda]
     near: np.ndarray | None = None         # [N, phi_i, theta_i, phi_o, theta_o, lambda]
     near_sq: np.ndarray | None = None
-    paths_h: np.ndarray | None = None      # [phi_i, N]
+    paths_h: np.ndarray | None = None      # [phi_i, theta_i, N]
     passthrough_h: np.ndarray | None = None
 
     SUMS = ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough", "paths_theta", "passthrough_theta",
@@ -138,7 +138,7 @@ class Tally:
         if spec.offsets:
             N = spec.offsets
             orders |= {"near": np.zeros((N,) + bins), "near_sq": np.zeros((N,) + bins),
-                       "paths_h": np.zeros((len(spec.phi_i), N)), "passthrough_h": np.zeros((len(spec.phi_i), N))}
+                       "paths_h": np.zeros(shape + (N,)), "passthrough_h": np.zeros(shape + (N,))}
         return cls(np.zeros(bins), np.zeros(bins),
                    np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
                    np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)), np.zeros(shape), np.zeros(shape),
