@@ -7,7 +7,7 @@ SIZES = --set name=default_sizes --set 'train.models={small: [32, 32], medium: [
         --set train.epochs=500 --set render.model=small
 
 
-.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-encoding bench-render bench-closure bench-cluster bench-exit bench-hair bench-dye bench-twisted figures bench-highlight bench-cloth cloth stability clean
+.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-encoding bench-render bench-closure bench-cluster bench-exit bench-hair bench-dye bench-near bench-twisted figures bench-highlight bench-cloth cloth stability clean
 setup:
 	./scripts/setup.sh
 
@@ -61,6 +61,9 @@ bench-hair: setup
 
 bench-dye: setup
 	.venv/bin/python -m pipeline.bench.dye
+
+bench-near: setup
+	.venv/bin/python -m pipeline.bench.near
 
 # the README's headline figures from the default run, then every document's results blocks
 figures: run

@@ -19,8 +19,7 @@ import numpy as np
 from mitsuba_ext.backends import load_backend
 from mitsuba_ext.crossing import refuse_other_integrators
 from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, line_offset,
-                               resolve_path,
-                               spectral_weights, split_uniform)
+                               resolve_path, spectral_weights, split_uniform)
 from mitsuba_ext.params import boolean, jit_variant_only, number, spectrum_at, spectrum_property, vector3
 from models.fiber import lobes
 from models.fiber.base import FiberTable
@@ -355,7 +354,7 @@ class FiberBundleBSDF(CurveBSDF):
     def _passthrough(self, si, phi_i, theta_i, inside):
         if not self.use_passthrough:
             return dr.select(inside, 1.0, 0.0)
-        if getattr(self.backend, "near", None) is not None:   # the arriving ray's own offset, as it travels
+        if self.backend.near is not None:   # the arriving ray's own offset, as it travels
             frame = bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
             P = self.backend.passthrough_near(theta_i, -line_offset(si, frame, phi_i))
         else:
@@ -368,7 +367,7 @@ class FiberBundleBSDF(CurveBSDF):
         w_light, w_camera, radiance = light_and_camera(ctx, si, wo)
         phi_l, theta_l = angles(si.to_world(w_light), frame)
         phi_c, theta_c = angles(si.to_world(w_camera), frame)
-        if getattr(self.backend, "near", None) is not None:   # the near field: the camera ray's own offset
+        if self.backend.near is not None:   # the near field: the camera ray's own offset
             h = line_offset(si, frame, phi_c)
             value = self._spectrum(self.backend.eval_near(phi_l, theta_l, phi_c, theta_c, h), si)
         elif self.dye is None:
@@ -398,11 +397,16 @@ class FiberBundleBSDF(CurveBSDF):
         value = self._value(ctx, si, frame, wo)
         return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), value, 0.0)
 
+    def _sampling_cell(self, si, frame, phi_i):
+        """The near-field cell that conditions the proposal: that of ``si.wi``'s line (the
+        camera ray's in radiance mode, where the value is read at it); ``None``: far field."""
+        return None if self.backend.near is None else self.backend.offset_cell(line_offset(si, frame, phi_i))
+
     def pdf(self, ctx, si, wo, active=True):
         frame, phi_i, theta_i, inside = self._setup(si)
         phi_o, theta_o = angles(si.to_world(wo), frame)
         P = self._passthrough(si, phi_i, theta_i, inside)
-        pdf = (1.0 - P) * self.grid.pdf(phi_i, theta_i, phi_o, theta_o)
+        pdf = (1.0 - P) * self.grid.pdf(phi_i, theta_i, phi_o, theta_o, self._sampling_cell(si, frame, phi_i))
         return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), pdf, 0.0)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
@@ -417,7 +421,8 @@ class FiberBundleBSDF(CurveBSDF):
 
         # scattering: the remainder of sample1 picks uniform or tabulated sampling
         u_mix = (sample1 - P) / dr.maximum(1.0 - P, 1e-12)
-        phi_o, theta_o, pdf_dir = self.grid.sample(phi_i, theta_i, u_mix, sample2)
+        phi_o, theta_o, pdf_dir = self.grid.sample(phi_i, theta_i, u_mix, sample2,
+                                                   self._sampling_cell(si, frame, phi_i))
         wo_local = si.to_local(direction(phi_o, theta_o, frame))
         value = self._value(ctx, si, frame, wo_local)
 

@@ -27,7 +27,16 @@ def tables(tmp_path_factory):
     # the cone layout's theta_o bins: 5 deg on each cone, 10 between (edges on the 2.5-deg
     # cells of the chi-square test, which integrates the pdf over its cells)
     synthetic_table(cfg, cone, relative=True, passthrough=0.3, cone=5.0)
-    return {"circle": circle, "ellipse": ellipse, "cone": cone}
+    # the circle with a near field: 8 offset cells, each the table times its own azimuthal
+    # wave (their mean the table), and a passthrough per cell
+    near = tmp / "near.npz"
+    t = BundleTable.load(circle)
+    N, phase = 8, 2 * np.pi * np.arange(8) / 8
+    wave = 1 + 0.8 * np.sin(t.phi_o[None, :] + phase[:, None])[:, None, None, :, None, None]
+    t.near, t.near_stderr = (t.values[None] * wave).astype(np.float32), (t.stderr[None] * wave).astype(np.float32)
+    t.near_passthrough = np.broadcast_to(0.3 + 0.2 * np.cos(phase), t.absorbed.shape[:2] + (N,)).copy()
+    t.save(near)
+    return {"circle": circle, "ellipse": ellipse, "cone": cone, "near": near}
 
 
 def vec(mi, w):
@@ -118,7 +127,7 @@ def wi_of(theta_deg, phi_deg):
 
 
 @pytest.mark.parametrize("which,backend", [("circle", "table"), ("ellipse", "table"), ("cone", "table"),
-                                           ("circle", "mlp")])
+                                           ("near", "table"), ("circle", "mlp")])
 @pytest.mark.parametrize("theta,phi", [(0, 90), (40, 20), (-75, 160)])  # wi.z > 0: from outside
 def test_sampling_passes_mitsuba_chi2(mi_plug, tables, trained, which, backend, theta, phi, tmp_path, monkeypatch):
     mi = mi_plug

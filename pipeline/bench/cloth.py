@@ -178,7 +178,8 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     """The patch rendered ``seeds`` times at ``spp`` each: ``which`` = ``bundle`` (the plies
     with the bake's table and the config's exit model), ``bundle_<exit>`` (the same with
     another exit model of ``EXITS``) or ``explicit`` (every fiber of every
-    ply as its own curve with the single-fiber model); all carry the same flyaways; ``sky``:
+    ply as its own curve with the single-fiber model), ``bundle_far`` (a near-field table read
+    as its far field, ``near_field: false``); all carry the same flyaways; ``sky``:
     nothing but the sky (which pixels the cloth changes). Saves the means of the two halves
     of the seeds (their difference is the noise of the mean)."""
 
@@ -195,7 +196,8 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     if which.startswith("bundle"):
         with atomic_path(out / "patch_plies.txt") as tmp, open(tmp, "w") as fh:
             write_mitsuba_curves(fh, (tapered(C, g.radius) for C in g.curves))
-        shapes["yarn"] = scenes.ply_shape(out / "patch_plies.txt", props, g.radius)
+        far = {"near_field": False} if which == "bundle_far" else {}
+        shapes["yarn"] = scenes.ply_shape(out / "patch_plies.txt", {**props, **far}, g.radius)
         geometry_points = g.control_points + 6 * len(g.curves)
     elif which == "explicit":
         bundle = build_bundle(cfg)
@@ -217,7 +219,7 @@ def child_explicit(config, root, which, ply_px, spp, seeds, out):
     scene = scenes.cloth_scene(mi, c, shapes, bbox, spp, view=view)
     scene["integrator"].update(overlaps=OVERLAPS,  # both sides alike (the patch's yarns interpenetrate)
                                max_depth=EXPLICIT_DEPTH)
-    if which.startswith("bundle_"):
+    if which.startswith("bundle_") and which != "bundle_far":
         scene["integrator"].update(EXITS[which.removeprefix("bundle_")])
     scene = mi.load_dict(scene)
     loaded = peak_mb()
@@ -459,6 +461,10 @@ def measure_explicit(config, root, quick, tmp, ply_px=None, samples=1) -> list:
     # ``samples`` times the seeds on both sides (seeds 0, 1, ...: the standard run's and more)
     bundle_spp, explicit_spp = ((spp, samples * seeds) for spp, seeds in (BUNDLE_SPP, EXPLICIT_SPP))
     renders = [("bundle", bundle_spp)] + [(f"bundle_{k}", bundle_spp) for k in others] + [("explicit", explicit_spp)]
+    cfg = load_config(config)
+    near = load_bundle_table(cfg, root)[0].near is not None
+    if near:   # a near-field table: also read as its far field, to see what the near field changes
+        renders.insert(1, ("bundle_far", bundle_spp))
     explicit = []
     for px in ((4,) if quick else ply_px or PLY_PX):
         row = {"ply_px": px, "exit_split": own}
@@ -520,6 +526,14 @@ def measure_explicit(config, root, quick, tmp, ply_px=None, samples=1) -> list:
             row["exits"][k] = {"flip": masked_flip(ref, other, exposure, mask), **colour_ratio(other, ref, mask),
                                "time_ratio_equal_noise": cost["explicit"] / (r["variance_per_spp"] *
                                                                              r["seconds_per_spp"])}
+        if near:
+            far = 0.5 * (pair["bundle_far"][0] + pair["bundle_far"][1])
+            row["far_field"] = {"flip": masked_flip(ref, far, exposure, mask), **colour_ratio(far, ref, mask),
+                                "flip_ply_scale": masked_flip(ply_scale(ref, px), ply_scale(far, px), exposure, mask)}
+            row["flip_far_field"] = row["far_field"]["flip"]   # flat, for the record's table
+            print(f"[explicit] {px} px, the same table as a far field: FLIP {row['far_field']['flip']:.3f}, mean RGB "
+                  f"{np.round(row['far_field']['mean_ratio_rgb'], 3).tolist()}, at the ply's scale "
+                  f"{row['far_field']['flip_ply_scale']:.3f}", flush=True)
         explicit.append(row)
         np.save(Path(tmp) / f"pair_{px}.npy", np.stack([ref, test]))
         print(f"[explicit] {px} px: FLIP {row['flip']:.3f}, half the samples {row['flip_half_samples']:.3f}, "
