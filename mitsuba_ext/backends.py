@@ -141,8 +141,6 @@ class TableBackend:
     def sampling_grid(self, uniform: float):
         t = self.table
         mass = t.values.astype(np.float64).mean(-1) * t.solid_angle  # energy per bin
-        if self.near is not None:   # a distribution per offset cell: [phi_i, theta_i, cell, phi_o, theta_o]
-            mass = np.moveaxis(t.near.astype(np.float64).mean(-1) * t.solid_angle, 0, 2)
         return DirectionGrid(mass, t.phi_i, t.theta_i, t.phi_o_edges, t.theta_o_edges,
                              self.relative, self.Float, uniform)
 
