@@ -25,6 +25,7 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
+import mitsuba_ext
 from models.bake import BakeSpec, bake_unreduced, tally_to_table
 from models.bake.twisted import TwistedBaker
 from models.bundle import TwistedBundle, poisson
@@ -86,8 +87,6 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="the parallel ply, fewer paths (not recorded)")
     args = ap.parse_args(argv)
     mi.set_variant("llvm_ad_rgb")
-    import mitsuba_ext
-
     fiber = RayFiber(WL, [1.56] * 3, [0.3, 0.1, 0.0], 0.3, 0.3, 0.0, n_h=64).tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
     rows = []
     with results.recorded("near", smoke=args.quick), tempfile.TemporaryDirectory() as tmp:
