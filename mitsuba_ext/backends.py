@@ -144,6 +144,19 @@ class TableBackend:
         return DirectionGrid(mass, t.phi_i, t.theta_i, t.phi_o_edges, t.theta_o_edges,
                              self.relative, self.Float, uniform)
 
+    def camera_grid(self, uniform: float):
+        """The proposal of a near-field table in radiance mode: conditioned on the camera side
+        ``w_c`` (its ``theta_o`` bin) and its line's offset cell, a distribution over the light
+        side ``w_l``, i.e. the table transposed: ``S_c(w_l -> w_c)`` over cells of ``phi_l -
+        phi_c`` (the table's ``phi_o - phi_i`` negated) and of ``theta_l`` about its nodes."""
+        t = self.table
+        edges = np.concatenate([[-np.pi / 2], 0.5 * (t.theta_i[1:] + t.theta_i[:-1]), [np.pi / 2]])
+        # [cell, theta_l node, dphi bin, theta_c bin] -> [1, theta_c, cell, -dphi bin, theta_l]
+        S = t.near[:, 0].astype(np.float64).mean(-1)
+        mass = np.transpose(S[:, :, ::-1, :], (3, 0, 2, 1))[None]
+        mass = mass * bin_solid_angle(t.phi_o_edges, edges)[None, None, None]
+        return DirectionGrid(mass, np.zeros(1), t.theta_o, t.phi_o_edges, edges, True, self.Float, uniform)
+
 
 class _NeuralBackend:
     """Shared by the two neural backends: metadata, passthrough, self-tabulated sampling."""

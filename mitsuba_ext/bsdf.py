@@ -336,6 +336,7 @@ class FiberBundleBSDF(CurveBSDF):
                                     near_field=boolean(self.plugin, "near_field", props.get("near_field", True)))
         uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
         self.grid = self.backend.sampling_grid(uniform)
+        self.camera_grid = None if self.backend.near is None else self.backend.camera_grid(uniform)
         self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
         self._init_curve(props, self.backend.wavelength)
         self.params["sampling_uniform"] = mi.Float(uniform)
@@ -349,7 +350,9 @@ class FiberBundleBSDF(CurveBSDF):
         super().parameters_changed(keys)
         if "sampling_uniform" in keys:
             uniform = float(dr.ravel(self.params["sampling_uniform"])[0])
-            self.grid = self.backend.sampling_grid(number(self.plugin, "sampling_uniform", uniform, 0.0, 1.0))
+            uniform = number(self.plugin, "sampling_uniform", uniform, 0.0, 1.0)
+            self.grid = self.backend.sampling_grid(uniform)
+            self.camera_grid = None if self.backend.near is None else self.backend.camera_grid(uniform)
 
     def _passthrough(self, si, phi_i, theta_i, inside):
         if not self.use_passthrough:
@@ -397,11 +400,21 @@ class FiberBundleBSDF(CurveBSDF):
         value = self._value(ctx, si, frame, wo)
         return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), value, 0.0)
 
+    def _proposal(self, ctx, si, frame, phi_i):
+        """``(grid, extra)``: the far field's proposal, conditioned on ``si.wi`` (by
+        reciprocity it stands for the table read the other way), or, for a near-field table
+        in radiance mode, the table transposed per offset cell of the camera ray's line
+        (:meth:`TableBackend.camera_grid`)."""
+        if self.camera_grid is None or ctx.mode != mi.TransportMode.Radiance:
+            return self.grid, None
+        return self.camera_grid, self.backend.offset_cell(line_offset(si, frame, phi_i))
+
     def pdf(self, ctx, si, wo, active=True):
         frame, phi_i, theta_i, inside = self._setup(si)
         phi_o, theta_o = angles(si.to_world(wo), frame)
         P = self._passthrough(si, phi_i, theta_i, inside)
-        pdf = (1.0 - P) * self.grid.pdf(phi_i, theta_i, phi_o, theta_o)
+        grid, cell = self._proposal(ctx, si, frame, phi_i)
+        pdf = (1.0 - P) * grid.pdf(phi_i, theta_i, phi_o, theta_o, cell)
         return dr.select(active & ~inside & ctx.is_enabled(mi.BSDFFlags.Glossy, 0), pdf, 0.0)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
@@ -414,12 +427,10 @@ class FiberBundleBSDF(CurveBSDF):
             P = dr.select(P > 0, 1.0, 0.0)
         passes = sample1 < P
 
-        # scattering: the remainder of sample1 picks uniform or tabulated sampling (a near-field
-        # table's proposal is its far field's: conditioned on the camera side, the near field's
-        # offset is that of the light's exit line, which the far field's reciprocity does not
-        # give; a proposal per offset cell of the table as it stands made a glove render 70x noisier)
+        # scattering: the remainder of sample1 picks uniform or tabulated sampling
         u_mix = (sample1 - P) / dr.maximum(1.0 - P, 1e-12)
-        phi_o, theta_o, pdf_dir = self.grid.sample(phi_i, theta_i, u_mix, sample2)
+        grid, cell = self._proposal(ctx, si, frame, phi_i)
+        phi_o, theta_o, pdf_dir = grid.sample(phi_i, theta_i, u_mix, sample2, cell)
         wo_local = si.to_local(direction(phi_o, theta_o, frame))
         value = self._value(ctx, si, frame, wo_local)
 

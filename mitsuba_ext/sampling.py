@@ -28,15 +28,19 @@ class DirectionGrid:
 
     ``phi_i``/``theta_i``: condition nodes (radians; nearest node is used, ``phi_i``
     periodic). ``phi_o_edges``/``theta_o_edges``: cell edges; ``phi_o`` is measured
-    from ``phi_i`` when ``relative``. ``mass`` is the energy per cell (any scale).
+    from ``phi_i`` when ``relative``. ``mass`` is the energy per cell (any scale). A
+    ``mass[phi_i, theta_i, extra, phi_o, theta_o]`` adds a condition given by index
+    (``extra`` of :meth:`sample` and :meth:`pdf`: a near-field table's offset cell).
     """
 
     def __init__(self, mass, phi_i, theta_i, phi_o_edges, theta_o_edges, relative: bool,
                  Float, uniform: float = 0.1):
 
         mass = np.asarray(mass, np.float64)
-        if mass.ndim != 4 or not np.all(np.isfinite(mass)) or np.any(mass < 0):
-            raise ValueError("sampling grid: mass must be a finite, non-negative 4D array")
+        if mass.ndim not in (4, 5) or not np.all(np.isfinite(mass)) or np.any(mass < 0):
+            raise ValueError("sampling grid: mass must be a finite, non-negative 4D (or 5D) array")
+        self.n_extra = mass.shape[2] if mass.ndim == 5 else 1
+        mass = mass.reshape(mass.shape[:2] + (self.n_extra,) + mass.shape[-2:])
         self.Float, self.UInt = Float, dr.uint32_array_t(Float)
         self.relative = relative
         self.uniform = float(uniform)
@@ -50,9 +54,9 @@ class DirectionGrid:
         self.theta_o_edges = np.asarray(theta_o_edges, float)
         self.theta_cells = Cells(self.theta_o_edges)
         self.theta_cells.upload(Float)
-        n_pi, n_ti, self.n_phi, self.n_theta = mass.shape
+        n_pi, n_ti, _, self.n_phi, self.n_theta = mass.shape
         self.n_cells = self.n_phi * self.n_theta
-        flat = mass.reshape(n_pi * n_ti, self.n_cells)
+        flat = mass.reshape(n_pi * n_ti * self.n_extra, self.n_cells)
         total = flat.sum(1, keepdims=True)
         # a condition with no energy samples uniformly (mass 0 everywhere -> flat pmf)
         pmf = np.where(total > 0, flat / np.where(total > 0, total, 1), 1.0 / self.n_cells)
@@ -68,8 +72,8 @@ class DirectionGrid:
         self.nbytes = 2 * pmf.size * 4
 
     # -- helpers -------------------------------------------------------------
-    def _condition(self, phi_i, theta_i):
-        """Index of the nearest (phi_i, theta_i) node."""
+    def _condition(self, phi_i, theta_i, extra=None):
+        """Index of the nearest (phi_i, theta_i) node (and the ``extra`` condition)."""
 
         n_pi, n_ti = len(self.phi_i), len(self.theta_i)
         if n_pi == 1:
@@ -80,7 +84,8 @@ class DirectionGrid:
             a = self.UInt(dr.round(t - dr.floor(t / n_pi) * n_pi)) % n_pi
         # theta_i: the cell of theta_i between the midpoints of its (possibly graded) nodes
         b = self.UInt(0) if n_ti == 1 else self.theta_i_cells.index(theta_i, xp=dr)
-        return a * n_ti + b
+        node = a * n_ti + b
+        return node if self.n_extra == 1 else node * self.n_extra + extra
 
     def _cell_of(self, phi_o, theta_o):
         # tie 0: the cell that sample() drew from, up to its edge
@@ -90,9 +95,9 @@ class DirectionGrid:
         return ip * self.n_theta + it, ip, it
 
     # -- the two operations --------------------------------------------------
-    def sample(self, phi_i, theta_i, u_mix, u2):
+    def sample(self, phi_i, theta_i, u_mix, u2, extra=None):
         """Outgoing ``(phi_o, theta_o)`` (phi_o absolute) and its pdf per steradian."""
-        cond = self._condition(phi_i, theta_i)
+        cond = self._condition(phi_i, theta_i, extra)
         base = cond * self.n_cells
         # discrete cell from u2.x, the remainder of u2.x places phi inside the cell
         k = dr.binary_search(0, self.n_cells - 1,
@@ -113,12 +118,12 @@ class DirectionGrid:
         if self.relative:
             phi_o = phi_o + phi_i
         phi_o = dr.select(use_uniform, phi_u, phi_o)
-        return phi_o, theta_o, self.pdf(phi_i, theta_i, phi_o, theta_o)
+        return phi_o, theta_o, self.pdf(phi_i, theta_i, phi_o, theta_o, extra)
 
-    def pdf(self, phi_i, theta_i, phi_o, theta_o):
+    def pdf(self, phi_i, theta_i, phi_o, theta_o, extra=None):
         """Mixture density per steradian of the absolute direction ``(phi_o, theta_o)``."""
 
-        cond = self._condition(phi_i, theta_i)
+        cond = self._condition(phi_i, theta_i, extra)
         if self.relative:
             phi_o = phi_o - phi_i
         k, ip, it = self._cell_of(phi_o, theta_o)
