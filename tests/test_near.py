@@ -113,7 +113,7 @@ PLIES = {"parallel": (None, [10, 30, 60, 80], 2_000_000, (1, 2)),
 def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, ply, fiber, tmp_path, name):
     """Six ray-optics fibers, every one its own cylinder (or, twisted, a ``bsplinecurve``
     along its helix; ``fiber_table``, the uniform exit), against ``fiber_bundle`` on the
-    near-field bake of the same arrangement: the intensity in 8 cells across the width, each
+    near-field bake of the same arrangement, on a cylinder and on a ``bsplinecurve``: the intensity in 8 cells across the width, each
     averaged over 16 turns of the arrangement (a twisted ply's: shifts along it, so the
     profile is averaged along the ply) and a 4 x 4 stratification of the table bin, side,
     back- and forward-lit at two incidences: within 5% + 3 standard errors (explicit renders
@@ -143,14 +143,19 @@ def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, ply, f
     R = table_radius = (ply.bundle if pitch else ply).bounding_radius * 1e-3
     hs = 1.2 * table_radius
     outside = {}
-    for near in (True, False):
+    half_length = closure.fiber_half_length(hs, 1.4)
+    curve = tmp_path / "ply.txt"   # the same ply as a straight bsplinecurve (the cloth's plies)
+    closure.write_curves([np.column_stack([np.zeros(33), np.linspace(-half_length, half_length, 33),
+                                           np.zeros(33), np.full(33, R)])], curve)
+    for near, kind in ((True, "cylinder"), (True, "bsplinecurve"), (False, "cylinder")):
         bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "near.npz"), "wavelength": 550.0, "up": closure.UP,
                 "near_field": near}
-        shape = closure.cylinder(R, bsdf, half_length=closure.fiber_half_length(hs, 1.4))
+        shape = (closure.cylinder(R, bsdf, half_length=half_length) if kind == "cylinder"
+                 else {"type": "bsplinecurve", "filename": str(curve), "bsdf": bsdf})
         w_i, w_o = requests[0][0], requests[0][1][0]
         loaded = mi.load_dict(closure.scene(mi, {"f": shape}, w_i, w_o, hs, resolution=64, spp=32))
         params = mi.traverse(loaded)
-        outside[near] = 0
+        outside[near, kind] = 0
         for (w_i, views), (I, se), (j, k_phi, k_theta) in zip(requests, measured, cases):
             rendered = []
             for k, view in enumerate(views):
@@ -162,10 +167,11 @@ def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, ply, f
             S, S_se = table.near[:, 0, j, k_phi, k_theta, lam], table.near_stderr[:, 0, j, k_phi, k_theta, lam]
             sigma = np.hypot(se / I, S_se / S)
             out = np.abs(ratio - 1) > 0.05 + 3 * sigma
-            print("near" if near else "far", (j, k_phi, k_theta), "bundle / explicit", np.round(ratio, 2),
+            print("near" if near else "far", kind, (j, k_phi, k_theta), "bundle / explicit", np.round(ratio, 2),
                   "sigma", np.round(sigma, 2))
-            outside[near] += int(out.sum())
-    assert outside[True] == 0 and outside[False] >= 12, outside
+            outside[near, kind] += int(out.sum())
+    assert outside[True, "cylinder"] == 0 and outside[True, "bsplinecurve"] == 0, outside
+    assert outside[False, "cylinder"] >= 12, outside
     # the null lobe per offset: a lit background seen through the ply
     bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "near.npz"), "wavelength": 550.0, "up": closure.UP}
     w_o = closure.direction(0.4, 0.3)
