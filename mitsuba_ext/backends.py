@@ -26,6 +26,7 @@ import numpy as np
 from mitsuba_ext.neural import DrJitMLP, OnnxMLP
 from mitsuba_ext.sampling import DirectionGrid
 from mitsuba_ext.table import DrJitTable
+from models.bake.tally import cell_of_offset
 from models.bundle_table import BundleTable
 from models.grid import bin_solid_angle, linear
 from models.jit import to_drjit
@@ -91,9 +92,8 @@ class TableBackend:
             self.nbytes += self.near.nbytes
 
     def offset_cell(self, h):
-        """The near-field cell of an offset ``h`` in [-1, 1] (``models.bake.tally.offset_cell``'s cells)."""
-        UInt = dr.uint32_array_t(self.Float)
-        return UInt(dr.clip(dr.floor((h + 1.0) * (0.5 * self.n_cells)), 0, self.n_cells - 1))
+        """The near-field cell of an offset ``h`` in [-1, 1], as the bake tallies it."""
+        return cell_of_offset(h, self.n_cells, dr)
 
     def eval_near(self, phi_i, theta_i, phi_o, theta_o, h):
         """``S_h``: the light leaving along ``phi_o, theta_o`` on the line at offset ``h``."""

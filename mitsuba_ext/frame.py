@@ -14,6 +14,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from models.bake import tally
 from models.spectrum import hat_basis, spectrum_to_srgb
 
 
@@ -127,12 +128,11 @@ def line_offset(si, frame, phi):
     """The signed offset ``h`` in [-1, 1] of the line through the bundle hit ``si`` along
     bundle-frame azimuth ``phi``, from the bundle's axis over its radius: ``x sin(phi) -
     z cos(phi)`` of the hit's outward radial direction ``(x, z)`` in the frame, as the bake
-    measures an escaping ray (``models.bake.tally.offset_cell``)."""
+    measures an escaping ray (``models.bake.tally.line_offset``)."""
     x, t, z = frame
     n_perp = si.n - dr.dot(si.n, t) * t
     n_perp = dr.normalize(dr.select(dr.squared_norm(n_perp) > 1e-12, n_perp, x))
-    sp, cp = dr.sincos(phi)
-    return dr.clip(dr.dot(n_perp, x) * sp - dr.dot(n_perp, z) * cp, -1.0, 1.0)
+    return dr.clip(tally.line_offset(dr.dot(n_perp, x), dr.dot(n_perp, z), phi, 1.0, dr), -1.0, 1.0)
 
 
 def direction(phi, theta, frame):

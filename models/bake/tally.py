@@ -199,14 +199,22 @@ def _add_split(sums, squares, phi_index, part, flat_bin, theta_index, W) -> None
         squares[:, phi_index, ..., l] += np.bincount(flat, w * w, size).reshape(K, n_ti, n_p, n_t)
 
 
-def offset_cell(n_cells: int, ox, oz, phi, bounding_radius: float, xp=np):
-    """The cell of the offset ``h = (x sin(phi) - z cos(phi)) / R_b`` in [-1, 1] of a ray
-    from ``(x, z)`` along azimuth ``phi`` (the signed distance of its line from the ply
-    axis; the plugin takes the camera ray's the same way), ``n_cells`` equal cells."""
-    h = (ox * xp.sin(phi) - oz * xp.cos(phi)) * (1.0 / bounding_radius)
-    c = xp.floor((h + 1.0) * (0.5 * n_cells))
-    c = xp.clip(c, 0, n_cells - 1)
+def line_offset(x, z, phi, radius: float, xp=np):
+    """``h = (x sin(phi) - z cos(phi)) / radius``: the signed distance from the ply axis of
+    the line through ``(x, z)`` along azimuth ``phi``, over the radius (numpy or Dr.Jit; the
+    plugin takes the camera ray's line the same way, ``mitsuba_ext.frame.line_offset``)."""
+    return (x * xp.sin(phi) - z * xp.cos(phi)) * (1.0 / radius)
+
+
+def cell_of_offset(h, n_cells: int, xp=np):
+    """The cell of ``h`` in [-1, 1] among ``n_cells`` equal cells (ends clamped)."""
+    c = xp.clip(xp.floor((h + 1.0) * (0.5 * n_cells)), 0, n_cells - 1)
     return c.astype(np.int64) if xp is np else xp.uint32_array_t(type(c))(c)
+
+
+def offset_cell(n_cells: int, ox, oz, phi, bounding_radius: float, xp=np):
+    """The offset cell of a ray from ``(x, z)`` along azimuth ``phi`` (the near-field tally)."""
+    return cell_of_offset(line_offset(ox, oz, phi, bounding_radius, xp), n_cells, xp)
 
 
 def output_bin(spec: BakeSpec, phi, theta, phi_i, xp=np):
