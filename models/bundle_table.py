@@ -240,8 +240,11 @@ class BundleTable:
                 raise ValueError(f"{name} reaches {float(np.max(getattr(self, name))):.4g}; a probability is at most 1")
         if self.single is not None and np.any(self.single > self.scattered * (1 + 1e-4) + 1e-6):
             raise ValueError("single exceeds the scattered light it is a part of")
-        self._validate_orders(shape)
-        self._validate_near(shape)
+        # the orders of scattering (tail ratio in [0, 1)) and the near field (passthrough per cell)
+        self._validate_split(ORDER_ARRAYS, "tail_ratio", lambda s, n: s[:2] + s[4:], lambda r: (r >= 0) & (r < 1),
+                             "order-resolved")
+        self._validate_split(NEAR_ARRAYS, "near_passthrough", lambda s, n: s[:2] + (n,), lambda p: (p >= 0) & (p <= 1),
+                             "near-field")
         reductions = self.meta.get("reductions", {"phi_o": "relative"})
         for key, allowed in REDUCTIONS.items():
             if reductions.get(key) not in allowed:
@@ -250,39 +253,25 @@ class BundleTable:
                                                                      atol=1e-9):
             raise ValueError("theta_o_edges are not symmetric about 0, which the theta_i mirror reduction needs")
 
-    def _validate_near(self, shape) -> None:
-        present = [getattr(self, n) is not None for n in NEAR_ARRAYS + ("near_passthrough",)]
+    def _validate_split(self, names, extra: str, extra_shape, extra_ok, what: str) -> None:
+        """A split of S along a leading axis (``names``: values and errors) and its ``extra``
+        array: all present or none, shapes from the axes, finite and non-negative."""
+        present = [getattr(self, n) is not None for n in names + (extra,)]
         if not any(present):
             return
         if not all(present):
-            raise ValueError("near, near_stderr and near_passthrough come together (a torn near-field table)")
-        N = len(self.near)
-        for name in NEAR_ARRAYS:
+            raise ValueError(f"{', '.join(names)} and {extra} come together (a torn {what} table)")
+        shape = self.values.shape
+        n = len(getattr(self, names[0]))
+        for name in names:
             a = getattr(self, name)
-            if a.shape != (N,) + shape or N < 2:
-                raise ValueError(f"{name} has shape {a.shape}, the axes give (N >= 2,) + {shape}")
+            if a.shape != (n,) + shape or n < 2:
+                raise ValueError(f"{name} has shape {a.shape}, the axes give (>= 2,) + {shape}")
             if not np.all(np.isfinite(a)) or np.any(a < 0):
                 raise ValueError(f"{name} holds NaN, Inf or negative numbers")
-        p, want = self.near_passthrough, shape[:2] + (N,)
-        if p.shape != want or not np.all((p >= 0) & (p <= 1)):
-            raise ValueError(f"near_passthrough must be probabilities with shape {want} (got {p.shape})")
-
-    def _validate_orders(self, shape) -> None:
-        present = [getattr(self, n) is not None for n in ORDER_ARRAYS + ("tail_ratio",)]
-        if not any(present):
-            return
-        if not all(present):
-            raise ValueError("orders, orders_stderr and tail_ratio come together (a torn order-resolved table)")
-        K = len(self.orders)
-        for name in ORDER_ARRAYS:
-            a = getattr(self, name)
-            if a.shape != (K,) + shape or K < 2:
-                raise ValueError(f"{name} has shape {a.shape}, the axes give (K >= 2,) + {shape}")
-            if not np.all(np.isfinite(a)) or np.any(a < 0):
-                raise ValueError(f"{name} holds NaN, Inf or negative numbers")
-        r = self.tail_ratio
-        if r.shape != shape[:2] + shape[4:] or not np.all((r >= 0) & (r < 1)):
-            raise ValueError(f"tail_ratio must be in [0, 1) with shape {shape[:2] + shape[4:]} (got {r.shape})")
+        a, want = getattr(self, extra), extra_shape(shape, n)
+        if a.shape != want or not np.all(extra_ok(a)):
+            raise ValueError(f"{extra} must have shape {want} and lie in its range (got {a.shape})")
 
     def order(self, k: int) -> "BundleTable":
         """The table of order ``k`` alone (``1 .. K-1``; ``K``: the tail), without orders."""

@@ -425,6 +425,30 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     return [(float(v.mean()), float(abs(v[0::2].mean() - v[1::2].mean()) / 2)) for v in values]
 
 
+def bundle_profiles(mi, bsdf: dict, R, requests, cells: int, shape=None, spp: int = 32,
+                    resolution: int = 64) -> np.ndarray:
+    """The :func:`profile` of one bundle of radius ``R`` with ``bsdf`` for every ``(w_i,
+    views)`` of ``requests`` (the mean over the views), seen as :func:`explicit_intensities`
+    sees explicit fibers (``hs = 1.2 R``): [request, cell]. ``shape(R, bsdf, half_length)``:
+    the shape along ``+y`` (default :func:`cylinder`)."""
+    hs = 1.2 * R
+    half_length = fiber_half_length(hs, [np.arcsin(np.clip(v[1], -1, 1)) for _, views in requests for v in views])
+    make = shape or (lambda R_, b, length: cylinder(R_, b, half_length=length))
+    loaded = mi.load_dict(scene(mi, {"f": make(R, bsdf, half_length)}, requests[0][0], requests[0][1][0], hs,
+                                resolution=resolution, spp=spp))
+    params = mi.traverse(loaded)
+    out = []
+    for w_i, views in requests:
+        rendered = []
+        for k, view in enumerate(views):
+            params["sensor.to_world"] = _camera(mi, view, hs)[2]
+            params["sun.to_world"] = _sun(mi, w_i)
+            params.update()
+            rendered.append(profile(render_image(mi, loaded, seed=k), view, hs, R, cells))
+        out.append(np.mean(rendered, axis=0))
+    return np.array(out)
+
+
 def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
     """``n x n`` directions stratified over output bin ``(k_phi, k_theta)`` of ``table``
     (uniform in ``phi`` and ``sin(theta)``, i.e. in solid angle), in a shuffled order so

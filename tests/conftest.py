@@ -92,6 +92,19 @@ def trained_lines(tmp_path_factory):
 
 
 @pytest.fixture
+def spectral(mi_llvm):
+    """Mitsuba's spectral variant with the plugins registered; the session's variant after."""
+    import mitsuba as mi
+
+    import mitsuba_ext
+
+    mi.set_variant("llvm_ad_spectral")
+    mitsuba_ext.register()
+    yield mi
+    mi.set_variant("llvm_ad_rgb")
+
+
+@pytest.fixture
 def mono(mi_llvm):
     """Mitsuba's mono variant with the plugins registered (the closure tests' one wavelength)."""
     import mitsuba as mi

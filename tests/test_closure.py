@@ -163,19 +163,6 @@ def test_bundle_table_backend_renders_its_table(mono, tables, which, twist):
     assert np.allclose(r, 1.0, atol=0.01), r
 
 
-@pytest.fixture
-def spectral(mi_llvm):
-    """Mitsuba's spectral variant with the plugins registered; the session's variant after."""
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    mi.set_variant("llvm_ad_spectral")
-    mitsuba_ext.register()
-    yield mi
-    mi.set_variant("llvm_ad_rgb")
-
-
 def test_a_spectral_render_records_the_lookups_luminance(spectral, tables, tmp_path):
     """The luminance of a spectral render (Mitsuba samples wavelengths over 360-830 nm and
     weighs them by its own CIE y) against ``closure.luminance_weights`` applied to the

@@ -8,6 +8,8 @@ scattering) measures, within the two bakes' standard errors: a grey, a published
 fiber. The direct bakes trace other paths (another seed, and Russian roulette plays on other
 weights), so nothing is shared but the geometry and the fiber."""
 
+import dataclasses
+
 import colour
 import numpy as np
 import pytest
@@ -153,6 +155,10 @@ def test_bad_dyes_and_tables_without_orders_are_refused(resolved, fiber, ply):
             resolved.recolour(bad)
         with pytest.raises(ValueError, match=said):
             fiber.dyed(bad)
+    with pytest.raises(ValueError, match="torn order-resolved"):
+        dataclasses.replace(resolved, tail_ratio=None).validate()
+    with pytest.raises(ValueError, match="tail_ratio must"):
+        dataclasses.replace(resolved, tail_ratio=np.ones_like(resolved.tail_ratio)).validate()
     with pytest.raises(ValueError, match="orders"):
         BakeSpec(THETA_I, np.zeros(1), orders=1)
     with pytest.raises(ValueError, match="fast"):
@@ -170,18 +176,6 @@ def resolved_file(ply, fiber, tmp_path_factory):
     path = tmp_path_factory.mktemp("dye") / "resolved.npz"
     bake_unreduced(ply, fiber, s, 100_000, seed=4).save(path)
     return path
-
-
-@pytest.fixture
-def spectral(mi_llvm):
-    import mitsuba as mi
-
-    import mitsuba_ext
-
-    mi.set_variant("llvm_ad_spectral")
-    mitsuba_ext.register()
-    yield mi
-    mi.set_variant("llvm_ad_rgb")
 
 
 def test_a_dyed_bundle_renders_its_recoloured_table(spectral, resolved_file, tmp_path):

@@ -12,13 +12,14 @@ table renders a flat profile that the explicit fibers' lit and shadowed sides re
 import numpy as np
 import pytest
 
-from models.bake import BakeSpec, bake_unreduced, tally_to_table
+import mitsuba_ext
+from models.bake import BakeSpec, bake_unreduced
 from models.bake.tally import offset_cell
-from models.bake.twisted import TwistedBaker
 from models.bundle import TwistedBundle, poisson
 from models.bundle_table import BundleTable
 from models.fiber.ray import RayFiber
 from pipeline import closure
+from pipeline.bench import near as near_bench
 
 WL = np.array([450.0, 550.0, 650.0])
 NODES = np.deg2rad(np.arange(0, 91, 5.0))
@@ -87,92 +88,61 @@ def test_offset_cells_in_numpy_and_drjit_agree():
     assert np.mean(dj == ref) > 0.995   # float32 at the cells' edges
 
 
-def near_table(ply, fiber, theta_i_deg, paths):
-    """The near-field bake of ``ply`` (parallel or twisted), as a relative circle's table."""
-    import mitsuba as mi
-
-    mi.set_variant("llvm_ad_rgb")   # the baker's own variant
-    spec = BakeSpec(np.deg2rad(theta_i_deg), np.zeros(1), 18, 36, offsets=CELLS)
-    if isinstance(ply, TwistedBundle):
-        baker = TwistedBaker(ply, fiber, spec)
-        tally = baker.trace(0, paths // 2, 1)
-        tally.add(baker.trace(0, paths // 2, 2))
-        table = tally_to_table(tally, spec, fiber, {})
-    else:
-        table = bake_unreduced(ply, fiber, spec, paths, seed=3)
-    table.meta["reductions"] = {"theta_i": None, "phi_i": "rotation", "phi_o": "relative"}
-    return table
-
-
-PLIES = {"parallel": (None, [10, 30, 60, 80], 2_000_000, (1, 2)),
-         "twisted, pitch 1500 um": (1500.0, [-30, 20, 60], 2_400_000, (1, 2))}
+PLIES = {"parallel": ([10, 30, 60, 80], 2_000_000), "twisted, pitch 1500 um": ([-30, 20, 60], 2_400_000)}
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=[pytest.mark.slow] if "twisted" in n else [])
                                   for n in PLIES])
-def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, ply, fiber, tmp_path, name):
+def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, fiber, tmp_path, name):
     """Six ray-optics fibers, every one its own cylinder (or, twisted, a ``bsplinecurve``
     along its helix; ``fiber_table``, the uniform exit), against ``fiber_bundle`` on the
-    near-field bake of the same arrangement, on a cylinder and on a ``bsplinecurve``: the intensity in 8 cells across the width, each
-    averaged over 16 turns of the arrangement (a twisted ply's: shifts along it, so the
-    profile is averaged along the ply) and a 4 x 4 stratification of the table bin, side,
-    back- and forward-lit at two incidences: within 5% + 3 standard errors (explicit renders
-    and the bake's cell) in every cell. The same table read as a far field (``near_field:
-    false``) is outside in many cells. Seen against a lit background, the bundle lets
-    through what ``near_passthrough`` says per cell."""
+    near-field bake of the same arrangement, on a cylinder and on a ``bsplinecurve``: the
+    intensity in 8 cells across the width, each averaged over 16 turns of the arrangement (a
+    twisted ply's: shifts along it, so the profile is averaged along the ply) and a 4 x 4
+    stratification of the table bin, side, back- and forward-lit at two incidences: within
+    5% + 3 standard errors (explicit renders and the bake's cell) in every cell. The same
+    table read as a far field (``near_field: false``) is outside in many cells. Seen against
+    a lit background, the bundle lets through what ``near_passthrough`` says per cell."""
     mi = mono
-    pitch, theta_i_deg, paths, nodes = PLIES[name]
-    if pitch is not None:   # the Poisson gap widened for the rim's lean, as pipeline.build does
-        lean = np.arctan(2 * np.pi * (80.0 - 20.0) / pitch)
-        ply = TwistedBundle(poisson((80.0, 80.0), 20.0, gap=40 * (1 / np.cos(lean) - 1) + 1, packing=0.3, seed=2),
-                            pitch)
-    table = near_table(ply, fiber, theta_i_deg, paths)
+    theta_i_deg, paths = PLIES[name]
+    ply = near_bench.plies()[name]
+    table = near_bench.bake(ply, fiber, theta_i_deg, CELLS, paths)
     table.save(tmp_path / "near.npz")
     fiber.save(tmp_path / "fiber.npz")
     mi.set_variant("llvm_ad_mono")
-    import mitsuba_ext
-
     mitsuba_ext.register()
     lam, n_t = 1, 18
     cases = [(j, k_phi, int(np.floor((np.pi / 2 - table.theta_i[j]) / np.pi * n_t)))
-             for j in nodes for k_phi in (1, 9, 15)]
+             for j in (1, 2) for k_phi in (1, 9, 15)]
     requests = [(closure.direction(0.0, table.theta_i[j]), closure.bin_views(table, 0.0, k_phi, k_theta))
                 for j, k_phi, k_theta in cases]
     explicit = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": 550.0, "up": closure.UP}
     measured = closure.explicit_intensities(mi, ply, explicit, requests, spp=8, resolution=64, cells=CELLS)
-    R = table_radius = (ply.bundle if pitch else ply).bounding_radius * 1e-3
-    hs = 1.2 * table_radius
+    R = (ply.bundle if isinstance(ply, TwistedBundle) else ply).bounding_radius * 1e-3
+
+    def curve(R_, bsdf, half_length):   # the same ply as a straight bsplinecurve (the cloth's plies)
+        path = tmp_path / "ply.txt"
+        closure.write_curves([np.column_stack([np.zeros(33), np.linspace(-half_length, half_length, 33),
+                                               np.zeros(33), np.full(33, R_)])], path)
+        return {"type": "bsplinecurve", "filename": str(path), "bsdf": bsdf}
+
     outside = {}
-    half_length = closure.fiber_half_length(hs, 1.4)
-    curve = tmp_path / "ply.txt"   # the same ply as a straight bsplinecurve (the cloth's plies)
-    closure.write_curves([np.column_stack([np.zeros(33), np.linspace(-half_length, half_length, 33),
-                                           np.zeros(33), np.full(33, R)])], curve)
-    for near, kind in ((True, "cylinder"), (True, "bsplinecurve"), (False, "cylinder")):
+    for near, kind, shape in ((True, "cylinder", None), (True, "bsplinecurve", curve), (False, "cylinder", None)):
         bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "near.npz"), "wavelength": 550.0, "up": closure.UP,
                 "near_field": near}
-        shape = (closure.cylinder(R, bsdf, half_length=half_length) if kind == "cylinder"
-                 else {"type": "bsplinecurve", "filename": str(curve), "bsdf": bsdf})
-        w_i, w_o = requests[0][0], requests[0][1][0]
-        loaded = mi.load_dict(closure.scene(mi, {"f": shape}, w_i, w_o, hs, resolution=64, spp=32))
-        params = mi.traverse(loaded)
+        rendered = closure.bundle_profiles(mi, bsdf, R, requests, CELLS, shape=shape)
         outside[near, kind] = 0
-        for (w_i, views), (I, se), (j, k_phi, k_theta) in zip(requests, measured, cases):
-            rendered = []
-            for k, view in enumerate(views):
-                params["sensor.to_world"] = closure._camera(mi, view, hs)[2]
-                params["sun.to_world"] = closure._sun(mi, w_i)
-                params.update()
-                rendered.append(closure.profile(closure.render_image(mi, loaded, seed=k), view, hs, R, CELLS))
-            ratio = np.mean(rendered, axis=0) / I
+        for profile, (I, se), (j, k_phi, k_theta) in zip(rendered, measured, cases):
+            ratio = profile / I
             S, S_se = table.near[:, 0, j, k_phi, k_theta, lam], table.near_stderr[:, 0, j, k_phi, k_theta, lam]
             sigma = np.hypot(se / I, S_se / S)
-            out = np.abs(ratio - 1) > 0.05 + 3 * sigma
             print("near" if near else "far", kind, (j, k_phi, k_theta), "bundle / explicit", np.round(ratio, 2),
                   "sigma", np.round(sigma, 2))
-            outside[near, kind] += int(out.sum())
+            outside[near, kind] += int(np.sum(np.abs(ratio - 1) > 0.05 + 3 * sigma))
     assert outside[True, "cylinder"] == 0 and outside[True, "bsplinecurve"] == 0, outside
     assert outside[False, "cylinder"] >= 12, outside
     # the null lobe per offset: a lit background seen through the ply
+    hs = 1.2 * R
     bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "near.npz"), "wavelength": 550.0, "up": closure.UP}
     w_o = closure.direction(0.4, 0.3)
     sc = closure.scene(mi, {"f": closure.cylinder(R, bsdf, half_length=40 * hs)}, -w_o, w_o, hs, irradiance=0.0,

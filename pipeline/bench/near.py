@@ -62,26 +62,6 @@ def bake(ply, fiber, theta_i_deg, cells: int, paths: int):
     return table
 
 
-def bundle_profiles(table_path, R, requests, near: bool) -> np.ndarray:
-    hs = 1.2 * R
-    bsdf = {"type": "fiber_bundle", "table": str(table_path), "wavelength": 550.0, "up": closure.UP,
-            "near_field": near}
-    shape = closure.cylinder(R, bsdf, half_length=closure.fiber_half_length(hs, 1.4))
-    loaded = mi.load_dict(closure.scene(mi, {"f": shape}, requests[0][0], requests[0][1][0], hs, resolution=64,
-                                        spp=32))
-    params = mi.traverse(loaded)
-    out = []
-    for w_i, views in requests:
-        rendered = []
-        for k, view in enumerate(views):
-            params["sensor.to_world"] = closure._camera(mi, view, hs)[2]
-            params["sun.to_world"] = closure._sun(mi, w_i)
-            params.update()
-            rendered.append(closure.profile(closure.render_image(mi, loaded, seed=k), view, hs, R, COLUMNS))
-        out.append(np.mean(rendered, axis=0))
-    return np.array(out)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="the parallel ply, fewer paths (not recorded)")
@@ -115,7 +95,9 @@ def main(argv=None):
                 table.save(Path(tmp) / "near.npz")
                 mi.set_variant("llvm_ad_mono")
                 mitsuba_ext.register()
-                rendered = bundle_profiles(Path(tmp) / "near.npz", R, requests, near=cells > 1)
+                bsdf = {"type": "fiber_bundle", "table": str(Path(tmp) / "near.npz"), "wavelength": 550.0,
+                        "up": closure.UP, "near_field": cells > 1}
+                rendered = closure.bundle_profiles(mi, bsdf, R, requests, COLUMNS)
                 err = (rendered / np.where(I > 0, I, 1) - 1)[lit]
                 within = np.abs(err) <= 0.05 + 3 * (se / np.where(I > 0, I, 1))[lit]
                 rows.append({"ply": name, "cells": "far field" if cells == 1 else cells,
