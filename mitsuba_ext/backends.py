@@ -84,12 +84,19 @@ class TableBackend:
         self.orders = None   # upload_orders: the orders of scattering, for a dye that varies over the shape
         self.near = None     # the near field, where the table holds it (eval_near, passthrough_near)
         if near_field and self.table.near is not None:
-            t, (N, L) = self.table, (len(self.table.near), len(self.table.wavelength))
-            channels = np.moveaxis(t.near, 0, -2).reshape(t.values.shape[:4] + (N * L,))
-            self.near = DrJitTable(t._replace(values=channels, stderr=channels), Float, block=L)
+            t, N = self.table, len(self.table.near)
+            self.near = self._channels(t.near)
             self.n_cells = N
             self.near_passthrough = Float(np.asarray(t.near_passthrough[0], np.float32).ravel())  # a circle: one phi_i
             self.nbytes += self.near.nbytes
+
+    def _channels(self, split) -> DrJitTable:
+        """A split of the table along a leading axis (orders, offset cells) uploaded as one
+        lookup of ``parts x n_lambda`` channels: the cells and weights shared, each part with
+        its own slopes; a lookup reads them all or one part (``block``)."""
+        L = len(self.table.wavelength)
+        channels = np.moveaxis(split, 0, -2).reshape(self.table.values.shape[:4] + (len(split) * L,))
+        return DrJitTable(self.table._replace(values=channels, stderr=channels), self.Float, block=L)
 
     def offset_cell(self, h):
         """The near-field cell of an offset ``h`` in [-1, 1], as the bake tallies it."""
@@ -115,9 +122,7 @@ class TableBackend:
         if t.orders is None:
             raise ValueError("fiber_bundle: an 'albedo' texture recolours an order-resolved table: bake it with "
                              "`bake.orders: K` (e.g. 8) in the config")
-        K, L = len(t.orders), len(t.wavelength)
-        channels = np.moveaxis(t.orders, 0, -2).reshape(t.values.shape[:4] + (K * L,))
-        self.orders = DrJitTable(t._replace(values=channels, stderr=channels), self.Float)
+        self.orders = self._channels(t.orders)
         self.nbytes += self.orders.nbytes
 
     def eval_orders(self, phi_i, theta_i, phi_o, theta_o):

@@ -104,7 +104,7 @@ def spectrum_property(props, name: str):
     """The property ``name`` as a number or a Mitsuba texture (a ``{"type": "spectrum", ...}``
     arrives as Mitsuba's spectrum record, which ``get_texture`` instantiates)."""
     value = props[name]
-    if isinstance(value, (bool, np.bool_, str)) or isinstance(value, (numbers.Real, mi.Texture)):
+    if isinstance(value, (np.bool_, str, numbers.Real, mi.Texture)):
         return value
     return props.get_texture(name)
 

@@ -60,7 +60,7 @@ def check_albedo(albedo, n_lambda: int) -> np.ndarray:
     a = real(albedo, "albedo")
     if a.ndim > 1 or (a.ndim == 1 and len(a) not in (1, n_lambda)):
         raise ValueError(f"albedo: give one value or one per wavelength ({n_lambda}); got shape {a.shape}")
-    if not np.all(np.isfinite(a)) or np.any((a < 0) | (a > 1)):
+    if np.any((a < 0) | (a > 1)):
         raise ValueError(f"albedo must lie in [0, 1] (a fraction of the fiber's scattering kept per event); got "
                          f"{np.round(a, 4).tolist()}")
     return np.broadcast_to(a, (n_lambda,)).astype(np.float64)

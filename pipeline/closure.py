@@ -158,12 +158,18 @@ def render_image(mi, scene, seed: int = 0) -> np.ndarray:
     return img
 
 
+def _per_length(img: np.ndarray, w_o, half_size) -> float:
+    """``pixel_area / visible_length``: a pixel sum of an image seen along ``w_o`` as an
+    intensity per unit length of the axis."""
+    pixel_area = (2.0 * half_size / img.shape[0]) ** 2
+    theta_o = np.arcsin(np.clip(np.asarray(w_o, float)[1], -1, 1))
+    return pixel_area / visible_length(half_size, theta_o)
+
+
 def intensity(img: np.ndarray, w_o, half_size) -> float:
     """The closure's measurement of an image seen along ``w_o``: ``sum(pixels) pixel_area /
     visible_length``."""
-    pixel_area = (2.0 * half_size / img.shape[0]) ** 2
-    theta_o = np.arcsin(np.clip(np.asarray(w_o, float)[1], -1, 1))
-    return float(img.sum() * pixel_area / visible_length(half_size, theta_o))
+    return float(img.sum() * _per_length(img, w_o, half_size))
 
 
 def profile(img: np.ndarray, w_o, half_size, radius, n_cells: int) -> np.ndarray:
@@ -174,11 +180,8 @@ def profile(img: np.ndarray, w_o, half_size, radius, n_cells: int) -> np.ndarray
     x = (np.arange(n) + 0.5) / n * 2 * half_size - half_size      # film x of each column
     cell = np.floor((x / radius + 1) * 0.5 * n_cells).astype(int)
     inside = (cell >= 0) & (cell < n_cells)
-    columns = img.sum(axis=0)
-    pixel_area = (2.0 * half_size / img.shape[0]) ** 2
-    theta_o = np.arcsin(np.clip(np.asarray(w_o, float)[1], -1, 1))
-    per_cell = np.bincount(cell[inside], columns[inside], n_cells)
-    return per_cell * pixel_area / visible_length(half_size, theta_o) * n_cells
+    per_cell = np.bincount(cell[inside], img.sum(axis=0)[inside], n_cells)
+    return per_cell * _per_length(img, w_o, half_size) * n_cells
 
 
 def rendered_intensity(mi, scene, w_o, half_size) -> float:
@@ -439,10 +442,10 @@ def bundle_profiles(mi, bsdf: dict, R, requests, cells: int, shape=None, spp: in
     params = mi.traverse(loaded)
     out = []
     for w_i, views in requests:
-        rendered = []
+        rendered, sun = [], _sun(mi, w_i)
         for k, view in enumerate(views):
             params["sensor.to_world"] = _camera(mi, view, hs)[2]
-            params["sun.to_world"] = _sun(mi, w_i)
+            params["sun.to_world"] = sun
             params.update()
             rendered.append(profile(render_image(mi, loaded, seed=k), view, hs, R, cells))
         out.append(np.mean(rendered, axis=0))

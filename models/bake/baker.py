@@ -82,7 +82,7 @@ from ..jit import to_drjit
 from . import weights
 from .rounds import LoopState, in_rounds
 from .scene import BundleScene
-from .tally import BakeSpec, Tally, offset_cell, output_bin
+from .tally import BakeSpec, Tally, offset_cell, output_bin, split_bins
 
 # how a path of the fast estimator ended
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
@@ -143,8 +143,8 @@ class Baker:
         self.sampler = FiberSampler(fiber)
         self.n_lambda = len(fiber.wavelength)
 
-    def _bin(self, phi_travel, theta, phi_i, xp=np):
-        return output_bin(self.spec, phi_travel, theta, phi_i, xp)
+    def _bin(self, phi_travel, theta, phi_i, xp=np, start=None):
+        return output_bin(self.spec, phi_travel, theta, phi_i, xp, start, self.bundle.bounding_radius)
 
     def trace(self, phi_index: int, n_paths: int, seed) -> Tally:
         self.spec.theta_cells.upload(mi.Float)  # read in the bounce loop: uploaded before it
@@ -244,9 +244,7 @@ class Baker:
         esc = np.flatnonzero(escaped)
         order = np.concatenate([esc, np.flatnonzero(capped), np.flatnonzero(~(escaped | capped))])
         n_esc, n_cap = len(esc), int(capped.sum())
-        esc_bins = bin_of[esc]
-        if spec.offsets:  # the loop put the exit offset's cell above the output bin
-            esc_cells, esc_bins = np.divmod(esc_bins, spec.n_phi_o * spec.n_theta_o)
+        esc_cells, esc_bins = split_bins(spec, bin_of[esc])  # the exit offset's cell rides above the bin
         esc_depth = final["depth"][esc].astype(np.int64)  # fiber events of each escaped path
         esc_once = esc_depth == 1  # no fiber after the first: singly scattered
         perm = to_drjit(mi.UInt32, order, np.uint32)
@@ -272,14 +270,14 @@ class Baker:
                 sums_sq += one_hot @ np.square(W[:k], dtype=np.float64)
                 tally.single[phi_index] += W[:k][esc_once[lo:lo + k]].sum(axis=0, dtype=np.float64).reshape(
                     n_ti, self.n_lambda)
-                if tally.near is not None:
-                    tally.add_offsets(phi_index, np.repeat(esc_cells[lo:lo + k], n_ti),
-                                      np.repeat(esc_bins[lo:lo + k], n_ti), np.tile(np.arange(n_ti), k),
-                                      W[:k].reshape(k * n_ti, self.n_lambda).astype(np.float64))
-                if tally.orders is not None:  # every path carries every theta_i: a row per (path, theta_i)
-                    tally.add_orders(phi_index, np.repeat(esc_depth[lo:lo + k], n_ti),
-                                     np.repeat(esc_bins[lo:lo + k], n_ti), np.tile(np.arange(n_ti), k),
-                                     W[:k].reshape(k * n_ti, self.n_lambda).astype(np.float64))
+                if tally.near is not None or tally.orders is not None:
+                    # every path carries every theta_i: a row per (path, theta_i)
+                    rows = (np.repeat(esc_bins[lo:lo + k], n_ti), np.tile(np.arange(n_ti), k),
+                            W[:k].reshape(k * n_ti, self.n_lambda).astype(np.float64))
+                    if tally.near is not None:
+                        tally.add_offsets(phi_index, np.repeat(esc_cells[lo:lo + k], n_ti), *rows)
+                    if tally.orders is not None:
+                        tally.add_orders(phi_index, np.repeat(esc_depth[lo:lo + k], n_ti), *rows)
             c0, c1 = max(lo, n_esc) - lo, max(lo, min(hi, n_esc + n_cap)) - lo  # capped rows
             if c1 > c0:
                 tally.lost[phi_index] += W[c0:c1].sum(axis=0, dtype=np.float64).reshape(n_ti, self.n_lambda)
@@ -387,11 +385,7 @@ class Baker:
         hit = p.active & hit_info.is_valid()
         escaped = p.active & ~hit
         p.status = dr.select(escaped, ESCAPED, p.status)
-        out_bin = self._bin(p.phi, p.theta, p.phi_i, xp=dr)
-        if spec.offsets:  # the exit offset's cell, above the output bins (split in _trace_fast)
-            cell = offset_cell(spec.offsets, p.ox, p.oz, p.phi, self.bundle.bounding_radius, dr)
-            out_bin = out_bin + cell * (spec.n_phi_o * spec.n_theta_o)
-        p.bin = dr.select(escaped, out_bin, p.bin)
+        p.bin = dr.select(escaped, self._bin(p.phi, p.theta, p.phi_i, dr, (p.ox, p.oz)), p.bin)
         capped = hit & (p.depth >= spec.max_bounces)
         p.status = dr.select(capped, CAPPED, p.status)
         go = hit & ~capped

@@ -217,10 +217,23 @@ def offset_cell(n_cells: int, ox, oz, phi, bounding_radius: float, xp=np):
     return cell_of_offset(line_offset(ox, oz, phi, bounding_radius, xp), n_cells, xp)
 
 
-def output_bin(spec: BakeSpec, phi, theta, phi_i, xp=np):
+def output_bin(spec: BakeSpec, phi, theta, phi_i, xp=np, start=None, bounding_radius: float = 1.0):
     """The output bin (flat ``phi_o x theta_o`` index) of light leaving along azimuth ``phi``
-    at longitude ``theta``, for a path that arrived from ``phi_i`` (numpy or Dr.Jit)."""
-    phi = phi - phi_i if spec.relative_phi else phi
-    a, _ = cell(phi, -np.pi, 2 * np.pi, spec.n_phi_o, periodic=True, xp=xp)
+    at longitude ``theta``, for a path that arrived from ``phi_i`` (numpy or Dr.Jit). With
+    ``spec.offsets``, the cell of the escaping ray's line (from ``start = (x, z)``) rides
+    above the bins, ``cell * n_bins + bin`` (:func:`split_bins` takes it apart)."""
+    phi_rel = phi - phi_i if spec.relative_phi else phi
+    a, _ = cell(phi_rel, -np.pi, 2 * np.pi, spec.n_phi_o, periodic=True, xp=xp)
     b = spec.theta_cells.index(theta, xp=xp)
-    return a * spec.n_theta_o + b
+    out = a * spec.n_theta_o + b
+    if spec.offsets:
+        out = out + offset_cell(spec.offsets, start[0], start[1], phi, bounding_radius, xp) * (
+            spec.n_phi_o * spec.n_theta_o)
+    return out
+
+
+def split_bins(spec: BakeSpec, bins):
+    """``(cells, bins)`` of :func:`output_bin`'s indices (``cells`` None without offsets)."""
+    if not spec.offsets:
+        return None, bins
+    return np.divmod(bins, spec.n_phi_o * spec.n_theta_o)

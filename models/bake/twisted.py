@@ -44,7 +44,7 @@ from ..fiber.sampling_drjit import DrJitFiber
 from ..jit import to_drjit
 from . import weights
 from .rounds import LoopState, in_rounds
-from .tally import BakeSpec, Tally, offset_cell, output_bin
+from .tally import BakeSpec, Tally, offset_cell, output_bin, split_bins
 
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
 SEGMENTS = 128          # cylinders per turn of a helix
@@ -208,9 +208,9 @@ class TwistedBaker:
         n_bins = spec.n_phi_o * spec.n_theta_o
         W = np.stack([b.numpy() for b in out["B"]], -1).astype(np.float64) * weight[j][:, None]  # [path, lambda]
         esc = (status == ESCAPED) & ~passed
+        cells, bins = split_bins(spec, bins)   # the exit offset's cell rides above the bin
         if spec.offsets:  # the near field: exits by their offset's cell, paths by their entry's
             N = spec.offsets
-            cells, bins = np.divmod(bins, n_bins)
             entry = offset_cell(N, origin[:, 0], origin[:, 2], np.arctan2(dh[:, 1], dh[:, 0]), Rb)
             tally.paths_h[phi_index] = np.bincount(j * N + entry, minlength=n_ti * N).reshape(n_ti, N)
             tally.passthrough_h[phi_index] = np.bincount(j[passed] * N + entry[passed],
@@ -284,10 +284,7 @@ class TwistedBaker:
         p.status = dr.select(escaped, ESCAPED, p.status)
         phi = dr.atan2(p.d.z, p.d.x)
         theta = dr.safe_asin(p.d.y)
-        out_bin = output_bin(spec, phi, theta, p.phi_i, xp=dr)
-        if spec.offsets:  # the exit offset's cell, above the output bins (split in trace)
-            out_bin = out_bin + offset_cell(spec.offsets, p.o.x, p.o.z, phi, Rb, dr) * (spec.n_phi_o * spec.n_theta_o)
-        p.bin = dr.select(escaped, out_bin, p.bin)
+        p.bin = dr.select(escaped, output_bin(spec, phi, theta, p.phi_i, dr, (p.o.x, p.o.z), Rb), p.bin)
         wrapped = p.o + p.d * t_end
         wrapped.y = dr.select(p.d.y > 0, 0.0, P)
         p.wraps = dr.select(wrap, p.wraps + 1, p.wraps)
