@@ -30,6 +30,7 @@ from models.bake.tally import cell_of_offset
 from models.bundle_table import BundleTable
 from models.grid import bin_solid_angle, linear
 from models.jit import to_drjit
+from models.neural import far_field
 
 BACKENDS = ("table", "mlp", "onnx")
 
@@ -164,11 +165,17 @@ class TableBackend:
 
 
 class _NeuralBackend:
-    """Shared by the two neural backends: metadata, passthrough, self-tabulated sampling."""
+    """Shared by the two neural backends: metadata, passthrough, self-tabulated sampling.
 
-    near = None   # the far field only (a near-field model is not built yet)
+    A model with an ``offset`` input (``train.inputs: [offset]``) holds the near field:
+    :meth:`eval_near` feeds it the camera ray's line offset, :meth:`eval` is its far field
+    (its mean over the offset cells' midpoints, :func:`models.neural.far_field`; the
+    sampling grid is tabulated from it), and a ray passes with the passthrough of its entry
+    cell. ``near_field=False`` reads such a model as its far field everywhere."""
 
-    def _init_spec(self, spec, Float):
+    near = None   # True where the model holds the near field and it is used
+
+    def _init_spec(self, spec, Float, near_field: bool = True):
         if not spec.passthrough:
             raise ValueError("this model was exported without its passthrough probability; "
                              "re-run `bcsdf train` and `bcsdf export`")
@@ -177,6 +184,34 @@ class _NeuralBackend:
         self.wavelength = np.asarray(spec.wavelength, float)
         self.relative = spec.relative_phi
         self.single_share = np.asarray(spec.single_share, float) if spec.single_share else None
+        self.n_cells = spec.offset_cells
+        self.near = True if near_field and "offset" in spec.inputs else None
+        if self.near and spec.passthrough_offset:
+            self.near_passthrough = Float(np.asarray(spec.passthrough_offset, np.float32).ravel())
+
+    def eval(self, phi_i, theta_i, phi_o, theta_o):
+        """The far field: the model itself, or its mean over the offset."""
+        return far_field(self._eval, self.spec)(phi_i, theta_i, phi_o, theta_o)
+
+    def eval_near(self, phi_i, theta_i, phi_o, theta_o, h):
+        """``S_h``: the light leaving along ``phi_o, theta_o`` on the line at offset ``h``."""
+        return self._eval(phi_i, theta_i, phi_o, theta_o, h)
+
+    def offset_cell(self, h):
+        return cell_of_offset(h, self.n_cells, dr)
+
+    def passthrough_near(self, theta_i, h):
+        """``P_pass`` of a ray entering on the line at offset ``h``: its entry cell's, linear
+        between the theta_i nodes (the far field's where the model has none per cell)."""
+        if not self.spec.passthrough_offset:
+            return self.passthrough(dr.zeros(self.Float, dr.width(theta_i)), theta_i)
+        b0, b1, w = linear(np.asarray(self.spec.passthrough_offset_theta_i, float), theta_i, xp=dr)
+        cell, N = self.offset_cell(h), self.n_cells
+        return dr.lerp(dr.gather(self.Float, self.near_passthrough, b0 * N + cell),
+                       dr.gather(self.Float, self.near_passthrough, b1 * N + cell), w)
+
+    def camera_grid(self, uniform: float):
+        return None  # the far field's proposal (a model has no table to transpose)
 
     def passthrough(self, phi_i, theta_i):
         s = self.spec
@@ -208,13 +243,13 @@ class MLPBackend(_NeuralBackend):
 
     name = "mlp"
 
-    def __init__(self, weights_path, Float):
+    def __init__(self, weights_path, Float, near_field: bool = True):
         self.mlp = DrJitMLP(weights_path)
-        self._init_spec(self.mlp.spec, Float)
+        self._init_spec(self.mlp.spec, Float, near_field)
         self.nbytes = self.mlp.nbytes
 
-    def eval(self, phi_i, theta_i, phi_o, theta_o):
-        return self.mlp.eval(phi_i, theta_i, phi_o, theta_o)
+    def _eval(self, *queries):
+        return self.mlp.eval(*queries)
 
 
 class OnnxBackend(_NeuralBackend):
@@ -227,18 +262,18 @@ class OnnxBackend(_NeuralBackend):
 
     name = "onnx"
 
-    def __init__(self, onnx_path, Float, threads: int = 0):
+    def __init__(self, onnx_path, Float, threads: int = 0, near_field: bool = True):
         self.model = OnnxMLP(onnx_path, threads=threads)
-        self._init_spec(self.model.spec, Float)
+        self._init_spec(self.model.spec, Float, near_field)
         self.nbytes = os.path.getsize(onnx_path)
 
-    def eval(self, phi_i, theta_i, phi_o, theta_o):
+    def _eval(self, *queries):
         if dr.flag(dr.JitFlag.SymbolicScope):  # inside a recorded loop or call: no numpy here
             raise RuntimeError("the onnx backend needs Dr.Jit's evaluated mode: render inside "
                                "`with mitsuba_ext.evaluated_mode():` (bcsdf render-scene does so itself), "
                                "or use the mlp backend, the same model in the megakernel")
-        n = dr.width(phi_i)
-        args = [a if dr.width(a) == n else a + dr.zeros(self.Float, n) for a in (phi_i, theta_i, phi_o, theta_o)]
+        n = max(dr.width(a) for a in queries)
+        args = [a if dr.width(a) == n else a + dr.zeros(self.Float, n) for a in queries]
         dr.eval(*args)
         out = self.model.eval(*(np.asarray(a, np.float32) for a in args))  # [n, n_lambda]
         return [to_drjit(self.Float, out[:, k]) for k in range(out.shape[1])]
@@ -271,7 +306,7 @@ def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "lin
     if kind == "mlp":
         if str(model).endswith(".onnx"):
             raise ValueError(f"fiber_bundle: backend 'mlp' reads weights.npz, got {model}")
-        return MLPBackend(model, Float)
+        return MLPBackend(model, Float, near_field=near_field)
     if not str(model).endswith(".onnx"):
         raise ValueError(f"fiber_bundle: backend 'onnx' reads model.onnx, got {model}")
-    return OnnxBackend(model, Float)
+    return OnnxBackend(model, Float, near_field=near_field)

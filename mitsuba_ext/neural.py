@@ -93,16 +93,32 @@ class OnnxMLP:
             self.spec = NeuralSpec.from_dict(json.loads(meta["bcsdf_spec"]))
         except (ValueError, TypeError) as e:
             raise ValueError(f"{path}: {e}; re-run `bcsdf export`") from None
-        out = self.eval(0.0, 0.3, 1.0, -0.3)  # the graph must predict what its metadata says
+        out = self.eval(0.0, 0.3, 1.0, -0.3, *[0.0] * len(self.spec.inputs))  # the graph must predict what its
+        # metadata says
         if out.shape != (len(self.spec.wavelength),) or not np.all(np.isfinite(out)):
             raise ValueError(f"{path}: the graph returns {out.shape[-1] if out.ndim else 0} values per query, its "
                              f"metadata names {len(self.spec.wavelength)} wavelengths; re-run `bcsdf export`")
 
-    def eval(self, phi_i, theta_i, phi_o, theta_o) -> np.ndarray:
+    def eval(self, phi_i, theta_i, phi_o, theta_o, *extra) -> np.ndarray:
         """``S`` at every table wavelength, ``[..., n_lambda]`` (radians in, checked:
-        :func:`models.queries.directions`)."""
-        angles = np.stack(directions(phi_i, theta_i, phi_o, theta_o), -1).astype(np.float32)
-        return self.session.run(None, {"angles": angles.reshape(-1, 4)})[0].reshape(angles.shape[:-1] + (-1,))
+        :func:`models.queries.directions`; ``extra``: the model's extra inputs, ``spec.inputs``)."""
+        queries = np.stack(np.broadcast_arrays(*directions(phi_i, theta_i, phi_o, theta_o),
+                                               *checked_extra(self.spec, extra)), -1).astype(np.float32)
+        return self.session.run(None, {"angles": queries.reshape(-1, self.spec.n_queries)})[0].reshape(
+            queries.shape[:-1] + (-1,))
+
+
+def checked_extra(spec: NeuralSpec, extra) -> list:
+    """The extra inputs of a numpy query, one per ``spec.inputs``, finite (a wrong count or a NaN
+    is refused by name)."""
+    if len(extra) != len(spec.inputs):
+        raise ValueError(f"this model takes {4 + len(spec.inputs)} inputs (phi_i, theta_i, phi_o, theta_o"
+                         + "".join(f", {n}" for n in spec.inputs) + f"), got {4 + len(extra)}")
+    out = [np.asarray(v, np.float64) for v in extra]
+    for name, v in zip(spec.inputs, out):
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"the model's input {name!r} holds NaN or Inf")
+    return out
 
 
 def _default_float():
@@ -160,8 +176,9 @@ class DrJitMLP:
             return True
         return not dr.flag(dr.JitFlag.SymbolicScope) and sum(W.size for W, _ in self.layers) > LITERAL_WEIGHTS_MAX
 
-    def eval(self, phi_i, theta_i, phi_o, theta_o):
-        """``S`` at every table wavelength (radians in; never negative).
+    def eval(self, phi_i, theta_i, phi_o, theta_o, *extra):
+        """``S`` at every table wavelength (radians in; never negative); ``extra``: the
+        model's extra inputs (``spec.inputs``, e.g. the exit line's offset ``h``).
 
         Dr.Jit arrays in (any float type, e.g. ``mi.Float``): a list of ``n_lambda``
         arrays of that type, traced into the caller's kernel. numpy arrays (or floats)
@@ -169,15 +186,15 @@ class DrJitMLP:
         variant's ``Float`` (Dr.Jit's LLVM backend if none is set); numpy arguments are
         checked (:func:`models.queries.directions`), traced ones are the caller's to check.
         """
-        args = (phi_i, theta_i, phi_o, theta_o)
+        args = (phi_i, theta_i, phi_o, theta_o, *extra)
         if not any(dr.is_array_v(a) for a in args):
             Float = _default_float()
-            checked = directions(*args)
+            checked = np.broadcast_arrays(*directions(phi_i, theta_i, phi_o, theta_o), *checked_extra(self.spec, extra))
             shape = checked[0].shape
-            flat = [to_drjit(Float, np.ascontiguousarray(a, np.float32)) for a in checked]
+            flat = [to_drjit(Float, np.ascontiguousarray(a, np.float32).ravel()) for a in checked]
             return np.stack([np.asarray(s) for s in self.eval(*flat)], -1).reshape(shape + (-1,))
         Float = type(next(a for a in args if dr.is_array_v(a)))
-        x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o)
+        x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o, *extra)
         if self.spec.lines:
             x = x[:-3] + self._line_products(Float, x[-3:])
         y = self._matvec(Float, x) if self.cooperative(Float) else self._literal(x)

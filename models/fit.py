@@ -76,19 +76,22 @@ def split_bins(n_bins: int, val_fraction: float, seed: int):
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
 
-def choose_folds(table, relative: bool, limit: float = 1.5) -> list:
+def choose_folds(table, relative: bool, limit: float = 1.5, inputs=()) -> list:
     """The symmetry folds of the features (models/neural.py) that this table obeys.
 
     Each candidate (``theta`` and ``dphi`` for a circle, ``theta`` and ``xz`` for an
     ellipse) is kept only if the bins it merges agree within their noise (chi^2 per
     degree of freedom below ``limit``). The table's own reductions (theta mirror, xz)
-    pass exactly; a circle's mirror symmetry in ``phi_o - phi_i`` is statistical.
+    pass exactly; a circle's mirror symmetry in ``phi_o - phi_i`` is statistical. With an
+    ``offset`` input the near field's cells are checked (the mirror turns the offset's sign).
     """
+    cells = len(table.near) if "offset" in inputs and table.near is not None else 0
     folds = []
     for fold in ("theta", "dphi") if relative else ("theta", "xz"):
         probe = NeuralSpec(relative_phi=relative, hidden=[1], s0=1.0, y_max=1.0,
                            wavelength=table.wavelength.tolist(), table_hash="", config_hash="",
-                           reductions=table.meta["reductions"], folds=[fold])
+                           reductions=table.meta["reductions"], folds=[fold], inputs=list(inputs),
+                           offset_cells=cells)
         chi2 = fold_table(table, probe).chi2_per_dof
         if chi2 < limit:
             folds.append(fold)
@@ -120,10 +123,15 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     """Fold the table, choose its symmetries, split it and weight it (one for every size).
     ``config_hash`` is recorded in the spec: what the exported model was trained from."""
     relative = table.meta["reductions"]["phi_o"] == "relative"
+    inputs = list(getattr(c, "inputs", []))
+    near = table.near if "offset" in inputs else None
+    if "offset" in inputs and near is None:
+        raise ValueError(f"{table_path}: train.inputs [offset] learns the near field, and this table has none; "
+                         "bake it with `bake.offsets: N` (e.g. 8), or train without the offset input")
     positive = table.values[table.values > 0]
     s0 = float(np.mean(positive)) if positive.size else 1.0
-    y_top = float(np.log1p(table.values.max() / s0))
-    folds = choose_folds(table, relative)
+    y_top = float(np.log1p((table.values if near is None else near).max() / s0))
+    folds = choose_folds(table, relative, inputs=inputs)
     base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
                       wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
                       config_hash=config_hash, reductions=table.meta["reductions"],
@@ -131,7 +139,10 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
                       passthrough_theta=[] if table.passthrough_theta is None else table.passthrough_theta.tolist(),
                       passthrough_theta_i=[] if table.passthrough_theta is None else table.theta_i.tolist(),
                       single_share=[] if table.single is None else table.single_share().tolist(),
-                      lines=list(c.line_nodes), line_channels=c.line_channels if c.line_nodes else 0)
+                      lines=list(c.line_nodes), line_channels=c.line_channels if c.line_nodes else 0,
+                      inputs=inputs, offset_cells=0 if near is None else len(near),
+                      passthrough_offset=[] if near is None else table.near_passthrough[0].tolist(),
+                      passthrough_offset_theta_i=[] if near is None else table.theta_i.tolist())
     data = fold_table(table, base)
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
@@ -139,20 +150,21 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     return Problem(base, data, train_idx, val_idx, w)
 
 
-def model_bin_averages(spec: NeuralSpec, model, cell, k: int = 4) -> np.ndarray:
+def model_bin_averages(spec: NeuralSpec, model, cell, k: int = 4, extra_cell=None) -> np.ndarray:
     """The model's (exported transform's, its gain included) average over each bin of ``cell``
-    (k x k midpoints), float64."""
+    (k x k midpoints; ``extra_cell``: the bins' ranges in the extra inputs), float64."""
     module = make_export_module(spec, model).eval()
 
-    def predict(*angles):
+    def predict(*queries):
         with torch.no_grad():
-            return module(torch.from_numpy(np.stack(angles, -1).astype(np.float32))).numpy().astype(np.float64)
-    return bin_average(predict, cell, k)
+            return module(torch.from_numpy(np.stack(queries, -1).astype(np.float32))).numpy().astype(np.float64)
+    return bin_average(predict, cell, k, extra_cell)
 
 
 def held_out_metrics(spec: NeuralSpec, model, data, val_idx) -> dict:
     """Relative L1 and log MAE of the model's bin averages (4 x 4 points) on the held-out bins."""
-    S_pred = model_bin_averages(spec, model, data.cell[val_idx])
+    S_pred = model_bin_averages(spec, model, data.cell[val_idx],
+                                extra_cell=None if data.extra_cell is None else data.extra_cell[val_idx])
     S_val, E_val, n_val = data.S[val_idx], data.E[val_idx], data.count[val_idx, None]
     core = energy_bins(S_val * n_val)
     diff, noise = (S_pred - S_val).ravel()[core], E_val.ravel()[core]
@@ -183,23 +195,31 @@ class BinFit:
         self.spec, self.data = spec, data
         self.Y, self.W = torch.from_numpy(data.y), torch.from_numpy(problem.w)
         self.cell = torch.from_numpy(data.cell.astype(np.float32))
+        self.extra = None if data.extra_cell is None else torch.from_numpy(data.extra_cell.astype(np.float32))
         self.tr, self.va = torch.from_numpy(problem.train_idx), torch.from_numpy(problem.val_idx)
         self.every = torch.arange(len(data.x))
         # the (incident direction, wavelength) rows that scatter: a row that scatters nothing
         # has no relative albedo error
         self.seen = data.albedo > 0
 
-    @staticmethod
-    def stratified(n, k, generator):
-        """``[n, k * k, 2]`` points, one uniform in each of the k x k strata of the unit square."""
+    def stratified(self, n, k, generator):
+        """``[n, k * k, 2 + m]`` points of the unit cube of a bin's directions and its ``m``
+        extra inputs: one uniform in each of the k x k strata of the directions, the extra
+        coordinates uniform."""
         strata = torch.tensor([[i / k, j / k] for i in range(k) for j in range(k)])
-        return strata + torch.rand((n, k * k, 2), generator=generator) / k
+        u = strata + torch.rand((n, k * k, 2), generator=generator) / k
+        m = len(self.spec.inputs)
+        return torch.cat([u, torch.rand((n, k * k, m), generator=generator)], -1) if m else u
 
     def encode(self, b, u):
-        """Features at the points ``u [len(b), K, 2]`` of bins ``b``: ``[len(b) * K, n_inputs]``."""
+        """Features at the points ``u [len(b), K, 2 + m]`` of bins ``b``: ``[len(b) * K, n_inputs]``."""
         K = u.shape[1]
-        angles = points_in_bins(torch, self.cell[b].repeat_interleave(K, 0), u.reshape(-1, 2))
-        return torch.stack(features(torch, self.spec, *angles), -1)
+        angles = points_in_bins(torch, self.cell[b].repeat_interleave(K, 0), u[..., :2].reshape(-1, 2))
+        extra = []
+        if self.extra is not None:
+            lo, hi = self.extra[b, :, 0].repeat_interleave(K, 0), self.extra[b, :, 1].repeat_interleave(K, 0)
+            extra = (lo + u[..., 2:].reshape(-1, lo.shape[1]) * (hi - lo)).unbind(-1)
+        return torch.stack(features(torch, self.spec, *angles, *extra), -1)
 
     def bin_means(self, b, y):
         """From the raw outputs ``y`` at the points of bins ``b``: the log-space bin average
@@ -310,11 +330,11 @@ GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the gain (`
 
 def _midpoint_means(model, p: BinFit, k: int) -> np.ndarray:
     """The network's bin averages ``S [samples, lambda]`` (no gain) over k x k midpoints."""
-    def predict(*angles):
-        x = torch.stack(features(torch, p.spec, *(torch.from_numpy(a.astype(np.float32)) for a in angles)), -1)
+    def predict(*queries):
+        x = torch.stack(features(torch, p.spec, *(torch.from_numpy(np.asarray(a, np.float32)) for a in queries)), -1)
         with torch.no_grad():
             return p.bin_means(p.every, model(x))[1].double().numpy()
-    return bin_average(predict, p.data.cell, k)
+    return bin_average(predict, p.data.cell, k, p.data.extra_cell)
 
 
 def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -> dict:

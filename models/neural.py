@@ -31,6 +31,17 @@ invariants (so no seam at theta_i = 0 or on the mirror axes):
 * ``dphi``:  ``[cos dphi, |sin dphi|]``;
 * ``xz``:    ``[|cos phi_i|, |sin phi_i|, cos phi_i cos phi_o, sin phi_i sin phi_o]``.
 
+**Extra inputs** (``spec.inputs``), scalar coordinates of a query beyond its directions,
+each after the four angles in the order named, each with its own encoding appended to the
+features above (before the line coordinates):
+
+* ``offset``: ``h`` in [-1, 1], the signed offset of the outgoing ray's line from the
+  ply's axis over its radius (a near-field table's cell coordinate, ``bake.offsets``;
+  docs/DESIGN.md "Near-field tables"); clamped to [-1, 1]. A circle's mirror turns
+  ``(dphi, h)`` into ``(-dphi, -h)``, so under the ``dphi`` fold its features are the
+  invariants ``[|h|, h sin dphi]``; else ``[h]``. The model's far field is its mean
+  over ``h`` (:func:`far_field`).
+
 The training set is the table *folded*: bins that the features cannot tell apart are
 one sample (their mean), and held-out validation bins are whole such classes, so a
 held-out bin never has its mirror image in the training set.
@@ -53,9 +64,10 @@ from scipy.sparse.csgraph import connected_components
 from . import lines as fl
 from . import rounding as rd
 
-FORMAT = "bcsdf.neural/4"  # /4: the energy gain; /3: feature lines (models/lines.py)
-READABLE = ("bcsdf.neural/2", "bcsdf.neural/3", FORMAT)  # older: read as models without them
+FORMAT = "bcsdf.neural/5"  # /5: extra inputs; /4: the energy gain; /3: feature lines (models/lines.py)
+READABLE = ("bcsdf.neural/2", "bcsdf.neural/3", "bcsdf.neural/4", FORMAT)  # older: read as models without them
 FOLDS = ("theta", "dphi", "xz")
+INPUTS = ("offset",)  # extra scalar inputs a model may take (above)
 
 
 @dataclass
@@ -89,6 +101,13 @@ class NeuralSpec:
     # none
     gain: list = field(default_factory=list)
     gain_theta_i: list = field(default_factory=list)
+    # extra scalar inputs after the four angles (INPUTS, above); with ``offset``: the near
+    # field's cells (the ``h`` midpoints of the far field's mean) and the passthrough of a
+    # ray by its entry cell, [passthrough_theta_i node][cell] at one phi_i (a circle)
+    inputs: list = field(default_factory=list)
+    offset_cells: int = 0
+    passthrough_offset: list = field(default_factory=list)
+    passthrough_offset_theta_i: list = field(default_factory=list)
     format: str = FORMAT
 
     def __post_init__(self):
@@ -124,6 +143,17 @@ class NeuralSpec:
                     not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0) or np.any(np.abs(t) > np.pi / 2):
                 raise ValueError("model metadata: gain must hold a positive finite value per (gain_theta_i node, "
                                  "wavelength), the nodes increasing longitudes within +-pi/2")
+        if [i for i in self.inputs if i not in INPUTS] or len(set(self.inputs)) != len(self.inputs):
+            raise ValueError(f"model metadata: inputs {self.inputs}; known extra inputs: {INPUTS}, each once")
+        if "offset" in self.inputs and not (self.relative_phi and isinstance(self.offset_cells, int)
+                                            and self.offset_cells >= 1):
+            raise ValueError("model metadata: an 'offset' input needs a circular ply's model and offset_cells >= 1")
+        if self.passthrough_offset or self.passthrough_offset_theta_i:
+            q, t = np.asarray(self.passthrough_offset, float), np.asarray(self.passthrough_offset_theta_i, float)
+            if q.shape != (len(t), self.offset_cells) or not np.all(np.isfinite(q)) or np.any((q < 0) | (q > 1)) \
+                    or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+                raise ValueError("model metadata: passthrough_offset must hold a probability per "
+                                 "(passthrough_offset_theta_i node, offset cell), the nodes increasing")
         bad = [f for f in self.folds if f not in FOLDS]
         if bad or ("dphi" in self.folds and not self.relative_phi) or ("xz" in self.folds and self.relative_phi):
             raise ValueError(f"folds {self.folds} do not fit a {'relative' if self.relative_phi else 'absolute'}"
@@ -132,7 +162,18 @@ class NeuralSpec:
     @property
     def n_features(self) -> int:
         """How many arrays :func:`features` returns (the line coordinates last)."""
-        return 3 + ("theta" in self.folds) + (2 if self.relative_phi else 4) + (3 if self.lines else 0)
+        return 3 + ("theta" in self.folds) + (2 if self.relative_phi else 4) + self.n_extra_features + \
+            (3 if self.lines else 0)
+
+    @property
+    def n_extra_features(self) -> int:
+        """How many features the extra inputs add (:func:`extra_features`)."""
+        return sum(1 + ("dphi" in self.folds) for _ in self.inputs)
+
+    @property
+    def n_queries(self) -> int:
+        """The columns of a query: the four angles, then the extra inputs."""
+        return 4 + len(self.inputs)
 
     @property
     def n_inputs(self) -> int:
@@ -154,10 +195,13 @@ class NeuralSpec:
         return cls(**{**d, "format": FORMAT})
 
 
-def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> list:
+def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o, *extra) -> list:
     """The encoded inputs as a list of ``spec.n_features`` arrays; ``lib`` is numpy, torch,
-    drjit or :data:`models.rounding.BOUNDED`. With feature lines, their three coordinates
-    (:func:`models.lines.coordinates`) come last."""
+    drjit or :data:`models.rounding.BOUNDED`; ``extra``: the values of ``spec.inputs``. With
+    feature lines, their three coordinates (:func:`models.lines.coordinates`) come last."""
+    if len(extra) != len(spec.inputs):
+        raise ValueError(f"the model takes {4 + len(spec.inputs)} inputs (phi_i, theta_i, phi_o, theta_o"
+                         + "".join(f", {n}" for n in spec.inputs) + f"), got {4 + len(extra)}")
     clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
     half_pi = float(np.pi / 2)
     ti = clip(theta_i, -half_pi, half_pi)
@@ -174,14 +218,51 @@ def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> list:
     else:
         ci, si, co, so = lib.cos(phi_i), lib.sin(phi_i), lib.cos(phi_o), lib.sin(phi_o)
         out += [lib.abs(ci), lib.abs(si), ci * co, si * so] if "xz" in spec.folds else [ci, si, co, so]
+    out += extra_features(lib, spec, d, *extra)
     if spec.lines:
         out += fl.coordinates(lib, spec.folds, ti, x, d)
     return out
 
 
-def encode_numpy(spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> np.ndarray:
+def extra_features(lib, spec: NeuralSpec, dphi, *extra) -> list:
+    """The features of the extra inputs (module docstring), at azimuth difference ``dphi``."""
+    clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
+    out = []
+    for name, v in zip(spec.inputs, extra):
+        if name == "offset":
+            h = clip(v, -1.0, 1.0)
+            out += [lib.abs(h), h * lib.sin(dphi)] if "dphi" in spec.folds else [h]
+    return out
+
+
+def offset_midpoints(spec: NeuralSpec) -> np.ndarray:
+    """The midpoints of the near field's cells, where :func:`far_field` averages a model."""
+    return -1.0 + (np.arange(spec.offset_cells) + 0.5) * (2.0 / spec.offset_cells)
+
+
+def far_field(predict, spec: NeuralSpec):
+    """A function of the four angles from ``predict(*angles, *extra)``: for a model with an
+    ``offset`` input its mean over the offset (the midpoint rule at the cells' midpoints: the
+    far field is the mean of the near field's cells); else ``predict`` itself."""
+    if "offset" not in spec.inputs:
+        return predict
+    if spec.inputs != ["offset"]:
+        raise ValueError(f"far field of a model with inputs {spec.inputs}: only 'offset' is averaged")
+
+    def mean(*angles):
+        total = None
+        for h in offset_midpoints(spec):
+            v = predict(*angles, angles[1] * 0.0 + float(h))  # numpy, torch or Dr.Jit alike
+            total = v if total is None else (
+                [a + b for a, b in zip(total, v)] if isinstance(v, list) else total + v)
+        scale = 1.0 / spec.offset_cells
+        return [a * scale for a in total] if isinstance(total, list) else total * scale
+    return mean
+
+
+def encode_numpy(spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o, *extra) -> np.ndarray:
     """Feature matrix [n, n_features] (float32) of the encoding above."""
-    args = (np.asarray(a, np.float64) for a in (phi_i, theta_i, phi_o, theta_o))
+    args = (np.asarray(a, np.float64) for a in (phi_i, theta_i, phi_o, theta_o, *extra))
     return np.stack(np.broadcast_arrays(*features(np, spec, *args)), -1).astype(np.float32)
 
 
@@ -211,6 +292,7 @@ class FoldedTable:
     albedo: np.ndarray
     chi2_per_dof: float  # spread of merged bins about their mean, in units of their noise (~1: consistent)
     cell: np.ndarray = None  # [n, 6] a representative bin: phi_i, theta_i, phi_o lo/hi, sin theta_o lo/hi
+    extra_cell: np.ndarray = None  # [n, k, 2] its range (lo, hi) in each extra input; None without any
 
 
 def table_cells(table) -> np.ndarray:
@@ -235,30 +317,50 @@ def points_in_bins(lib, cell, u):
     return cell[:, 0], cell[:, 1], phi_o, lib.arcsin(lib.clip(sin_o, -1.0, 1.0))
 
 
-def bin_average(predict, cell, k: int = 4) -> np.ndarray:
-    """Mean of ``predict(phi_i, theta_i, phi_o, theta_o) -> [n, ...]`` over k x k stratified
-    points of each bin of ``cell``: what a bin of the table (a bin average) is compared with."""
-    total = 0.0
+def bin_average(predict, cell, k: int = 4, extra_cell=None) -> np.ndarray:
+    """Mean of ``predict(phi_i, theta_i, phi_o, theta_o, *extra) -> [n, ...]`` over k x k
+    midpoints of each bin of ``cell`` (and, with ``extra_cell [n, m, 2]``, ``max(2, k // 2)``
+    midpoints of each extra input's range): what a bin of the table (a bin average) is
+    compared with."""
+    total, count = 0.0, 0
+    extras = [[]] if extra_cell is None else \
+        [[lo + t * (hi - lo) for lo, hi in np.moveaxis(extra_cell, (1, 2), (0, 1))]
+         for t in (np.arange(max(2, k // 2)) + 0.5) / max(2, k // 2)]
     for a in (np.arange(k) + 0.5) / k:
         for b in (np.arange(k) + 0.5) / k:
-            total = total + predict(*points_in_bins(np, cell, np.broadcast_to([a, b], (len(cell), 2))))
-    return total / (k * k)
+            angles = points_in_bins(np, cell, np.broadcast_to([a, b], (len(cell), 2)))
+            for extra in extras:
+                total, count = total + predict(*angles, *extra), count + 1
+    return total / count
 
 
 def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     """Group the bins of an expanded table by their (folded) features and average each group."""
 
     n_l = len(table.wavelength)
-    PI, TI, PO, TO = np.meshgrid(table.phi_i, table.theta_i, table.phi_o, table.theta_o, indexing="ij")
+    # the bins, flat in the order (phi_i, theta_i, [offset cell,] phi_o, theta_o): a model with
+    # an offset input learns the near field's cells, each an equal share of the ply's width
+    values, stderr, N = table.values, table.stderr, 1
+    if "offset" in spec.inputs:
+        if table.near is None:
+            raise ValueError("a model with an 'offset' input learns a near-field table: bake it with "
+                             "`bake.offsets: N` (e.g. 8) in the config")
+        N = len(table.near)
+        values, stderr = np.moveaxis(table.near, 0, 2), np.moveaxis(table.near_stderr, 0, 2)
+    h_edges = np.linspace(-1.0, 1.0, N + 1)
+    PI, TI, HC, PO, TO = np.meshgrid(table.phi_i, table.theta_i, np.arange(N), table.phi_o, table.theta_o,
+                                     indexing="ij")
     if spec.relative_phi:
         PO = PO + PI  # relative tables store phi_o - phi_i
-    f = np.stack(np.broadcast_arrays(*features(np, spec, PI.ravel(), TI.ravel(), PO.ravel(), TO.ravel())), -1)
+    extra = [0.5 * (h_edges[HC] + h_edges[HC + 1]).ravel()] if spec.inputs else []
+    f = np.stack(np.broadcast_arrays(*features(np, spec, PI.ravel(), TI.ravel(), PO.ravel(), TO.ravel(), *extra)),
+                 -1)
     _, first, bin_class, count = np.unique(np.round(f, 6), axis=0, return_index=True, return_inverse=True,
                                            return_counts=True)
     bin_class = bin_class.ravel()
     n = len(count)
-    S_bins = table.values.reshape(-1, n_l).astype(np.float64)
-    E_bins = table.stderr.reshape(-1, n_l).astype(np.float64)
+    S_bins = values.reshape(-1, n_l).astype(np.float64)
+    E_bins = stderr.reshape(-1, n_l).astype(np.float64)
     S = np.zeros((n, n_l))
     np.add.at(S, bin_class, S_bins)
     S /= count[:, None]
@@ -278,7 +380,7 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     chi2 = float(np.sum(spread[independent] / pooled[independent]) / dof.sum()) if dof.sum() else 0.0
 
     # incident directions equal up to symmetry: groups joined by a shared class
-    n_bins_group = len(table.phi_o) * len(table.theta_o)
+    n_bins_group = N * len(table.phi_o) * len(table.theta_o)
     bin_group = np.arange(len(bin_class)) // n_bins_group
     n_groups = bin_group[-1] + 1
     link = coo_matrix((np.ones(len(bin_class)), (bin_group, n_groups + bin_class)),
@@ -286,7 +388,7 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     _, label = connected_components(link, directed=False)
     group_canonical = np.unique(label[:n_groups], return_inverse=True)[1]
     members = np.bincount(group_canonical)  # expanded incident directions per canonical one
-    omega_bins = np.broadcast_to(table.solid_angle[None, None], table.values.shape[:4]).ravel()
+    omega_bins = np.broadcast_to(table.solid_angle / N, values.shape[:-1]).ravel()
     omega = np.bincount(bin_class, omega_bins, n) / members[group_canonical[bin_group[first]]]
     group = group_canonical[bin_group[first]]
     # the baked scattered fraction of each canonical incident direction (its members' mean)
@@ -296,13 +398,16 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
 
     # each class's first bin, for training at points inside the bin (the table holds bin
     # averages; at the centres alone a network may peak between them, unseen)
-    cell = table_cells(table)[first]
+    n_dirs = len(table.phi_i) * len(table.theta_i)
+    cell = np.broadcast_to(table_cells(table).reshape(n_dirs, 1, -1, 6), (n_dirs, N, len(table.phi_o) *
+                                                                            len(table.theta_o), 6)).reshape(-1, 6)[first]
+    extra_cell = np.stack([h_edges[HC], h_edges[HC + 1]], -1).reshape(-1, 1, 2)[first] if spec.inputs else None
 
     y = np.log1p(S / spec.s0)
     sigma_y = E / (spec.s0 + S)  # first-order propagation of the standard error
     return FoldedTable(x=f[first].astype(np.float32), y=y.astype(np.float32), sigma_y=sigma_y.astype(np.float32),
                        S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, albedo=albedo,
-                       chi2_per_dof=chi2, cell=cell)
+                       chi2_per_dof=chi2, cell=cell, extra_cell=extra_cell)
 
 
 def stable_expm1(lib, y):
@@ -349,7 +454,8 @@ def energy_gain(lib, spec: NeuralSpec, theta_i):
 
 
 def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int = 4096, lines=()):
-    """``(S, err)``: the exported model at ``angles [n, 4]`` (exact, float64) and a bound on
+    """``(S, err)``: the exported model at ``angles [n, spec.n_queries]`` (the four angles, then
+    the extra inputs; exact, float64) and a bound on
     how far an evaluation of it in floating point (unit roundoff ``u``, float32 by
     default) can be from that, per query and wavelength.
 
@@ -362,7 +468,7 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
     """
 
     u = rd.U32 if u is None else u
-    angles = np.asarray(angles, np.float64).reshape(-1, 4)
+    angles = np.asarray(angles, np.float64).reshape(-1, spec.n_queries)
     S, err = [], []
     for start in range(0, len(angles), chunk):
         a = [rd.Bounded.exact(c, u) for c in angles[start:start + chunk].T]
@@ -403,7 +509,8 @@ def make_torch_model(spec: NeuralSpec):
 
 
 def make_export_module(spec: NeuralSpec, mlp):
-    """Raw angles [n, 4] -> S [n, n_lambda]: encoding, MLP and output transform in one graph."""
+    """Raw queries [n, spec.n_queries] (the four angles, then the extra inputs) -> S [n, n_lambda]:
+    encoding, MLP and output transform in one graph."""
     import torch
 
     class Exported(torch.nn.Module):

@@ -436,6 +436,9 @@ class TrainCfg(Strict):
         default_factory=list, description="feature lines (models/lines.py): nodes of the theta_i, cone-distance and "
                                           "azimuth lines, e.g. [16, 32, 24]; [] for a plain MLP")
     line_channels: int = Field(8, ge=1, le=256, description="channels of each feature line")
+    inputs: list[Literal["offset"]] = Field(
+        default_factory=list, description="extra inputs of the model beyond the directions: [offset] learns the near "
+                                          "field (bake.offsets), the light by its exit line's offset across the ply")
 
     @field_validator("line_nodes")
     @classmethod
@@ -672,6 +675,9 @@ class Config(Strict):
         if b.offsets == 1 or (b.offsets and (b.orders or b.estimator != "fast")):
             raise ValueError("bake.offsets: 0 (none) or N >= 2 cells, with bake.estimator: fast and without "
                              "bake.orders")
+        if "offset" in self.train.inputs and not b.offsets:
+            raise ValueError("train.inputs [offset] learns the near field: bake it with bake.offsets: N (e.g. 8), "
+                             "or drop the offset input")
         if b.offsets and self.bundle is not None and self.bundle.shape != "circle":
             raise ValueError("bake.offsets: the near field is baked for circular plies (an ellipse's offset goes "
                              "with its orientation: not tallied yet)")

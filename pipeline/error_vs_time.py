@@ -13,6 +13,11 @@ trained model (PyTorch, onnxruntime, Dr.Jit), on the same queries:
 * cost: nanoseconds per query at a batch of 1M random directions (all wavelengths per
   query), best of 3, and bytes of storage.
 
+A model of the near field (``train.inputs: [offset]``) is measured by its far field, its
+mean over the offset cells (:func:`models.neural.far_field`), against the table's far field
+on the far field's split (the near field's own held-out error is the train stage's); its
+cost is that of one evaluation at a random offset, what a render pays.
+
 Its own time is mostly the compilation of the Dr.Jit kernels when the kernel cache is cold:
 every numpy input goes through :func:`models.jit.to_drjit`, so that each kernel compiles
 once, and a large MLP is evaluated here with cooperative vectors (``DrJitMLP``'s ``auto``
@@ -27,6 +32,7 @@ Prints a table, writes ``error_vs_time.png`` (marker area ~ bytes) and
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -43,7 +49,7 @@ from models.errors import albedo_error, log_mae, relative_l1
 from models.fit import file_hash, held_out_bins, load_checkpoint
 from models.io import write_text
 from models.jit import to_drjit
-from models.neural import NeuralSpec, bin_average, make_export_module, make_torch_model, table_cells
+from models.neural import NeuralSpec, bin_average, far_field, make_export_module, make_torch_model, table_cells
 
 from .artifacts import checkpoint_path, load_bundle_table, stage_dir
 from .plots import save_figure
@@ -70,7 +76,9 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     truth = table.values.reshape(-1, n_l).astype(np.float64)
     first = next(iter(cfg.train.models))
     first_spec = NeuralSpec.from_dict(load_checkpoint(checkpoint_path(cfg, first, artifacts))["spec"])
-    val = held_out_bins(table, first_spec, cfg.train)  # every model of a config shares the split
+    # every model of a config shares the split (of the far field's bins)
+    val = held_out_bins(table, dataclasses.replace(first_spec, inputs=[], offset_cells=0, passthrough_offset=[],
+                                                   passthrough_offset_theta_i=[]), cfg.train)
     omega = np.broadcast_to(table.solid_angle[None, None, :, :], table.values.shape[:4]).ravel()
     scattered = table.scattered  # [phi_i, theta_i, lambda]
     s0 = float(np.mean(table.values[table.values > 0]))
@@ -149,20 +157,24 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
         module = make_export_module(spec, mlp).eval()
         nbytes = sum(p.numel() * 4 for p in mlp.parameters())
 
+        extra = [rng.uniform(-1, 1, n).astype(np.float32) for _ in spec.inputs]  # the timed queries' offsets
+        far = lambda predict, spec=spec: lambda q: far_field(lambda *a: predict(list(a)), spec)(*q)  # noqa: E731
+
         def torch_eval(q, module=module):
             with torch.no_grad():
                 return module(torch.from_numpy(np.stack(q, -1).astype(np.float32))).numpy()
-        report(f"mlp {name}", "pytorch", nbytes, torch_eval, lambda f=torch_eval: f(rand32))
+        report(f"mlp {name}", "pytorch", nbytes, far(torch_eval), lambda f=torch_eval: f(rand32 + extra))
 
         onnx = OnnxMLP(export_root / name / "model.onnx", threads=2)
-        report(f"mlp {name}", "onnxruntime", nbytes, lambda q, m=onnx: m.eval(*q), lambda m=onnx: m.eval(*rand32))
+        report(f"mlp {name}", "onnxruntime", nbytes, far(lambda q, m=onnx: m.eval(*q)),
+               lambda m=onnx: m.eval(*rand32, *extra))
 
         jit = DrJitMLP(export_root / name / "weights.npz")
-        qs = [to_drjit(mi.Float, a) for a in rand32]
+        qs = [to_drjit(mi.Float, a) for a in rand32 + extra]
         dr.eval(qs)
 
         def jit_run(q, jit=jit):
-            out = jit.eval(*(to_drjit(mi.Float, a) for a in q))
+            out = jit.eval(*(to_drjit(mi.Float, np.asarray(a, np.float32)) for a in q))
             dr.eval(out)
             return np.stack([o.numpy() for o in out], -1)
 
@@ -171,7 +183,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
             dr.eval(out)
             dr.sync_thread()
         jit_timed()  # compile once; the kernel cache serves the timed runs
-        report(f"mlp {name}", "drjit", nbytes, jit_run, jit_timed)
+        report(f"mlp {name}", "drjit", nbytes, far(jit_run), jit_timed)
 
     out = stage_dir(cfg, "export", artifacts)
     noise_l1 = float(np.sqrt(2 / np.pi) * table.stderr.reshape(-1, n_l)[val].sum() / truth[val].sum())

@@ -16,10 +16,14 @@ from pipeline.loading import load_config
 WL = [450.0, 550.0, 650.0]
 
 
-def synthetic_table(cfg, path, relative=True, dynamic_range=1e5, passthrough=0.0, cone=None, theta_i_deg=None):
+def synthetic_table(cfg, path, relative=True, dynamic_range=1e5, passthrough=0.0, cone=None, theta_i_deg=None,
+                    offsets=0):
     """A bake-like table of a ridge on the cone; ``cone``: theta_o bins of the cone layout
     with a bin of ``cone`` degrees on every node's cone and one bin between, else 18 equal
-    bins; theta_i nodes 15 deg apart, or ``theta_i_deg`` (0..90, e.g. graded)."""
+    bins; theta_i nodes 15 deg apart, or ``theta_i_deg`` (0..90, e.g. graded). ``offsets``:
+    a near field of that many cells, ``S (1 + 0.6 h sin dphi)`` at the cells' midpoints ``h``
+    (the cells average to ``S``, and a circle's mirror, ``(h, dphi) -> (-h, -dphi)``, holds)
+    and a passthrough rising towards the rims."""
     theta_i = np.deg2rad(np.arange(0, 91, 15.0) if theta_i_deg is None else np.asarray(theta_i_deg, float))
     phi_i = np.zeros(1) if relative else np.deg2rad([0.0, 45.0, 90.0])
     pe = np.linspace(-np.pi, np.pi, 37)
@@ -43,7 +47,15 @@ def synthetic_table(cfg, path, relative=True, dynamic_range=1e5, passthrough=0.0
     E = 0.01 * S
     S = S + E * rng.standard_normal(S.shape)
     shape_pi = (len(phi_i), len(theta_i), len(WL))
-    table = BundleTable(
+    near = {}
+    if offsets:
+        h = -1 + (np.arange(offsets) + 0.5) * 2 / offsets
+        w = 1 + 0.6 * h[:, None, None, None, None, None] * np.sin(PO - (0 if relative else PI))[None, ..., None]
+        rim = (1 + np.abs(h)) / np.mean(1 + np.abs(h))
+        near = {"near": (S[None] * w).astype(np.float32), "near_stderr": (E[None] * np.sqrt(offsets)).astype(np.float32)
+                * np.ones((offsets,) + (1,) * S.ndim, np.float32),
+                "near_passthrough": np.broadcast_to(np.clip(passthrough * rim, 0, 1), shape_pi[:2] + (offsets,)).copy()}
+    table = BundleTable(**near,
         values=S.astype(np.float32), stderr=E.astype(np.float32), passthrough=np.full(len(phi_i), passthrough),
         passthrough_stderr=np.zeros(len(phi_i)), absorbed=np.zeros(shape_pi), lost=np.zeros(shape_pi),
         phi_i=phi_i, theta_i=theta_i, phi_o_edges=pe, theta_o_edges=te, wavelength=np.array(WL),
@@ -54,8 +66,9 @@ def synthetic_table(cfg, path, relative=True, dynamic_range=1e5, passthrough=0.0
     return table
 
 
-def make_config(tmp_path, name="n", **train):
+def make_config(tmp_path, name="n", bake=None, **train):
     cfg = {"name": name, "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
+           **({"bake": bake} if bake else {}),
            "fiber": {"model": "isotropic"},
            "bundle": {"shape": "circle", "radius_um": 100},
            "train": {"models": {"tiny": [16, 16], "wide": [32, 32, 32]}, "epochs": 60, "batch_size": 128,

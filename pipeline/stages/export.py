@@ -3,7 +3,8 @@
 Writes under ``artifacts/<name>/export/<model>/``:
 
 * ``model.onnx``   raw angles ``[batch, 4] = (phi_i, theta_i, phi_o, theta_o)`` in
-  radians -> ``S [batch, n_lambda]`` in 1/sr, encoding and output transform inside the
+  radians, then the model's extra inputs (``train.inputs``: ``[batch, 5]`` with the
+  exit line's offset ``h``) -> ``S [batch, n_lambda]`` in 1/sr, encoding and output transform inside the
   graph, batch axis dynamic, checked by ``onnx.checker``; its metadata
   (``bcsdf_spec``) holds the encoding, output transform, wavelengths, table hash and
   symmetry reductions. Runs on onnxruntime alone.
@@ -49,12 +50,13 @@ def run(cfg, out_root="artifacts") -> Path:
 
         # -- ONNX --------------------------------------------------------------
         with atomic_path(d / "model.onnx") as tmp:
-            torch.onnx.export(module, (torch.zeros(8, 4),), tmp, input_names=["angles"], output_names=["S"],
+            torch.onnx.export(module, (torch.zeros(8, spec.n_queries),), tmp, input_names=["angles"], output_names=["S"],
                               dynamic_axes={"angles": {0: "batch"}, "S": {0: "batch"}}, opset_version=17,
                               dynamo=False)
             model = onnx.load(tmp)
-            model.doc_string = ("Bundle scattering function S(phi_i, theta_i, phi_o, theta_o) in 1/sr, one "
-                                "output per wavelength; inputs in radians")
+            model.doc_string = (f"Bundle scattering function S(phi_i, theta_i, phi_o, theta_o"
+                                f"{''.join(', ' + i for i in spec.inputs)}) in 1/sr, one output per wavelength; "
+                                "angles in radians")
             entry = model.metadata_props.add()
             entry.key, entry.value = "bcsdf_spec", meta
             onnx.checker.check_model(model)

@@ -406,9 +406,13 @@ def _edge_queries():
 
 
 def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
-    q = _edge_queries()
     ckpt = torch.load(checkpoint, weights_only=True)
     spec = NeuralSpec.from_dict(ckpt["spec"])
+    q = _edge_queries()
+    if spec.inputs:  # extra inputs (an offset in [-1, 1]): across, at and beyond their ends
+        extra = np.random.default_rng(1).uniform(-1.5, 1.5, (len(q), len(spec.inputs)))
+        extra[:3] = [[-1.0], [1.0], [0.0]] * np.ones((1, len(spec.inputs)))
+        q = np.concatenate([q, extra.astype(np.float32)], -1)
     mlp = make_torch_model(spec)
     mlp.load_state_dict(ckpt["state"])
     module = make_export_module(spec, mlp).eval()
@@ -436,7 +440,7 @@ def _backends_at_edges(export_dir: Path, checkpoint: Path) -> list[Check]:
     checks.append(within_bound("neural: onnxruntime against PyTorch", "|onnxruntime - PyTorch| (float32)",
                                np.abs(onnx - f32), 2 * b32, f"{how}; twice the float32 bound"))
     # Dr.Jit documents its sin and cos for |x| < 8192 (beyond: finite, checked above)
-    inside = np.all(np.abs(np.c_[q, q[:, 2] - q[:, 0]]) < 8192, axis=1)
+    inside = np.all(np.abs(np.c_[q[:, :4], q[:, 2] - q[:, 0]]) < 8192, axis=1)
     checks.append(within_bound("neural: Dr.Jit against PyTorch", "|Dr.Jit - PyTorch| (float32)",
                                np.abs(jit - f32)[inside], 2 * b32[inside],
                                f"{how}; twice the float32 bound; angles within Dr.Jit's |x| < 8192"))
