@@ -55,6 +55,7 @@ fold queries beyond the features above.
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -63,6 +64,7 @@ from scipy.sparse.csgraph import connected_components
 
 from . import lines as fl
 from . import rounding as rd
+from .io import atomic_path
 
 FORMAT = "bcsdf.neural/5"  # /5: extra inputs; /4: the energy gain; /3: feature lines (models/lines.py)
 READABLE = ("bcsdf.neural/2", "bcsdf.neural/3", "bcsdf.neural/4", FORMAT)  # older: read as models without them
@@ -506,6 +508,45 @@ def make_torch_model(spec: NeuralSpec):
         width = h
     layers.append(torch.nn.Linear(width, spec.n_outputs))
     return torch.nn.Sequential(*layers)
+
+
+def save_weights(path, spec: NeuralSpec, mlp) -> int:
+    """Write the PyTorch model ``mlp`` of ``spec`` as ``weights.npz`` (``W0, b0, ...``, the
+    feature lines ``L0, L1, L2``, the metadata), atomically; returns its float32 parameter bytes."""
+    import torch
+
+    arrays = {f"L{k}": line.detach().numpy().astype(np.float32)
+              for k, line in enumerate(mlp[0].lines)} if spec.lines else {}
+    for k, lin in enumerate(m for m in mlp if isinstance(m, torch.nn.Linear)):
+        arrays[f"W{k}"] = lin.weight.detach().numpy().astype(np.float32)
+        arrays[f"b{k}"] = lin.bias.detach().numpy().astype(np.float32)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            # the metadata as UTF-8 bytes (a numpy str array is UTF-32: 4 bytes a character),
+            # the archive deflated (the metadata's text shrinks; the float32 weights hardly)
+            np.savez_compressed(fh, spec=np.array(json.dumps(spec.to_dict()).encode("utf-8")), **arrays)
+    return sum(a.nbytes for a in arrays.values())
+
+
+def save_onnx(path, spec: NeuralSpec, mlp) -> None:
+    """Write the PyTorch model ``mlp`` of ``spec`` as one ONNX graph, atomically: queries
+    ``[batch, spec.n_queries]`` -> ``S [batch, n_lambda]`` (:func:`make_export_module`), the
+    batch axis dynamic, the metadata ``bcsdf_spec``, checked by ``onnx.checker``."""
+    import onnx
+    import torch
+
+    with atomic_path(path) as tmp:
+        torch.onnx.export(make_export_module(spec, mlp).eval(), (torch.zeros(8, spec.n_queries),), tmp,
+                          input_names=["angles"], output_names=["S"],
+                          dynamic_axes={"angles": {0: "batch"}, "S": {0: "batch"}}, opset_version=17, dynamo=False)
+        model = onnx.load(tmp)
+        model.doc_string = (f"Bundle scattering function S(phi_i, theta_i, phi_o, theta_o"
+                            f"{''.join(', ' + i for i in spec.inputs)}) in 1/sr, one output per wavelength; "
+                            "angles in radians")
+        entry = model.metadata_props.add()
+        entry.key, entry.value = "bcsdf_spec", json.dumps(spec.to_dict())
+        onnx.checker.check_model(model)
+        onnx.save(model, tmp)
 
 
 def make_export_module(spec: NeuralSpec, mlp):

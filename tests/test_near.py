@@ -9,6 +9,9 @@ numpy); and ``fiber_bundle`` on a near-field table renders, column by column acr
 ply, what explicit fibers render (the closure of the near field), where the far-field
 table renders a flat profile that the explicit fibers' lit and shadowed sides refute."""
 
+import contextlib
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -91,9 +94,46 @@ def test_offset_cells_in_numpy_and_drjit_agree():
 PLIES = {"parallel": ([10, 30, 60, 80], 2_000_000), "twisted, pitch 1500 um": ([-30, 20, 60], 2_400_000)}
 
 
+class Case:
+    """One ply of :data:`PLIES`: its near-field bake (saved), the incidences and views of the
+    closure, and the explicit fibers' intensities in the cells (rendered once per module)."""
+
+    def __init__(self, mi, fiber, tmp_path, name):
+        theta_i_deg, paths = PLIES[name]
+        self.ply = near_bench.plies()[name]
+        self.table = near_bench.bake(self.ply, fiber, theta_i_deg, CELLS, paths)
+        self.path = tmp_path / "near.npz"
+        self.table.save(self.path)
+        fiber.save(tmp_path / "fiber.npz")
+        mi.set_variant("llvm_ad_mono")
+        mitsuba_ext.register()
+        n_t = 18
+        self.cases = [(j, k_phi, int(np.floor((np.pi / 2 - self.table.theta_i[j]) / np.pi * n_t)))
+                      for j in (1, 2) for k_phi in (1, 9, 15)]
+        self.requests = [(closure.direction(0.0, self.table.theta_i[j]),
+                          closure.bin_views(self.table, 0.0, k_phi, k_theta)) for j, k_phi, k_theta in self.cases]
+        explicit = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": 550.0,
+                    "up": closure.UP}
+        self.measured = closure.explicit_intensities(mi, self.ply, explicit, self.requests, spp=8, resolution=64,
+                                                     cells=CELLS)
+        self.R = (self.ply.bundle if isinstance(self.ply, TwistedBundle) else self.ply).bounding_radius * 1e-3
+
+
+@pytest.fixture(scope="module")
+def plies_seen(mi_llvm, fiber, tmp_path_factory):
+    """``plies_seen(name)``: the :class:`Case` of ply ``name``, made once per module."""
+    made = {}
+
+    def get(name):
+        if name not in made:
+            made[name] = Case(mi_llvm, fiber, tmp_path_factory.mktemp("near"), name)
+        return made[name]
+    return get
+
+
 @pytest.mark.parametrize("name", [pytest.param(n, marks=[pytest.mark.slow] if "twisted" in n else [])
                                   for n in PLIES])
-def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, fiber, tmp_path, name):
+def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, plies_seen, tmp_path, name):
     """Six ray-optics fibers, every one its own cylinder (or, twisted, a ``bsplinecurve``
     along its helix; ``fiber_table``, the uniform exit), against ``fiber_bundle`` on the
     near-field bake of the same arrangement, on a cylinder and on a ``bsplinecurve``: the
@@ -104,21 +144,9 @@ def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, fiber,
     table read as a far field (``near_field: false``) is outside in many cells. Seen against
     a lit background, the bundle lets through what ``near_passthrough`` says per cell."""
     mi = mono
-    theta_i_deg, paths = PLIES[name]
-    ply = near_bench.plies()[name]
-    table = near_bench.bake(ply, fiber, theta_i_deg, CELLS, paths)
-    table.save(tmp_path / "near.npz")
-    fiber.save(tmp_path / "fiber.npz")
-    mi.set_variant("llvm_ad_mono")
-    mitsuba_ext.register()
-    lam, n_t = 1, 18
-    cases = [(j, k_phi, int(np.floor((np.pi / 2 - table.theta_i[j]) / np.pi * n_t)))
-             for j in (1, 2) for k_phi in (1, 9, 15)]
-    requests = [(closure.direction(0.0, table.theta_i[j]), closure.bin_views(table, 0.0, k_phi, k_theta))
-                for j, k_phi, k_theta in cases]
-    explicit = {"type": "fiber_table", "filename": str(tmp_path / "fiber.npz"), "wavelength": 550.0, "up": closure.UP}
-    measured = closure.explicit_intensities(mi, ply, explicit, requests, spp=8, resolution=64, cells=CELLS)
-    R = (ply.bundle if isinstance(ply, TwistedBundle) else ply).bounding_radius * 1e-3
+    case = plies_seen(name)
+    table, requests, measured, cases, R = case.table, case.requests, case.measured, case.cases, case.R
+    lam = 1
 
     def curve(R_, bsdf, half_length):   # the same ply as a straight bsplinecurve (the cloth's plies)
         path = tmp_path / "ply.txt"
@@ -128,7 +156,7 @@ def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, fiber,
 
     outside = {}
     for near, kind, shape in ((True, "cylinder", None), (True, "bsplinecurve", curve), (False, "cylinder", None)):
-        bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "near.npz"), "wavelength": 550.0, "up": closure.UP,
+        bsdf = {"type": "fiber_bundle", "table": str(case.path), "wavelength": 550.0, "up": closure.UP,
                 "near_field": near}
         rendered = closure.bundle_profiles(mi, bsdf, R, requests, CELLS, shape=shape)
         outside[near, kind] = 0
@@ -143,7 +171,7 @@ def test_a_near_field_bundle_renders_the_profile_of_explicit_fibers(mono, fiber,
     assert outside[False, "cylinder"] >= 12, outside
     # the null lobe per offset: a lit background seen through the ply
     hs = 1.2 * R
-    bsdf = {"type": "fiber_bundle", "table": str(tmp_path / "near.npz"), "wavelength": 550.0, "up": closure.UP}
+    bsdf = {"type": "fiber_bundle", "table": str(case.path), "wavelength": 550.0, "up": closure.UP}
     w_o = closure.direction(0.4, 0.3)
     sc = closure.scene(mi, {"f": closure.cylinder(R, bsdf, half_length=40 * hs)}, -w_o, w_o, hs, irradiance=0.0,
                        background=1.0, spp=16, resolution=64)
@@ -166,3 +194,56 @@ def test_near_field_bakes_are_refused_where_they_are_not_defined():
     for kw in ({"estimator": "thesis"}, {"relative_phi": False}, {"orders": 4}):
         with pytest.raises(ValueError, match="offsets need"):
             BakeSpec(np.zeros(1), np.zeros(1), offsets=8, **kw)
+
+
+@pytest.mark.slow
+def test_a_neural_near_field_renders_the_profile_of_explicit_fibers(mono, plies_seen, tmp_path):
+    """A model with the offset as an input (``train.inputs: [offset]``), trained on the
+    parallel ply's near-field bake and rendered by ``fiber_bundle``'s ``mlp`` and ``onnx``
+    backends, against the explicit fibers of the table's closure test, cell by cell: within
+    5% + 3 standard errors plus the model's own distance from its table in that cell (its bin
+    and cell average, measured here: the triangle inequality of render, model, table and
+    fibers). The model learns the cells: its median distance from them is under 10%, and the
+    same model read as a far field (its mean over the offset) misses many cells."""
+    from models.fit import fit, model_bin_averages, prepare
+    from models.neural import save_onnx, save_weights, table_cells
+    from pipeline.config import TrainCfg
+
+    mi = mono
+    case = plies_seen("parallel")
+    table, lam = case.table, 1
+    c = TrainCfg(models={"m": [32, 32]}, epochs=300, inputs=["offset"])
+    problem = prepare(table, case.path, c, "")
+    spec = dataclasses.replace(problem.base, hidden=[32, 32])
+    model, *_ = fit(spec, problem, c, "near")   # sets the spec's energy gain
+    save_weights(tmp_path / "weights.npz", spec, model)
+    save_onnx(tmp_path / "model.onnx", spec, model)
+    print(spec.folds, spec.inputs)
+    n_po, n_to = len(table.phi_o), len(table.theta_o)
+    edges = np.linspace(-1, 1, CELLS + 1)
+    own = {}
+    for j, k_phi, k_theta in case.cases:
+        cell = table_cells(table)[[(j * n_po + k_phi) * n_to + k_theta] * CELLS]
+        S_model = model_bin_averages(spec, model, cell, k=4, extra_cell=np.stack([edges[:-1], edges[1:]], -1)[:, None])
+        own[j, k_phi, k_theta] = np.abs(S_model[:, lam] / table.near[:, 0, j, k_phi, k_theta, lam] - 1)
+    assert np.median(np.concatenate(list(own.values()))) < 0.10, own
+    mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()
+    outside = {}
+    for backend, near in (("mlp", True), ("onnx", True), ("mlp", False)):
+        model_file = tmp_path / ("weights.npz" if backend == "mlp" else "model.onnx")
+        bsdf = {"type": "fiber_bundle", "backend": backend, "model": str(model_file), "wavelength": 550.0,
+                "up": closure.UP, "near_field": near}
+        with mitsuba_ext.evaluated_mode() if backend == "onnx" else contextlib.nullcontext():
+            rendered = closure.bundle_profiles(mi, bsdf, case.R, case.requests, CELLS)
+        outside[backend, near] = 0
+        for profile, (I, se), key in zip(rendered, case.measured, case.cases):
+            j, k_phi, k_theta = key
+            ratio = profile / I
+            S, S_se = table.near[:, 0, j, k_phi, k_theta, lam], table.near_stderr[:, 0, j, k_phi, k_theta, lam]
+            sigma = np.hypot(se / I, S_se / S)
+            print(backend, "near" if near else "far", key, "bundle / explicit", np.round(ratio, 2),
+                  "sigma", np.round(sigma, 2), "model / table", np.round(own[key], 2))
+            outside[backend, near] += int(np.sum(np.abs(ratio - 1) > 0.05 + 3 * sigma + own[key]))
+    assert outside["mlp", True] == 0 and outside["onnx", True] == 0, outside
+    assert outside["mlp", False] >= 12, outside

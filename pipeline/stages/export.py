@@ -15,15 +15,11 @@ Writes under ``artifacts/<name>/export/<model>/``:
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import numpy as np
-import torch
 
 from models.fit import load_checkpoint
-from models.io import atomic_path
-from models.neural import NeuralSpec, make_export_module, make_torch_model
+from models.neural import NeuralSpec, make_torch_model, save_onnx, save_weights
 
 from .. import error_vs_time
 from ..artifacts import checkpoint_path, stage_dir
@@ -33,7 +29,6 @@ from ..metrics import write_curve, write_metrics
 
 
 def run(cfg, out_root="artifacts") -> Path:
-    import onnx
 
     out = stage_dir(cfg, "export", out_root)
     for name in cfg.train.models:
@@ -44,37 +39,9 @@ def run(cfg, out_root="artifacts") -> Path:
             raise ValueError(f"{ckpt_path} was trained with different settings; re-run `bcsdf train`")
         mlp = make_torch_model(spec)
         mlp.load_state_dict(ckpt["state"])
-        module = make_export_module(spec, mlp).eval()
         d = out / name
-        meta = json.dumps(spec.to_dict())
-
-        # -- ONNX --------------------------------------------------------------
-        with atomic_path(d / "model.onnx") as tmp:
-            torch.onnx.export(module, (torch.zeros(8, spec.n_queries),), tmp, input_names=["angles"], output_names=["S"],
-                              dynamic_axes={"angles": {0: "batch"}, "S": {0: "batch"}}, opset_version=17,
-                              dynamo=False)
-            model = onnx.load(tmp)
-            model.doc_string = (f"Bundle scattering function S(phi_i, theta_i, phi_o, theta_o"
-                                f"{''.join(', ' + i for i in spec.inputs)}) in 1/sr, one output per wavelength; "
-                                "angles in radians")
-            entry = model.metadata_props.add()
-            entry.key, entry.value = "bcsdf_spec", meta
-            onnx.checker.check_model(model)
-            onnx.save(model, tmp)
-
-        # -- plain weights -------------------------------------------------------
-        linears = [m for m in mlp if isinstance(m, torch.nn.Linear)]
-        arrays = {f"L{k}": line.detach().numpy().astype(np.float32)
-                  for k, line in enumerate(mlp[0].lines)} if spec.lines else {}
-        for k, lin in enumerate(linears):
-            arrays[f"W{k}"] = lin.weight.detach().numpy().astype(np.float32)
-            arrays[f"b{k}"] = lin.bias.detach().numpy().astype(np.float32)
-        with atomic_path(d / "weights.npz") as tmp:
-            with open(tmp, "wb") as fh:
-                # the metadata as UTF-8 bytes (a numpy str array is UTF-32: 4 bytes a character),
-                # the archive deflated (the metadata's text shrinks; the float32 weights hardly)
-                np.savez_compressed(fh, spec=np.array(meta.encode("utf-8")), **arrays)
-        size = sum(a.nbytes for a in arrays.values())
+        save_onnx(d / "model.onnx", spec, mlp)
+        size = save_weights(d / "weights.npz", spec, mlp)
         print(f"[export] {name}: {d / 'model.onnx'} ({(d / 'model.onnx').stat().st_size} bytes), "
               f"weights.npz ({(d / 'weights.npz').stat().st_size} bytes, of them float32 parameters {size})")
 
