@@ -206,10 +206,11 @@ class FiberBundleBSDF(CurveBSDF):
          - boolean
          - ``true``
          - 
-         - Where the table holds the near field (``bake.offsets``): evaluate the light
-           leaving on the camera ray's own line across the ply (its offset ``h`` from
-           the axis) and let a ray through with the passthrough of its own offset; else
-           (or ``false``) the far field, the same at every offset.
+         - Where the table (``bake.offsets``) or the model (``train.inputs: [offset]``)
+           holds the near field: evaluate the light leaving on the camera ray's own line
+           across the ply (its offset ``h`` from the axis) and let a ray through with the
+           passthrough of its own offset; else (or ``false``) the far field, the same at
+           every offset (a model's: its mean over the offset).
        * - passthrough
          - boolean
          - ``true``

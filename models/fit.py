@@ -20,6 +20,10 @@ the table's scattered fraction (a row's sum includes its held-out bins: their va
 never fitted, only the row's total is the target). It is part of the model
 (:func:`models.neural.energy_gain`), evaluated by every backend.
 
+A model with extra inputs (``c.inputs``: ``offset``) learns the near field's cells: each
+sample is a bin and a cell, its points drawn in the bin's directions and uniformly in the
+cell's range of the input (:func:`models.neural.fold_table`).
+
 A random ``val_fraction`` of the samples (all wavelengths of a bin, and all its mirror
 images, together) is held out for early stopping and for the report. Same table, seed
 and threads: the same weights.

@@ -91,6 +91,22 @@ def trained_lines(tmp_path_factory):
     return cfg, tmp
 
 
+@pytest.fixture(scope="session")
+def trained_near(tmp_path_factory):
+    """The same two sizes with the offset as an input (a near field of 4 cells), trained and
+    exported."""
+    from pipeline.stages import export as export_stage
+    from pipeline.stages import train as train_stage
+    from tests.synthetic import make_config, synthetic_table
+
+    tmp = tmp_path_factory.mktemp("near")
+    cfg = make_config(tmp, bake={"offsets": 4}, inputs=["offset"])
+    synthetic_table(cfg, tmp / "n" / "bake" / "bundle_table.npz", passthrough=0.3, offsets=4)
+    train_stage.run(cfg, tmp)
+    export_stage.run(cfg, tmp)
+    return cfg, tmp
+
+
 @pytest.fixture
 def spectral(mi_llvm):
     """Mitsuba's spectral variant with the plugins registered; the session's variant after."""

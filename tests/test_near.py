@@ -10,7 +10,6 @@ ply, what explicit fibers render (the closure of the near field), where the far-
 table renders a flat profile that the explicit fibers' lit and shadowed sides refute."""
 
 import contextlib
-import dataclasses
 
 import numpy as np
 import pytest
@@ -205,20 +204,14 @@ def test_a_neural_near_field_renders_the_profile_of_explicit_fibers(mono, plies_
     and cell average, measured here: the triangle inequality of render, model, table and
     fibers). The model learns the cells: its median distance from them is under 10%, and the
     same model read as a far field (its mean over the offset) misses many cells."""
-    from models.fit import fit, model_bin_averages, prepare
-    from models.neural import save_onnx, save_weights, table_cells
-    from pipeline.config import TrainCfg
+    from models.fit import model_bin_averages
+    from models.neural import table_cells
 
     mi = mono
     case = plies_seen("parallel")
     table, lam = case.table, 1
-    c = TrainCfg(models={"m": [32, 32]}, epochs=300, inputs=["offset"])
-    problem = prepare(table, case.path, c, "")
-    spec = dataclasses.replace(problem.base, hidden=[32, 32])
-    model, *_ = fit(spec, problem, c, "near")   # sets the spec's energy gain
-    save_weights(tmp_path / "weights.npz", spec, model)
-    save_onnx(tmp_path / "model.onnx", spec, model)
-    print(spec.folds, spec.inputs)
+    fitted = near_bench.train(table, case.path, tmp_path)
+    spec, model = fitted["spec"], fitted["model"]
     n_po, n_to = len(table.phi_o), len(table.theta_o)
     edges = np.linspace(-1, 1, CELLS + 1)
     own = {}

@@ -56,10 +56,11 @@ def onnx_graph(path, A):
 
 @pytest.mark.parametrize("form", ["literal", "cooperative"])
 @pytest.mark.parametrize("name", ["tiny", "wide"])
-@pytest.mark.parametrize("models", ["trained", "trained_lines"])
+@pytest.mark.parametrize("models", ["trained", "trained_lines", "trained_near"])
 def test_backends_agree_with_pytorch(request, mi_llvm, models, name, form):
     """onnxruntime and both Dr.Jit formulations (literal weights, cooperative vectors), for
-    the plain MLP and the MLP with feature lines."""
+    the plain MLP, the MLP with feature lines and the MLP with the offset as an input (queried
+    across, at and beyond its range [-1, 1])."""
     import drjit as dr
 
     from mitsuba_ext.neural import DrJitMLP, OnnxMLP
@@ -67,7 +68,12 @@ def test_backends_agree_with_pytorch(request, mi_llvm, models, name, form):
     cfg, tmp = request.getfixturevalue(models)
     assert bool(cfg.train.line_nodes) == (models == "trained_lines")
     spec, torch_eval = reference(tmp, name)
+    assert spec.inputs == (["offset"] if models == "trained_near" else [])
     A = query_set(beyond=True)
+    if spec.inputs:
+        h = np.random.default_rng(2).uniform(-1.5, 1.5, len(A))
+        h[:3] = [-1.0, 0.0, 1.0]
+        A = np.c_[A, h].astype(np.float32)
     ref = torch_eval(A)
     onnx_out = onnx_graph(tmp / "n" / "export" / name / "model.onnx", A).astype(np.float64)
     mlp = DrJitMLP(tmp / "n" / "export" / name / "weights.npz", form=form)
@@ -195,6 +201,49 @@ def test_folded_features_are_the_symmetries_and_nothing_more():
             assert moved[np.abs(ti) > 0.05].mean() > 0.99
     e, b = f(ellipse, pi, ti, po, to), f(ellipse, pi, ti, -po, to)
     assert (np.abs(e - b).max(axis=1) > 1e-3)[np.abs(np.sin(pi) * np.sin(po)) > 0.05].all()
+
+
+def test_the_offset_input_folds_with_the_azimuth_and_learns_the_near_field(tmp_path):
+    """The offset ``h`` of a near-field model: a circle's mirror takes ``(dphi, h)`` to
+    ``(-dphi, -h)`` (the features are invariant under that, and change under ``h`` alone), the
+    theta mirror keeps ``h``; the near field's cells folded weigh to the table's albedo; the
+    fold is chosen by the near field's own data; a table or config without the near field is
+    refused by name."""
+    import dataclasses
+
+    from models.fit import choose_folds, prepare
+    from models.neural import encode_numpy, fold_table
+    from pipeline.config import ConfigError
+
+    rng = np.random.default_rng(4)
+    n = 4000
+    pi, po = rng.uniform(-np.pi, np.pi, (2, n))
+    ti, to = rng.uniform(-1.5, 1.5, (2, n))
+    h = rng.uniform(-1, 1, n)
+    spec = dataclasses.replace(_spec(True, ["theta", "dphi"]), inputs=["offset"], offset_cells=4)
+    f = lambda *a: encode_numpy(spec, *a).astype(np.float64)  # noqa: E731
+    assert np.allclose(f(pi, ti, po, to, h), f(pi, ti, 2 * pi - po, to, -h), atol=1e-5)
+    assert np.allclose(f(pi, ti, po, to, h), f(pi, -ti, po, -to, h), atol=1e-5)
+    moved = np.abs(f(pi, ti, po, to, h) - f(pi, ti, po, to, -h)).max(axis=1) > 1e-3
+    assert moved[(np.abs(np.sin(po - pi)) > 0.05) & (np.abs(h) > 0.05)].all()
+
+    cfg = make_config(tmp_path, bake={"offsets": 4}, inputs=["offset"])
+    table = synthetic_table(cfg, tmp_path / "t.npz", passthrough=0.3, offsets=4).expanded()
+    data = fold_table(table, spec)
+    sums = np.zeros_like(data.albedo)
+    np.add.at(sums, data.group, data.S * data.omega[:, None])
+    assert np.allclose(sums, data.albedo, rtol=1e-6)
+    assert data.extra_cell.shape == (len(data.S), 1, 2)
+    assert choose_folds(table, relative=True, inputs=["offset"]) == ["theta", "dphi"]
+    broken = table._replace(near=table.near * (1 + 0.1 * np.linspace(-1, 1, 4))[:, None, None, None, None, None])
+    assert choose_folds(broken, relative=True, inputs=["offset"]) == ["theta"]   # brighter on one side
+    assert prepare(table, tmp_path / "t.npz", cfg.train, "").base.passthrough_offset   # per entry cell
+
+    far = synthetic_table(cfg, tmp_path / "far.npz")
+    with pytest.raises(ValueError, match="bake.offsets"):
+        prepare(far.expanded(), tmp_path / "far.npz", cfg.train, "")
+    with pytest.raises(ConfigError, match="bake.offsets"):
+        make_config(tmp_path, name="m", inputs=["offset"])
 
 
 def test_folds_are_chosen_by_the_data(tmp_path):

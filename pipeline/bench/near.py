@@ -9,8 +9,10 @@ back- and forward-lit at two incidences, each averaged over 16 turns of the arra
 (a twisted ply's: shifts along it) and a 4 x 4 stratification of the table bin. Per cell
 count: the relative error of the profile (bundle / explicit - 1) over the columns holding
 light, its median and its largest, and the share of columns within 5% + 3 standard errors
-of the explicit render (its own noise: its even and odd turns). Records
-``benchmarks/near.json``::
+of the explicit render (its own noise: its even and odd turns). At 8 and 16 cells also a
+neural model of the near field (the offset as an input, ``train.inputs: [offset]``, the
+default network and schedule, :func:`train`) rendered by the ``mlp`` backend, with its
+training seconds and parameter bytes. Records ``benchmarks/near.json``::
 
     .venv/bin/python -m pipeline.bench.near            # about 4 minutes on 2 cores
     .venv/bin/python -m pipeline.bench.near --quick    # the parallel ply, fewer paths
@@ -62,6 +64,29 @@ def bake(ply, fiber, theta_i_deg, cells: int, paths: int):
     return table
 
 
+NEURAL_CELLS = (8, 16)
+
+
+def train(table, table_path, out: Path, hidden=(32, 32), epochs: int = 300) -> dict:
+    """A model of ``table``'s near field (the offset as an input), fitted as ``bcsdf train``
+    fits (:mod:`models.fit`) with the default schedule, written as ``out/weights.npz`` and
+    ``out/model.onnx``; returns its spec, the PyTorch model, seconds and parameter bytes."""
+    import dataclasses
+
+    from models.fit import fit, prepare
+    from models.neural import save_onnx, save_weights
+    from pipeline.config import TrainCfg
+
+    c = TrainCfg(models={"m": list(hidden)}, epochs=epochs, inputs=["offset"])
+    problem = prepare(table, table_path, c, "")
+    spec = dataclasses.replace(problem.base, hidden=list(hidden))
+    model, _, _, seconds, _ = fit(spec, problem, c, "near")   # sets the spec's energy gain
+    out.mkdir(parents=True, exist_ok=True)
+    nbytes = save_weights(out / "weights.npz", spec, model)
+    save_onnx(out / "model.onnx", spec, model)
+    return {"spec": spec, "model": model, "seconds": seconds, "bytes": nbytes}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="the parallel ply, fewer paths (not recorded)")
@@ -97,13 +122,23 @@ def main(argv=None):
                 mitsuba_ext.register()
                 bsdf = {"type": "fiber_bundle", "table": str(Path(tmp) / "near.npz"), "wavelength": 550.0,
                         "up": closure.UP, "near_field": cells > 1}
-                rendered = closure.bundle_profiles(mi, bsdf, R, requests, COLUMNS)
-                err = (rendered / np.where(I > 0, I, 1) - 1)[lit]
-                within = np.abs(err) <= 0.05 + 3 * (se / np.where(I > 0, I, 1))[lit]
-                rows.append({"ply": name, "cells": "far field" if cells == 1 else cells,
-                             "median |error|": float(np.median(np.abs(err))), "largest |error|": float(np.abs(err).max()),
-                             "within 5% + 3 se": f"{within.sum()}/{within.size}"})
-                print(rows[-1], flush=True)
+                backends = [("table", bsdf, {})]
+                if cells in NEURAL_CELLS:
+                    fitted = train(table, Path(tmp) / "near.npz", Path(tmp) / f"model{cells}")
+                    mi.set_variant("llvm_ad_mono")
+                    mitsuba_ext.register()
+                    backends.append((f"mlp {fitted['spec'].hidden}",
+                                     {**bsdf, "backend": "mlp", "model": str(Path(tmp) / f"model{cells}" / "weights.npz")},
+                                     {"train_s": fitted["seconds"], "bytes": fitted["bytes"]}))
+                for backend, b, extra in backends:
+                    rendered = closure.bundle_profiles(mi, b, R, requests, COLUMNS)
+                    err = (rendered / np.where(I > 0, I, 1) - 1)[lit]
+                    within = np.abs(err) <= 0.05 + 3 * (se / np.where(I > 0, I, 1))[lit]
+                    rows.append({"ply": name, "cells": "far field" if cells == 1 else cells, "backend": backend,
+                                 "median |error|": float(np.median(np.abs(err))),
+                                 "largest |error|": float(np.abs(err).max()),
+                                 "within 5% + 3 se": f"{within.sum()}/{within.size}", **extra})
+                    print(rows[-1], flush=True)
         print(f"\nthe profile in {COLUMNS} columns across the width, {len(cases)} direction pairs; {paths} paths per "
               "bake; explicit: 16 turns x 16 views, 8 spp; bundle: the same views, 32 spp")
         print(results.rows_table(rows))
