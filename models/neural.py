@@ -295,6 +295,13 @@ class FoldedTable:
     chi2_per_dof: float  # spread of merged bins about their mean, in units of their noise (~1: consistent)
     cell: np.ndarray = None  # [n, 6] a representative bin: phi_i, theta_i, phi_o lo/hi, sin theta_o lo/hi
     extra_cell: np.ndarray = None  # [n, k, 2] its range (lo, hi) in each extra input; None without any
+    # the expanded bins themselves, for the figures of models.errors: values and standard
+    # errors [n_bins, n_lambda], the table's shape of them (incident directions first, then
+    # the bins of a row) and the solid angle of a row's bins
+    bins_S: np.ndarray = None
+    bins_E: np.ndarray = None
+    bins_shape: tuple = None
+    row_omega: np.ndarray = None
 
 
 def table_cells(table) -> np.ndarray:
@@ -409,7 +416,8 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     sigma_y = E / (spec.s0 + S)  # first-order propagation of the standard error
     return FoldedTable(x=f[first].astype(np.float32), y=y.astype(np.float32), sigma_y=sigma_y.astype(np.float32),
                        S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, albedo=albedo,
-                       chi2_per_dof=chi2, cell=cell, extra_cell=extra_cell)
+                       chi2_per_dof=chi2, cell=cell, extra_cell=extra_cell, bins_S=S_bins, bins_E=E_bins,
+                       bins_shape=values.shape, row_omega=omega_bins[:n_bins_group])
 
 
 def stable_expm1(lib, y):

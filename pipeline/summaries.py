@@ -97,10 +97,10 @@ class BakeSummary(Summary):
 class TrainSummary(Summary):
     STAGE: ClassVar[str] = "train"
     val_weighted_loss: float
-    relative_l1: float
+    relative_l1: float        # the held-out core's relative L1 (models.errors.core_l1)
     log_mae: float
-    noise_ratio: float
-    table_noise_l1: float
+    noise_ratio: float        # relative_l1 over table_noise_l1
+    table_noise_l1: float     # the table's noise on the same bins (models.errors.noise_l1)
     folds: list[str]
     fold_chi2_per_dof: float
     samples: int

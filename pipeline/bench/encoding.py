@@ -53,10 +53,9 @@ LINES = [("plain", [], 0, None),
 def against(reference, S) -> dict:
     """``S`` (the expanded table's shape) against the reference table: core L1, worst albedo."""
     n_l = S.shape[-1]
-    rows = lambda a: np.moveaxis(a, -1, 2).reshape(-1, a.shape[2] * a.shape[3])  # [(phi_i, theta_i, lambda), bins]
     omega = reference.solid_angle.ravel()
     albedo = (S * reference.solid_angle[None, None, :, :, None]).sum((2, 3))
-    return {"truth_core_l1": errors.core_l1(rows(S), rows(reference.values), omega),
+    return {"truth_core_l1": errors.core_l1(errors.by_rows(S), errors.by_rows(reference.values), omega),
             "truth_albedo": errors.albedo_error(albedo.reshape(-1, n_l), reference.scattered.reshape(-1, n_l))}
 
 

@@ -21,6 +21,7 @@ training seconds and parameter bytes. Records ``benchmarks/near.json``::
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from pathlib import Path
 
@@ -138,7 +139,7 @@ def main(argv=None):
                                  "median |error|": float(np.median(np.abs(err))),
                                  "largest |error|": float(np.abs(err).max()),
                                  "within 5% + 3 se": f"{within.sum()}/{within.size}", **extra})
-                    print(rows[-1], flush=True)
+                    print(rows[-1], flush=True, file=sys.stderr)   # progress (the record is the table)
         print(f"\nthe profile in {COLUMNS} columns across the width, {len(cases)} direction pairs; {paths} paths per "
               "bake; explicit: 16 turns x 16 views, 8 spp; bundle: the same views, 32 spp")
         print(results.rows_table(rows))

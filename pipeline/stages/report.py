@@ -24,7 +24,7 @@ import yaml
 from mitsuba_ext.neural import DrJitMLP
 from models.io import write_text
 from models.jit import to_drjit
-from models.neural import bin_average, table_cells
+from models.neural import bin_average, far_field, table_cells
 
 from ..artifacts import config_dir, failure_dir, load_bundle_table, model_size, read_failure, stage_dir
 from ..build import code_version
@@ -106,9 +106,13 @@ def run(cfg, out_root="artifacts") -> Path:
                             f"<td>{m.table_noise_l1:.2%}</td><td>{m.noise_ratio:.2f}</td>"
                             f"<td>{calibration}</td></tr>")
         body = ("<table><tr><th>model</th><th>hidden</th><th>parameters</th><th>epochs</th><th>train s</th>"
-                "<th>held-out rel. L1</th><th>table noise L1</th><th>error / table noise</th>"
+                "<th>held-out core rel. L1</th><th>table noise, same bins</th><th>error / table noise</th>"
                 "<th>worst albedo error, energy gain</th></tr>"
-                + "".join(rows) + "</table>")
+                + "".join(rows) + "</table>"
+                "<p>Error and noise are one definition (docs/DESIGN.md, \"The neural model\"): the relative L1 "
+                "over the held-out bins among those holding 90% of each incident direction's energy, the model's "
+                "bin averages against the table, and the table's expected distance from its own mean on the same "
+                "bins; an error / noise near 1 is as close as the bake can tell.</p>")
         body += "".join(img_tag(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
                         if (train / n / "loss.png").exists())
         body += ("<p>Training schedules and where a step's time goes: <code>make bench-train</code>, "
@@ -117,8 +121,8 @@ def run(cfg, out_root="artifacts") -> Path:
         bench = root / "export" / "error_vs_time.json"
         if bench.exists():  # measured by the export stage
             result = json.loads(bench.read_text())
-            body += (f"<p>Error against run time ({result['queries']:,} queries per timing; the table's own "
-                     f"Monte Carlo noise: relative L1 {result['table_noise_l1']:.2%}).</p>")
+            body += (f"<p>Error against run time ({result['queries']:,} queries per timing; the errors as above, "
+                     f"the table's own noise on those bins {result['table_noise_l1']:.2%}).</p>")
             body += img_tag(out, root / "export" / "error_vs_time.png", "error against run time")
             body += _rows_table(result["rows"])
         else:
@@ -184,7 +188,7 @@ def summary_section(cfg, root: Path, out_root) -> str:
         albedo = m.worst_albedo_error_after
         lines.append(f"<p><b>Model to render with: {html.escape(pick)}</b> {cfg.train.models[pick]} "
                      f"({m.parameters:,} parameters): held-out relative L1 {m.relative_l1:.1%} (the table's own "
-                     f"noise {m.table_noise_l1:.1%})" + (f", worst albedo error {albedo:.2%}" if albedo is not None
+                     f"noise on those bins {m.table_noise_l1:.1%})" + (f", worst albedo error {albedo:.2%}" if albedo is not None
                                                             else "") + f"{cost}.")
         used = model_size(cfg)
         lines.append(f" The renders below use <b>{html.escape(used)}</b> (<code>render.model</code>).</p>"
@@ -211,10 +215,11 @@ def compare_slices(cfg, out_root, out) -> str:
     body = (f"<p>Table against model <b>{name}</b> (Dr.Jit evaluator), the model's bin averages (4 x 4 "
             "points per bin) as a table value is an average over its bin.</p>")
 
-    def predict(*angles):
-        S = mlp.eval(*(to_drjit(mi.Float, a) for a in angles))
+    def predict(*queries):
+        S = mlp.eval(*(to_drjit(mi.Float, np.asarray(a, np.float32)) for a in queries))
         dr.eval(S)
         return np.stack([s.numpy() for s in S], -1).astype(np.float64)
+    predict = far_field(predict, mlp.spec)   # a near-field model's far field: its mean over the offset
     cells = table_cells(table).reshape(table.values.shape[:4] + (6,))
     for target in (30.0, 60.0):
         j = int(np.argmin(np.abs(np.rad2deg(table.theta_i) - target)))
