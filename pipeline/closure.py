@@ -51,6 +51,7 @@ from models.fiber.ray import mitsuba_hair
 from models.grid import TIE, Cells
 from models.io import atomic_path
 from models.spectrum import hat_basis
+from models.neural import far_field
 
 AXIS = np.array([0.0, 1.0, 0.0])   # the fibers' direction (bundle frame +y)
 UP = [1.0, 0.0, 0.0]               # the BSDFs' ``up``: bundle frame x = world x
@@ -476,7 +477,7 @@ def evaluator(mi, kind: str, path, wavelength_nm: float | None):
 
     ``kind``: ``fiber`` (a ``fiber_table.npz``, numpy; one wavelength), ``table`` (a
     ``bundle_table.npz``, the numpy lookup), ``mlp`` (``weights.npz``, Dr.Jit) or ``onnx``
-    (``model.onnx``, onnxruntime).
+    (``model.onnx``, onnxruntime; a model of the near field: its far field, the mean over the offset).
     """
     if kind == "fiber":
         if wavelength_nm is None:
@@ -494,17 +495,17 @@ def evaluator(mi, kind: str, path, wavelength_nm: float | None):
         w = spectrum_weights(mi, mlp.spec.wavelength, wavelength_nm)
         used = np.flatnonzero(w)   # the network's other outputs are never computed
 
-        def S_mlp(*angles):
+        def S_mlp(*queries):
             import drjit as dr
 
-            S = mlp.eval(*(mi.Float(a.astype(np.float32)) for a in angles))
+            S = mlp.eval(*(mi.Float(np.asarray(a, np.float32)) for a in queries))
             dr.eval(*(S[k] for k in used))   # one kernel for every output used
             return sum(w[k] * S[k].numpy().astype(np.float64) for k in used)
-        return _on_arrays(S_mlp)
+        return _on_arrays(far_field(S_mlp, mlp.spec))   # a near-field model: its far field
     if kind == "onnx":
         onnx = OnnxMLP(path)
         w = spectrum_weights(mi, onnx.spec.wavelength, wavelength_nm)
-        return _on_arrays(lambda *angles: onnx.eval(*(a.astype(np.float32) for a in angles)) @ w)
+        return _on_arrays(far_field(lambda *q: onnx.eval(*(np.asarray(a, np.float32) for a in q)) @ w, onnx.spec))
     raise ValueError(f"evaluator: kind {kind!r}; use fiber, table, mlp or onnx")
 
 
