@@ -135,7 +135,8 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     positive = table.values[table.values > 0]
     s0 = float(np.mean(positive)) if positive.size else 1.0
     y_top = float(np.log1p((table.values if near is None else near).max() / s0))
-    folds = choose_folds(table, relative, inputs=inputs)
+    encoding = getattr(c, "encoding", "cone")
+    folds = choose_folds(table, relative, inputs=inputs) if encoding == "cone" else []  # baselines learn every bin
     base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
                       wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
                       config_hash=config_hash, reductions=table.meta["reductions"],
@@ -146,7 +147,7 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
                       lines=list(c.line_nodes), line_channels=c.line_channels if c.line_nodes else 0,
                       inputs=inputs, offset_cells=0 if near is None else len(near),
                       passthrough_offset=[] if near is None else table.near_passthrough[0].tolist(),
-                      passthrough_offset_theta_i=[] if near is None else table.theta_i.tolist())
+                      passthrough_offset_theta_i=[] if near is None else table.theta_i.tolist(), encoding=encoding)
     data = fold_table(table, base)
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)

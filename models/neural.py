@@ -31,6 +31,12 @@ invariants (so no seam at theta_i = 0 or on the mirror axes):
 * ``dphi``:  ``[cos dphi, |sin dphi|]``;
 * ``xz``:    ``[|cos phi_i|, |sin phi_i|, cos phi_i cos phi_o, sin phi_i sin phi_o]``.
 
+**Baseline encodings** (``spec.encoding``, for the benches' comparisons; ``cone`` above is
+the project's): ``cartesian``, the unit vectors ``w_i, w_o`` in the bundle frame (``y`` the
+axis; a rotation-invariant bundle at ``phi_i = 0``), the input of neural yarn models;
+``halfdiff``, Rusinkiewicz's half and difference vectors with the fiber axis as the pole,
+NBRDF's input. Neither folds nor takes feature lines or extra inputs.
+
 **Extra inputs** (``spec.inputs``), scalar coordinates of a query beyond its directions,
 each after the four angles in the order named, each with its own encoding appended to the
 features above (before the line coordinates):
@@ -70,6 +76,7 @@ FORMAT = "bcsdf.neural/5"  # /5: extra inputs; /4: the energy gain; /3: feature 
 READABLE = ("bcsdf.neural/2", "bcsdf.neural/3", "bcsdf.neural/4", FORMAT)  # older: read as models without them
 FOLDS = ("theta", "dphi", "xz")
 INPUTS = ("offset",)  # extra scalar inputs a model may take (above)
+ENCODINGS = ("cone", "cartesian", "halfdiff")  # the project's, and the benches' baselines (above)
 
 
 @dataclass
@@ -110,6 +117,7 @@ class NeuralSpec:
     offset_cells: int = 0
     passthrough_offset: list = field(default_factory=list)
     passthrough_offset_theta_i: list = field(default_factory=list)
+    encoding: str = "cone"   # ENCODINGS: the directions' features (above)
     format: str = FORMAT
 
     def __post_init__(self):
@@ -156,6 +164,9 @@ class NeuralSpec:
                     or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
                 raise ValueError("model metadata: passthrough_offset must hold a probability per "
                                  "(passthrough_offset_theta_i node, offset cell), the nodes increasing")
+        if self.encoding not in ENCODINGS or (self.encoding != "cone" and (self.folds or self.lines or self.inputs)):
+            raise ValueError(f"model metadata: encoding {self.encoding!r} (known: {ENCODINGS}; the baselines "
+                             "take no folds, feature lines or extra inputs)")
         bad = [f for f in self.folds if f not in FOLDS]
         if bad or ("dphi" in self.folds and not self.relative_phi) or ("xz" in self.folds and self.relative_phi):
             raise ValueError(f"folds {self.folds} do not fit a {'relative' if self.relative_phi else 'absolute'}"
@@ -164,6 +175,8 @@ class NeuralSpec:
     @property
     def n_features(self) -> int:
         """How many arrays :func:`features` returns (the line coordinates last)."""
+        if self.encoding != "cone":
+            return 6
         return 3 + ("theta" in self.folds) + (2 if self.relative_phi else 4) + self.n_extra_features + \
             (3 if self.lines else 0)
 
@@ -204,6 +217,8 @@ def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o, *extra) -> l
     if len(extra) != len(spec.inputs):
         raise ValueError(f"the model takes {4 + len(spec.inputs)} inputs (phi_i, theta_i, phi_o, theta_o"
                          + "".join(f", {n}" for n in spec.inputs) + f"), got {4 + len(extra)}")
+    if spec.encoding != "cone":
+        return baseline_features(lib, spec, phi_i, theta_i, phi_o, theta_o)
     clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
     half_pi = float(np.pi / 2)
     ti = clip(theta_i, -half_pi, half_pi)
@@ -224,6 +239,32 @@ def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o, *extra) -> l
     if spec.lines:
         out += fl.coordinates(lib, spec.folds, ti, x, d)
     return out
+
+
+def baseline_features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o) -> list:
+    """The baselines' encodings (module docstring): ``w_i, w_o`` (``cartesian``) or the half
+    vector ``h`` and the difference vector ``d`` (``halfdiff``: ``w_i`` turned by ``-phi_h``
+    about the axis and by ``-theta_h`` about the binormal, which takes ``h`` to the pole)."""
+    clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
+    where = getattr(lib, "where", None) or getattr(lib, "select")
+    half_pi = float(np.pi / 2)
+    ti, to = clip(theta_i, -half_pi, half_pi), clip(theta_o, -half_pi, half_pi)
+    a, b = (phi_i * 0.0, phi_o - phi_i) if spec.relative_phi else (phi_i, phi_o)
+    wi = [lib.cos(ti) * lib.cos(a), lib.sin(ti), lib.cos(ti) * lib.sin(a)]
+    wo = [lib.cos(to) * lib.cos(b), lib.sin(to), lib.cos(to) * lib.sin(b)]
+    if spec.encoding == "cartesian":
+        return wi + wo
+    s = [p + q for p, q in zip(wi, wo)]
+    norm = lib.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+    norm = clip(norm, 1e-7, 4.0)   # w_o = -w_i: no half vector; any (|w_i + w_o| <= 2)
+    h = [c / norm for c in s]
+    sin_t = lib.sqrt(h[0] * h[0] + h[2] * h[2])
+    pole = sin_t < 1e-6   # h along the axis: phi_h is any; take 0
+    safe = where(pole, 1.0, sin_t)
+    cos_p, sin_p = where(pole, 1.0, h[0] / safe), where(pole, 0.0, h[2] / safe)
+    x1, z1 = wi[0] * cos_p + wi[2] * sin_p, wi[2] * cos_p - wi[0] * sin_p
+    d = [x1 * h[1] - wi[1] * sin_t, x1 * sin_t + wi[1] * h[1], z1]
+    return h + d
 
 
 def extra_features(lib, spec: NeuralSpec, dphi, *extra) -> list:
@@ -477,6 +518,8 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
     onnxruntime, say) differ by at most the sum of their bounds.
     """
 
+    if spec.encoding != "cone":
+        raise ValueError(f"no derived rounding bound for the baseline encoding {spec.encoding!r} (a bench's)")
     u = rd.U32 if u is None else u
     angles = np.asarray(angles, np.float64).reshape(-1, spec.n_queries)
     S, err = [], []

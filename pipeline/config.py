@@ -436,6 +436,10 @@ class TrainCfg(Strict):
         default_factory=list, description="feature lines (models/lines.py): nodes of the theta_i, cone-distance and "
                                           "azimuth lines, e.g. [16, 32, 24]; [] for a plain MLP")
     line_channels: int = Field(8, ge=1, le=256, description="channels of each feature line")
+    encoding: Literal["cone", "cartesian", "halfdiff"] = Field(
+        "cone", description="the directions' features (models/neural.py): cone, the project's; cartesian (w_i, w_o, "
+                            "as neural yarn models) and halfdiff (Rusinkiewicz, as NBRDF) are the baselines that "
+                            "make bench-encoding compares")
     inputs: list[Literal["offset"]] = Field(
         default_factory=list, description="extra inputs of the model beyond the directions: [offset] learns the near "
                                           "field (bake.offsets), the light by its exit line's offset across the ply")

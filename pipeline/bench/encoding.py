@@ -1,16 +1,21 @@
-"""Encodings side by side (``make bench-encoding``): the plain MLP against MLPs with feature lines.
+"""Encodings side by side (``make bench-encoding``): the plain MLP, MLPs with feature lines,
+and two published architectures as baselines.
 
 On the config's baked table (``bcsdf bake`` first), with its ``train:`` schedule, split and
-seed, in one run: the plain MLP of the config's first model size, and the same network
-with feature lines (models/lines.py) of the node counts and channels in :data:`LINES`
-(and one with a narrower network behind the lines). Each is trained by
-:func:`models.fit.fit`, the code ``bcsdf train`` runs, under the torch kernels of this
-process (``ATEN_CPU_CAPABILITY=avx2`` for a machine without AVX-512).
+seed, in one run: the plain MLP of the config's first model size, the same network with
+feature lines (models/lines.py) of the node counts and channels in :data:`LINES` (and one
+with a narrower network behind the lines), and the baselines: a neural yarn model's MLP
+(the Cartesian ``w_i, w_o``, three hidden layers of 21) and NBRDF's (Rusinkiewicz's half
+and difference vectors, two of 21), both without the symmetry folds, as their papers have
+them. Each is trained by :func:`models.fit.fit`, the code ``bcsdf train`` runs (so all
+share the loss, the bin averages and the energy gain: what differs is the encoding and the
+network), under the torch kernels of this process (``ATEN_CPU_CAPABILITY=avx2`` for a
+machine without AVX-512).
 
-Per row: parameters and their float32 bytes, training seconds, held-out relative L1 (bin
-averages, the ``summary.json`` metric), the error in units of the table's noise, the
-table's own noise on those bins, and the worst albedo error after the energy gain (9 x 9
-points a bin).
+Per row: parameters and their float32 bytes, training seconds, the held-out error, the table's
+noise on those bins and their ratio (:mod:`models.errors`, the ``summary.json`` figures), and
+the worst albedo error after the energy gain (9 x 9 points a bin). A Pareto plot, error
+against bytes and against training seconds (``docs/images/encodings_pareto.png``).
 
 ``--reference NAME``: the artifacts of an **independent bake** of the same config (another
 seed, more paths; e.g. ``bcsdf bake configs/default.yaml --set name=default_ref --set
@@ -29,6 +34,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -43,11 +49,16 @@ from pipeline.loading import load_config
 
 from . import results
 
-# (label, line nodes [theta_i, cone distance, azimuth], channels, hidden widths or None: the config's)
-LINES = [("plain", [], 0, None),
-         ("lines 12/32/24 x 8", [12, 32, 24], 8, None),
-         ("lines 12/64/72 x 16", [12, 64, 72], 16, None),
-         ("lines 12/32/24 x 8, [16, 16]", [12, 32, 24], 8, [16, 16])]
+# (label, line nodes [theta_i, cone distance, azimuth], channels, hidden widths or None: the config's,
+# encoding of the directions)
+LINES = [("plain", [], 0, None, "cone"),
+         ("lines 12/32/24 x 8", [12, 32, 24], 8, None, "cone"),
+         ("lines 12/64/72 x 16", [12, 64, 72], 16, None, "cone"),
+         ("lines 12/32/24 x 8, [16, 16]", [12, 32, 24], 8, [16, 16], "cone"),
+         # the baselines: a neural yarn model's MLP (Cartesian w_i, w_o; 6-21-21-21) and NBRDF's
+         # (Rusinkiewicz half and difference vectors; 6-21-21), trained as ours are
+         ("neuralyarn-style: w_i, w_o, no folds", [], 0, [21, 21, 21], "cartesian"),
+         ("NBRDF-style: half/difference vectors, no folds", [], 0, [21, 21], "halfdiff")]
 
 
 def against(reference, S) -> dict:
@@ -59,8 +70,9 @@ def against(reference, S) -> dict:
             "truth_albedo": errors.albedo_error(albedo.reshape(-1, n_l), reference.scattered.reshape(-1, n_l))}
 
 
-def measure(cfg, table, table_path, label, nodes, channels, hidden, quick=False, reference=None) -> dict:
-    update = {"line_nodes": nodes, "line_channels": max(channels, 1)}
+def measure(cfg, table, table_path, label, nodes, channels, hidden, encoding="cone", quick=False,
+            reference=None) -> dict:
+    update = {"line_nodes": nodes, "line_channels": max(channels, 1), "encoding": encoding}
     if quick:
         update.update(epochs=max(2, cfg.train.epochs // 10))
     c = cfg.train.model_copy(update=update)
@@ -86,7 +98,7 @@ def parse_lines(text: str) -> tuple:
         assert len(counts) == 3 and min(counts) >= 2 and int(channels) >= 1
     except (ValueError, AssertionError):
         raise argparse.ArgumentTypeError(f"{text!r}: give three node counts and the channels, e.g. 24/32/24x8")
-    return (f"lines {nodes} x {channels}", counts, int(channels), None)
+    return (f"lines {nodes} x {channels}", counts, int(channels), None, "cone")
 
 
 def main(argv=None):
@@ -125,8 +137,42 @@ def main(argv=None):
     table_md = results.rows_table(rows)
     print(f"{cfg.name}: {cfg.train.epochs} epochs, torch {torch.backends.cpu.get_cpu_capability()} kernels\n{table_md}")
     if not args.quick and not args.lines:  # the record is of the built-in variants
-        results.save("encoding", table_md, {"rows": rows})
+        results.save("encoding", f"{table_md}\n\n![error against bytes and training time](images/{PARETO.name})",
+                     {"rows": rows})
+        pareto(rows, PARETO, "truth_core_l1" if reference is not None else "relative_l1")
+        print(f"wrote {PARETO}")
     return 0
+
+
+PARETO = Path(__file__).resolve().parents[2] / "docs" / "images" / "encodings_pareto.png"
+
+
+def pareto(rows, path, key: str):
+    """Error (``key``) against parameter bytes and against training seconds, one marker per
+    model; the training table's own error (its noise against the truth) as a line."""
+    import matplotlib.pyplot as plt
+
+    from ..plots import save_figure
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), dpi=110, sharey=True)
+    models = [r for r in rows if r.get("train_s") is not None]
+    table = next((r for r in rows if r.get("train_s") is None), None)
+    for k, r in enumerate(models):
+        for ax, x in zip(axes, ("bytes", "train_s")):
+            ax.scatter(r[x], r[key], s=60, color=plt.get_cmap("tab10")(k), label=r["encoding"] if ax is axes[0] else None)
+    for ax, x, label in zip(axes, ("bytes", "train_s"), ("float32 parameter bytes", "training seconds")):
+        if table is not None:
+            ax.axhline(table[key], color="0.4", ls="--", lw=1)
+            ax.text(ax.get_xlim()[0], table[key] * 1.02, " the training table itself (its noise)", fontsize=8,
+                    color="0.3", va="bottom")
+        ax.set_xscale("log")
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3, which="both")
+    axes[0].set_ylabel("relative L1 of the core against " + ("the truth" if key.startswith("truth") else
+                                                              "the held-out bins"))
+    axes[0].legend(fontsize=7, loc="upper right")
+    fig.suptitle("Encodings of the default table: error against size and training time (one run)")
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":
