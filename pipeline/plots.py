@@ -1,4 +1,4 @@
-"""Pictures shared by the stages: spectral images in sRGB and figure saving."""
+"""Pictures shared by the stages: spectral images in sRGB, the models' Pareto plot, figure saving."""
 
 from __future__ import annotations
 
@@ -119,3 +119,27 @@ def save_figure(fig, path: Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
+
+
+def pareto(models: list[dict], path: Path, ylabel: str, title: str, line: tuple[float, str] | None = None) -> None:
+    """Each model's ``error`` against its float32 parameter ``bytes`` and its training
+    seconds ``train_s``, one marker per ``label``; ``line``: ``(value, text)`` drawn across
+    both panels (the table's noise, or the training table's own error against the truth)."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), dpi=110, sharey=True)
+    for k, m in enumerate(models):
+        for ax, x in zip(axes, ("bytes", "train_s")):
+            ax.scatter(m[x], m["error"], s=60, color=plt.get_cmap("tab10")(k % 10),
+                       label=m["label"] if ax is axes[0] else None)
+    for ax, xlabel in zip(axes, ("float32 parameter bytes", "training seconds")):
+        ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+        ax.grid(alpha=0.3, which="both")
+        if line is not None:
+            ax.axhline(line[0], color="0.4", ls="--", lw=1)
+            ax.text(ax.get_xlim()[0], line[0], " " + line[1], fontsize=8, color="0.3", va="bottom")
+    top = max([m["error"] for m in models] + ([line[0]] if line is not None else []) + [1e-12])
+    axes[0].set_ylim(0, 1.15 * top)
+    axes[0].set_ylabel(ylabel)
+    axes[0].legend(fontsize=7, loc="upper right")
+    fig.suptitle(title)
+    save_figure(fig, path)

@@ -246,6 +246,50 @@ def test_the_offset_input_folds_with_the_azimuth_and_learns_the_near_field(tmp_p
         make_config(tmp_path, name="m", inputs=["offset"])
 
 
+def test_the_baseline_encodings_are_what_their_papers_feed():
+    """``cartesian``: the unit vectors w_i, w_o (y the axis); ``halfdiff``: Rusinkiewicz's half
+    vector h = (w_i + w_o) / |w_i + w_o| and difference vector d (w_i in the frame where h is
+    the pole: unit length, d . pole = w_i . h = w_o . h); the same in numpy, PyTorch and Dr.Jit;
+    a baseline with folds, or in the derived rounding bound, is refused."""
+    import dataclasses
+
+    import drjit as dr
+    import mitsuba as mi
+    import torch
+
+    from models.neural import features
+
+    rng = np.random.default_rng(5)
+    n = 2000
+    pi, po = rng.uniform(-np.pi, np.pi, (2, n))
+    ti, to = rng.uniform(-1.5, 1.5, (2, n))
+    base = _spec(True, [])
+    unit = lambda t, p: np.stack([np.cos(t) * np.cos(p), np.sin(t), np.cos(t) * np.sin(p)], -1)  # noqa: E731
+    wi, wo = unit(ti, 0 * pi), unit(to, po - pi)       # a circle: relative azimuth, phi_i = 0
+    for encoding in ("cartesian", "halfdiff"):
+        spec = dataclasses.replace(base, encoding=encoding)
+        f = np.stack(features(np, spec, pi, ti, po, to), -1)
+        ft = torch.stack(features(torch, spec, *(torch.from_numpy(a) for a in (pi, ti, po, to))), -1).numpy()
+        mi.set_variant("llvm_ad_rgb")
+        fd = np.stack([np.asarray(v) for v in features(dr, spec, *(mi.Float(a.astype(np.float32))
+                                                                  for a in (pi, ti, po, to)))], -1)
+        assert np.allclose(ft, f, atol=1e-12) and np.allclose(fd, f, atol=1e-4)
+        if encoding == "cartesian":
+            assert np.allclose(f, np.c_[wi, wo], atol=1e-12)
+            continue
+        h, d = f[:, :3], f[:, 3:]
+        expect_h = (wi + wo) / np.linalg.norm(wi + wo, axis=1, keepdims=True)
+        assert np.allclose(h, expect_h, atol=1e-9)
+        assert np.allclose(np.linalg.norm(d, axis=1), 1, atol=1e-9)
+        assert np.allclose(d[:, 1], np.sum(wi * h, 1), atol=1e-9)         # cos theta_d
+        # d is w_i turned so that h is the pole: the same turn takes w_o to (-d_x, d_y, -d_z)
+        assert np.allclose(np.sum(wo * h, 1), d[:, 1], atol=1e-9)
+    with pytest.raises(ValueError, match="baselines"):
+        dataclasses.replace(base, encoding="halfdiff", folds=["theta"])
+    with pytest.raises(ValueError, match="rounding bound"):
+        rounding_bound(dataclasses.replace(base, encoding="cartesian"), [], np.zeros((1, 4)))
+
+
 def test_folds_are_chosen_by_the_data(tmp_path):
     from models.fit import choose_folds
 

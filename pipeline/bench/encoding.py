@@ -46,6 +46,7 @@ from models.neural import table_cells
 from pipeline.artifacts import bundle_table_path, load_bundle_table
 from pipeline.config import TRAIN_SECTIONS
 from pipeline.loading import load_config
+from pipeline.plots import pareto
 
 from . import results
 
@@ -139,7 +140,7 @@ def main(argv=None):
     if not args.quick and not args.lines:  # the record is of the built-in variants
         results.save("encoding", f"{table_md}\n\n![error against bytes and training time](images/{PARETO.name})",
                      {"rows": rows})
-        pareto(rows, PARETO, "truth_core_l1" if reference is not None else "relative_l1")
+        pareto_plot(rows, PARETO, "truth_core_l1" if reference is not None else "relative_l1")
         print(f"wrote {PARETO}")
     return 0
 
@@ -147,33 +148,12 @@ def main(argv=None):
 PARETO = Path(__file__).resolve().parents[2] / "docs" / "images" / "encodings_pareto.png"
 
 
-def pareto(rows, path, key: str):
-    """Error (``key``) against parameter bytes and against training seconds, one marker per
-    model; the training table's own error (its noise against the truth) as a line."""
-    import matplotlib.pyplot as plt
-
-    from ..plots import save_figure
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), dpi=110, sharey=True)
-    models = [r for r in rows if r.get("train_s") is not None]
+def pareto_plot(rows, path, key: str):
+    """Error (``key``) against parameter bytes and training seconds, the training table's own
+    error (its noise against the truth) as a line."""
     table = next((r for r in rows if r.get("train_s") is None), None)
-    for k, r in enumerate(models):
-        for ax, x in zip(axes, ("bytes", "train_s")):
-            ax.scatter(r[x], r[key], s=60, color=plt.get_cmap("tab10")(k), label=r["encoding"] if ax is axes[0] else None)
-    for ax, x, label in zip(axes, ("bytes", "train_s"), ("float32 parameter bytes", "training seconds")):
-        if table is not None:
-            ax.axhline(table[key], color="0.4", ls="--", lw=1)
-            ax.text(ax.get_xlim()[0], table[key] * 1.02, " the training table itself (its noise)", fontsize=8,
-                    color="0.3", va="bottom")
-        ax.set_xscale("log")
-        ax.set_xlabel(label)
-        ax.grid(alpha=0.3, which="both")
-    axes[0].set_ylabel("relative L1 of the core against " + ("the truth" if key.startswith("truth") else
-                                                              "the held-out bins"))
-    axes[0].legend(fontsize=7, loc="upper right")
-    fig.suptitle("Encodings of the default table: error against size and training time (one run)")
-    save_figure(fig, path)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    pareto([{"label": r["encoding"], "bytes": r["bytes"], "train_s": r["train_s"], "error": r[key]}
+            for r in rows if r.get("train_s") is not None], path,
+           "relative L1 of the core against " + ("the truth" if key.startswith("truth") else "the held-out bins"),
+           "Encodings of the table: error against size and training time (one run)",
+           None if table is None or key not in table else (table[key], "the training table itself (its noise)"))

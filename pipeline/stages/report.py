@@ -30,7 +30,7 @@ from ..artifacts import config_dir, failure_dir, load_bundle_table, model_size, 
 from ..build import code_version
 from ..graph import stamp_path
 from ..html import html_page, img_tag, not_run
-from ..plots import save_figure, spectral_image, theta_rows
+from ..plots import pareto, save_figure, spectral_image, theta_rows
 from ..summaries import BakeSummary, ClothSummary, FiberSummary, RenderSummary, TrainSummary
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
@@ -94,11 +94,13 @@ def run(cfg, out_root="artifacts") -> Path:
     # -- neural ------------------------------------------------------------------
     train = root / "train"
     if cfg.bundle is not None and (root / "export").exists():
-        rows = []
+        rows, points = [], []
         for name in cfg.train.models:
             p = train / name / "summary.json"
             if p.exists():
                 m = TrainSummary.read(p)
+                points.append({"label": f"{name} {cfg.train.models[name]}", "bytes": 4 * m.parameters,
+                               "train_s": m.train_seconds, "error": m.relative_l1, "noise": m.table_noise_l1})
                 calibration = (f"{m.worst_albedo_error_before:.2%} &rarr; {m.worst_albedo_error_after:.2%}"
                                if m.worst_albedo_error_after is not None else "-")
                 rows.append(f"<tr><td>{name}</td><td>{cfg.train.models[name]}</td><td>{m.parameters}</td>"
@@ -113,6 +115,11 @@ def run(cfg, out_root="artifacts") -> Path:
                 "over the held-out bins among those holding 90% of each incident direction's energy, the model's "
                 "bin averages against the table, and the table's expected distance from its own mean on the same "
                 "bins; an error / noise near 1 is as close as the bake can tell.</p>")
+        if points:   # the models' Pareto front: error against size and training time (make bench-encoding: more)
+            pareto(points, out / "pareto.png", "held-out relative L1 of the core",
+                   f"{cfg.name}: the trained models, error against size and training time",
+                   (points[0]["noise"], "the table's own noise on the same bins"))
+            body += img_tag(out, out / "pareto.png", "error against bytes and training seconds", copy=False)
         body += "".join(img_tag(out, train / n / "loss.png", f"loss, {n}") for n in cfg.train.models
                         if (train / n / "loss.png").exists())
         body += ("<p>Training schedules and where a step's time goes: <code>make bench-train</code>, "
