@@ -60,6 +60,13 @@ def passthrough_at(Float, values, phi_nodes, phi_i, theta_i, per_theta=None, the
     return out
 
 
+def _cell_passthrough(Float, values, theta_nodes, theta_i, cell, n_cells: int):
+    """``values [theta node, cell]`` (flat, of type ``Float``) at ``theta_i``, linear between
+    the nodes (held beyond them), in offset cell ``cell``: the passthrough by entry cell."""
+    b0, b1, w = linear(np.asarray(theta_nodes, float), theta_i, xp=dr)
+    return dr.lerp(dr.gather(Float, values, b0 * n_cells + cell), dr.gather(Float, values, b1 * n_cells + cell), w)
+
+
 class TableBackend:
     """Lookup of an expanded bundle table: along the specular cone, bin averages kept
     (``linear``), or the nearest node's bin (``nearest``)."""
@@ -110,10 +117,8 @@ class TableBackend:
     def passthrough_near(self, theta_i, h):
         """``P_pass`` of a ray entering on the line at offset ``h`` (its direction of travel's),
         linear between the theta_i nodes (a twisted ply's depends on them)."""
-        b0, b1, w = linear(np.asarray(self.table.theta_i, float), theta_i, xp=dr)
-        cell, N = self.offset_cell(h), self.n_cells
-        return dr.lerp(dr.gather(self.Float, self.near_passthrough, b0 * N + cell),
-                       dr.gather(self.Float, self.near_passthrough, b1 * N + cell), w)
+        return _cell_passthrough(self.Float, self.near_passthrough, self.table.theta_i, theta_i,
+                                 self.offset_cell(h), self.n_cells)
 
     def upload_orders(self):
         """Upload the table's orders as one lookup of ``K x n_lambda`` channels (the cells
@@ -205,10 +210,8 @@ class _NeuralBackend:
         between the theta_i nodes (the far field's where the model has none per cell)."""
         if not self.spec.passthrough_offset:
             return self.passthrough(dr.zeros(self.Float, dr.width(theta_i)), theta_i)
-        b0, b1, w = linear(np.asarray(self.spec.passthrough_offset_theta_i, float), theta_i, xp=dr)
-        cell, N = self.offset_cell(h), self.n_cells
-        return dr.lerp(dr.gather(self.Float, self.near_passthrough, b0 * N + cell),
-                       dr.gather(self.Float, self.near_passthrough, b1 * N + cell), w)
+        return _cell_passthrough(self.Float, self.near_passthrough, self.spec.passthrough_offset_theta_i, theta_i,
+                                 self.offset_cell(h), self.n_cells)
 
     def camera_grid(self, uniform: float):
         return None  # the far field's proposal (a model has no table to transpose)

@@ -26,7 +26,7 @@ import numpy as np
 
 from models import lines as fl
 from models.jit import to_drjit
-from models.neural import NeuralSpec, energy_gain, features, stable_expm1
+from models.neural import NeuralSpec, check_inputs, energy_gain, features, stable_expm1
 from models.queries import directions
 
 
@@ -111,9 +111,7 @@ class OnnxMLP:
 def checked_extra(spec: NeuralSpec, extra) -> list:
     """The extra inputs of a numpy query, one per ``spec.inputs``, finite (a wrong count or a NaN
     is refused by name)."""
-    if len(extra) != len(spec.inputs):
-        raise ValueError(f"this model takes {4 + len(spec.inputs)} inputs (phi_i, theta_i, phi_o, theta_o"
-                         + "".join(f", {n}" for n in spec.inputs) + f"), got {4 + len(extra)}")
+    check_inputs(spec, len(extra))
     out = [np.asarray(v, np.float64) for v in extra]
     for name, v in zip(spec.inputs, out):
         if not np.all(np.isfinite(v)):

@@ -210,13 +210,18 @@ class NeuralSpec:
         return cls(**{**d, "format": FORMAT})
 
 
+def check_inputs(spec: NeuralSpec, n_extra: int) -> None:
+    """Refuse a query of the wrong width, naming what the model takes."""
+    if n_extra != len(spec.inputs):
+        raise ValueError(f"the model takes {4 + len(spec.inputs)} inputs (phi_i, theta_i, phi_o, theta_o"
+                         + "".join(f", {n}" for n in spec.inputs) + f"), got {4 + n_extra}")
+
+
 def features(lib, spec: NeuralSpec, phi_i, theta_i, phi_o, theta_o, *extra) -> list:
     """The encoded inputs as a list of ``spec.n_features`` arrays; ``lib`` is numpy, torch,
     drjit or :data:`models.rounding.BOUNDED`; ``extra``: the values of ``spec.inputs``. With
     feature lines, their three coordinates (:func:`models.lines.coordinates`) come last."""
-    if len(extra) != len(spec.inputs):
-        raise ValueError(f"the model takes {4 + len(spec.inputs)} inputs (phi_i, theta_i, phi_o, theta_o"
-                         + "".join(f", {n}" for n in spec.inputs) + f"), got {4 + len(extra)}")
+    check_inputs(spec, len(extra))
     if spec.encoding != "cone":
         return baseline_features(lib, spec, phi_i, theta_i, phi_o, theta_o)
     clip = getattr(lib, "clip", None) or getattr(lib, "clamp")

@@ -21,6 +21,7 @@ training seconds and parameter bytes. Records ``benchmarks/near.json``::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 from pathlib import Path
@@ -33,6 +34,9 @@ from models.bake import BakeSpec, bake_unreduced, tally_to_table
 from models.bake.twisted import TwistedBaker
 from models.bundle import TwistedBundle, poisson
 from models.fiber.ray import RayFiber
+from models.fit import fit, prepare
+from models.neural import save_onnx, save_weights
+from pipeline.config import TrainCfg
 
 from .. import closure
 from . import results
@@ -72,12 +76,6 @@ def train(table, table_path, out: Path, hidden=(32, 32), epochs: int = 300) -> d
     """A model of ``table``'s near field (the offset as an input), fitted as ``bcsdf train``
     fits (:mod:`models.fit`) with the default schedule, written as ``out/weights.npz`` and
     ``out/model.onnx``; returns its spec, the PyTorch model, seconds and parameter bytes."""
-    import dataclasses
-
-    from models.fit import fit, prepare
-    from models.neural import save_onnx, save_weights
-    from pipeline.config import TrainCfg
-
     c = TrainCfg(models={"m": list(hidden)}, epochs=epochs, inputs=["offset"])
     problem = prepare(table, table_path, c, "")
     spec = dataclasses.replace(problem.base, hidden=list(hidden))
