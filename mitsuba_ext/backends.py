@@ -179,13 +179,23 @@ class _NeuralBackend:
     cell. ``near_field=False`` reads such a model as its far field everywhere."""
 
     near = None   # True where the model holds the near field and it is used
+    constants = ()  # the values of the inputs that hold for the whole shape (a family's packing)
 
-    def _init_spec(self, spec, Float, near_field: bool = True):
+    def _init_spec(self, spec, Float, near_field: bool = True, packing: float | None = None):
         if not spec.passthrough:
             raise ValueError("this model was exported without its passthrough probability; "
                              "re-run `bcsdf train` and `bcsdf export`")
         self.Float = Float
         self.spec = spec
+        if "packing" in spec.inputs:
+            lo, hi = spec.input_range["packing"]
+            if packing is None:
+                raise ValueError(f"fiber_bundle: this model takes the ply's packing fraction (trained on {lo:g} .. "
+                                 f"{hi:g}); give 'packing'")
+            self.set_packing(packing)
+        elif packing is not None:
+            raise ValueError("fiber_bundle: 'packing' is an input of a model trained on a family of bakes "
+                             "(train.inputs: [packing], python -m pipeline.bench.packing); this model holds one ply")
         self.wavelength = np.asarray(spec.wavelength, float)
         self.relative = spec.relative_phi
         self.single_share = np.asarray(spec.single_share, float) if spec.single_share else None
@@ -193,6 +203,19 @@ class _NeuralBackend:
         self.near = True if near_field and "offset" in spec.inputs else None
         if self.near and spec.passthrough_offset:
             self.near_passthrough = Float(np.asarray(spec.passthrough_offset, np.float32).ravel())
+
+    def set_packing(self, packing: float) -> None:
+        """Evaluate a family's model at ``packing``, within the range it was trained on (it
+        does not extrapolate); the passthrough linear between the trained packings."""
+        s = self.spec
+        lo, hi = s.input_range["packing"]
+        if not np.float32(lo) <= np.float32(packing) <= np.float32(hi):   # as precise as a Mitsuba parameter
+            raise ValueError(f"fiber_bundle: packing {packing:g} lies outside {lo:g} .. {hi:g}, the range this model "
+                             "was trained on; a model does not extrapolate: bake and train a family that covers it")
+        packing = float(np.clip(packing, lo, hi))
+        self.passthrough_values = [float(np.interp(packing, s.packings, column))
+                                   for column in np.asarray(s.passthrough_packing, float).T]
+        self.constants = (self.Float(packing),)
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         """The far field: the model itself, or its mean over the offset."""
@@ -218,8 +241,8 @@ class _NeuralBackend:
 
     def passthrough(self, phi_i, theta_i):
         s = self.spec
-        return passthrough_at(self.Float, s.passthrough, s.passthrough_phi_i, phi_i, theta_i,
-                              s.passthrough_theta or None, s.passthrough_theta_i)
+        return passthrough_at(self.Float, getattr(self, "passthrough_values", s.passthrough), s.passthrough_phi_i,
+                              phi_i, theta_i, s.passthrough_theta or None, s.passthrough_theta_i)
 
     def sampling_grid(self, uniform: float, n_phi: int = 72, n_theta: int = 36, n_theta_i: int = 37):
         """Tabulate the model's mean over wavelengths at cell centres (2 x 2 per cell)."""
@@ -246,13 +269,13 @@ class MLPBackend(_NeuralBackend):
 
     name = "mlp"
 
-    def __init__(self, weights_path, Float, near_field: bool = True):
+    def __init__(self, weights_path, Float, near_field: bool = True, packing: float | None = None):
         self.mlp = DrJitMLP(weights_path)
-        self._init_spec(self.mlp.spec, Float, near_field)
+        self._init_spec(self.mlp.spec, Float, near_field, packing)
         self.nbytes = self.mlp.nbytes
 
     def _eval(self, *queries):
-        return self.mlp.eval(*queries)
+        return self.mlp.eval(*queries, *self.constants)
 
 
 class OnnxBackend(_NeuralBackend):
@@ -265,12 +288,13 @@ class OnnxBackend(_NeuralBackend):
 
     name = "onnx"
 
-    def __init__(self, onnx_path, Float, threads: int = 0, near_field: bool = True):
+    def __init__(self, onnx_path, Float, threads: int = 0, near_field: bool = True, packing: float | None = None):
         self.model = OnnxMLP(onnx_path, threads=threads)
-        self._init_spec(self.model.spec, Float, near_field)
+        self._init_spec(self.model.spec, Float, near_field, packing)
         self.nbytes = os.path.getsize(onnx_path)
 
     def _eval(self, *queries):
+        queries = queries + self.constants
         if dr.flag(dr.JitFlag.SymbolicScope):  # inside a recorded loop or call: no numpy here
             raise RuntimeError("the onnx backend needs Dr.Jit's evaluated mode: render inside "
                                "`with mitsuba_ext.evaluated_mode():` (bcsdf render-scene does so itself), "
@@ -283,7 +307,7 @@ class OnnxBackend(_NeuralBackend):
 
 
 def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "linear", dye=None,
-                 near_field: bool = True):
+                 near_field: bool = True, packing: float | None = None):
     """Build the backend ``kind`` ('table', 'mlp' or 'onnx') from its file; ``dye``: a
     function of the table's wavelengths giving the per-event albedo that recolours an
     order-resolved table once (``BundleTable.recolour``), or a Mitsuba texture that varies
@@ -291,6 +315,9 @@ def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "lin
     if kind not in BACKENDS:
         raise ValueError(f"fiber_bundle: backend {kind!r}; use one of {', '.join(BACKENDS)}")
     if kind == "table":
+        if packing is not None:
+            raise ValueError("fiber_bundle: a table holds the one packing it was baked at; 'packing' is an input of "
+                             "a model trained on a family of bakes (backend 'mlp' or 'onnx')")
         if not table:
             raise ValueError("fiber_bundle: backend 'table' needs the parameter 'table' "
                              "(a bundle_table.npz written by `bcsdf bake`)")
@@ -309,7 +336,7 @@ def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "lin
     if kind == "mlp":
         if str(model).endswith(".onnx"):
             raise ValueError(f"fiber_bundle: backend 'mlp' reads weights.npz, got {model}")
-        return MLPBackend(model, Float, near_field=near_field)
+        return MLPBackend(model, Float, near_field=near_field, packing=packing)
     if not str(model).endswith(".onnx"):
         raise ValueError(f"fiber_bundle: backend 'onnx' reads model.onnx, got {model}")
-    return OnnxBackend(model, Float, near_field=near_field)
+    return OnnxBackend(model, Float, near_field=near_field, packing=packing)

@@ -202,6 +202,15 @@ class FiberBundleBSDF(CurveBSDF):
            as Mitsuba's spectral variants do (Jakob and Hanika 2019). A texture on
            the shape's UV (space-dyed yarn, e.g. a ``bitmap``) is applied per hit to
            the orders (K lookups); in RGB variants then per channel.
+       * - packing
+         - float
+         - none
+         - fraction
+         - The ply's packing fraction, for a model trained on a family of bakes
+           (``train.inputs: [packing]``, ``python -m pipeline.bench.packing``): within
+           the range it was trained on (refused outside: it does not extrapolate);
+           editable at render time through ``mi.traverse``. Refused by the table
+           backend and by models of one ply.
        * - near_field
          - boolean
          - ``true``
@@ -334,13 +343,17 @@ class FiberBundleBSDF(CurveBSDF):
                                     lookup=props.get("lookup", "linear"),
                                     dye=None if albedo is None else
                                     self.dye if varying else partial(spectrum_at, self.plugin, "albedo", albedo),
-                                    near_field=boolean(self.plugin, "near_field", props.get("near_field", True)))
+                                    near_field=boolean(self.plugin, "near_field", props.get("near_field", True)),
+                                    packing=number(self.plugin, "packing", props["packing"], 0.0, 1.0)
+                                    if "packing" in props else None)
         uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
         self.grid = self.backend.sampling_grid(uniform)
         self.camera_grid = None if self.backend.near is None else self.backend.camera_grid(uniform)
         self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
         self._init_curve(props, self.backend.wavelength)
         self.params["sampling_uniform"] = mi.Float(uniform)
+        if self.backend.constants:   # a family's model: its packing changes at render time (mi.traverse)
+            self.params["packing"] = mi.Float(props["packing"])
         scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
                    mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide | mi.BSDFFlags.NonSymmetric)
         passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
@@ -349,7 +362,10 @@ class FiberBundleBSDF(CurveBSDF):
 
     def parameters_changed(self, keys):
         super().parameters_changed(keys)
-        if "sampling_uniform" in keys:
+        if "packing" in keys and "packing" in self.params:
+            self.backend.set_packing(number(self.plugin, "packing", float(dr.ravel(self.params["packing"])[0]),
+                                            0.0, 1.0))
+        if "sampling_uniform" in keys or "packing" in keys:
             uniform = float(dr.ravel(self.params["sampling_uniform"])[0])
             uniform = number(self.plugin, "sampling_uniform", uniform, 0.0, 1.0)
             self.grid = self.backend.sampling_grid(uniform)

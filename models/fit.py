@@ -43,7 +43,8 @@ import torch
 from tqdm import tqdm
 
 from . import errors
-from .neural import NeuralSpec, bin_average, features, fold_table, make_export_module, make_torch_model, points_in_bins
+from .neural import (FoldedTable, NeuralSpec, bin_average, features, fold_table, make_export_module, make_torch_model,
+                     points_in_bins)
 
 
 def load_checkpoint(path) -> dict:
@@ -153,6 +154,58 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
     w = (w / w[train_idx].mean()).astype(np.float32)
     return Problem(base, data, train_idx, val_idx, w)
+
+
+def prepare_family(members, c, config_hash: str) -> Problem:
+    """:func:`prepare` for a family of bakes of one ply type (``bcsdf sweep``) whose
+    ``packing`` differs: ``members`` ``[(packing, expanded table)]`` on one grid (several
+    members per packing: arrangement seeds; the fit learns their mean). Each member is folded
+    with its packing as a constant input and the samples concatenated; the split is random
+    over all of them; the folds are those the first member obeys; the passthrough is kept per
+    packing (the mean over its seeds), the range trained on in ``input_range``."""
+    tables = [t for _, t in members]
+    first = tables[0]
+    if any(t.values.shape != first.values.shape or not np.allclose(t.wavelength, first.wavelength) for t in tables):
+        raise ValueError("a family's tables must share their grid and wavelengths (bake them from one config)")
+    relative = first.meta["reductions"]["phi_o"] == "relative"
+    packing = np.array([p for p, _ in members], float)
+    nodes = np.unique(packing)
+    positive = np.concatenate([t.values[t.values > 0] for t in tables])
+    s0 = float(np.mean(positive)) if positive.size else 1.0
+    y_top = float(np.log1p(max(t.values.max() for t in tables) / s0))
+    digest = hashlib.sha256()
+    for t in tables:
+        digest.update(np.ascontiguousarray(t.values).tobytes())
+    passthrough = [np.mean([t.passthrough for p, t in members if p == k], 0).tolist() for k in nodes]
+    base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
+                      wavelength=first.wavelength.tolist(), table_hash="family:" + digest.hexdigest()[:16],
+                      config_hash=config_hash, reductions=first.meta["reductions"], folds=choose_folds(first, relative),
+                      passthrough=np.mean([t.passthrough for t in tables], 0).tolist(),
+                      passthrough_phi_i=first.phi_i.tolist(),
+                      single_share=[] if first.single is None else np.mean([t.single_share() for t in tables], 0).tolist(),
+                      inputs=["packing"], input_range={"packing": [float(nodes[0]), float(nodes[-1])]},
+                      passthrough_packing=passthrough, packings=nodes.tolist())
+    data = concatenate([fold_table(t, base, {"packing": p}) for p, t in members])
+    train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
+    w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
+    w = (w / w[train_idx].mean()).astype(np.float32)
+    return Problem(base, data, train_idx, val_idx, w)
+
+
+def concatenate(parts) -> FoldedTable:
+    """Folded tables of one grid as one training set: their samples, classes and incident
+    directions numbered on (the expanded bins stacked along the incident directions)."""
+    cat = lambda name: np.concatenate([getattr(d, name) for d in parts])  # noqa: E731
+    classes = np.cumsum([0] + [len(d.S) for d in parts[:-1]])
+    groups = np.cumsum([0] + [len(d.albedo) for d in parts[:-1]])
+    shape = parts[0].bins_shape
+    return FoldedTable(
+        x=cat("x"), y=cat("y"), sigma_y=cat("sigma_y"), S=cat("S"), E=cat("E"), count=cat("count"),
+        bin_class=np.concatenate([d.bin_class + k for d, k in zip(parts, classes)]),
+        group=np.concatenate([d.group + k for d, k in zip(parts, groups)]), omega=cat("omega"), albedo=cat("albedo"),
+        chi2_per_dof=float(np.mean([d.chi2_per_dof for d in parts])), cell=cat("cell"), extra_cell=cat("extra_cell"),
+        bins_S=cat("bins_S"), bins_E=cat("bins_E"), bins_shape=(len(parts) * shape[0],) + tuple(shape[1:]),
+        row_omega=parts[0].row_omega)
 
 
 def model_bin_averages(spec: NeuralSpec, model, cell, k: int = 4, extra_cell=None) -> np.ndarray:

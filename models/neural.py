@@ -47,6 +47,9 @@ features above (before the line coordinates):
   ``(dphi, h)`` into ``(-dphi, -h)``, so under the ``dphi`` fold its features are the
   invariants ``[|h|, h sin dphi]``; else ``[h]``. The model's far field is its mean
   over ``h`` (:func:`far_field`).
+* ``packing``: the ply's packing fraction, one value per table of a family of bakes
+  (``bcsdf sweep``; :func:`models.fit.prepare_family`); its feature is itself. A model
+  answers only within the range it was trained on (``spec.input_range``).
 
 The training set is the table *folded*: bins that the features cannot tell apart are
 one sample (their mean), and held-out validation bins are whole such classes, so a
@@ -75,7 +78,7 @@ from .io import atomic_path
 FORMAT = "bcsdf.neural/5"  # /5: extra inputs; /4: the energy gain; /3: feature lines (models/lines.py)
 READABLE = ("bcsdf.neural/2", "bcsdf.neural/3", "bcsdf.neural/4", FORMAT)  # older: read as models without them
 FOLDS = ("theta", "dphi", "xz")
-INPUTS = ("offset",)  # extra scalar inputs a model may take (above)
+INPUTS = ("offset", "packing")  # extra scalar inputs a model may take (above)
 ENCODINGS = ("cone", "cartesian", "halfdiff")  # the project's, and the benches' baselines (above)
 
 
@@ -117,6 +120,11 @@ class NeuralSpec:
     offset_cells: int = 0
     passthrough_offset: list = field(default_factory=list)
     passthrough_offset_theta_i: list = field(default_factory=list)
+    # a family's inputs (packing): the range trained on, {name: [lo, hi]}; and the
+    # passthrough [packing node][passthrough_phi_i node] at the trained packings, increasing
+    input_range: dict = field(default_factory=dict)
+    passthrough_packing: list = field(default_factory=list)
+    packings: list = field(default_factory=list)
     encoding: str = "cone"   # ENCODINGS: the directions' features (above)
     format: str = FORMAT
 
@@ -158,6 +166,15 @@ class NeuralSpec:
         if "offset" in self.inputs and not (self.relative_phi and isinstance(self.offset_cells, int)
                                             and self.offset_cells >= 1):
             raise ValueError("model metadata: an 'offset' input needs a circular ply's model and offset_cells >= 1")
+        if "packing" in self.inputs:
+            lo_hi = np.asarray(self.input_range.get("packing", []), float)
+            q, k = np.asarray(self.passthrough_packing, float), np.asarray(self.packings, float)
+            if lo_hi.shape != (2,) or not (0 < lo_hi[0] <= lo_hi[1] < 1) or \
+                    q.shape != (len(k), len(self.passthrough_phi_i)) or np.any(np.diff(k) <= 0) or \
+                    not np.all(np.isfinite(q)) or np.any((q < 0) | (q > 1)) or "offset" in self.inputs:
+                raise ValueError("model metadata: a 'packing' input needs input_range {packing: [lo, hi]} within "
+                                 "(0, 1) and passthrough_packing per (packing node, passthrough_phi_i node); "
+                                 "not with an offset input")
         if self.passthrough_offset or self.passthrough_offset_theta_i:
             q, t = np.asarray(self.passthrough_offset, float), np.asarray(self.passthrough_offset_theta_i, float)
             if q.shape != (len(t), self.offset_cells) or not np.all(np.isfinite(q)) or np.any((q < 0) | (q > 1)) \
@@ -183,7 +200,7 @@ class NeuralSpec:
     @property
     def n_extra_features(self) -> int:
         """How many features the extra inputs add (:func:`extra_features`)."""
-        return sum(1 + ("dphi" in self.folds) for _ in self.inputs)
+        return sum(1 + (name == "offset" and "dphi" in self.folds) for name in self.inputs)
 
     @property
     def n_queries(self) -> int:
@@ -280,6 +297,8 @@ def extra_features(lib, spec: NeuralSpec, dphi, *extra) -> list:
         if name == "offset":
             h = clip(v, -1.0, 1.0)
             out += [lib.abs(h), h * lib.sin(dphi)] if "dphi" in spec.folds else [h]
+        elif name == "packing":
+            out.append(v * 1.0)
     return out
 
 
@@ -389,8 +408,11 @@ def bin_average(predict, cell, k: int = 4, extra_cell=None) -> np.ndarray:
     return total / count
 
 
-def fold_table(table, spec: NeuralSpec) -> FoldedTable:
-    """Group the bins of an expanded table by their (folded) features and average each group."""
+def fold_table(table, spec: NeuralSpec, constants: dict | None = None) -> FoldedTable:
+    """Group the bins of an expanded table by their (folded) features and average each group.
+    ``constants``: the values of extra inputs that hold for the whole table (a family
+    member's ``packing``)."""
+    constants = constants or {}
 
     n_l = len(table.wavelength)
     # the bins, flat in the order (phi_i, theta_i, [offset cell,] phi_o, theta_o): a model with
@@ -407,7 +429,8 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
                                      indexing="ij")
     if spec.relative_phi:
         PO = PO + PI  # relative tables store phi_o - phi_i
-    extra = [0.5 * (h_edges[HC] + h_edges[HC + 1]).ravel()] if spec.inputs else []
+    extra = [0.5 * (h_edges[HC] + h_edges[HC + 1]).ravel() if name == "offset" else np.full(HC.size, constants[name])
+             for name in spec.inputs]
     f = np.stack(np.broadcast_arrays(*features(np, spec, PI.ravel(), TI.ravel(), PO.ravel(), TO.ravel(), *extra)),
                  -1)
     _, first, bin_class, count = np.unique(np.round(f, 6), axis=0, return_index=True, return_inverse=True,
@@ -456,7 +479,9 @@ def fold_table(table, spec: NeuralSpec) -> FoldedTable:
     n_dirs = len(table.phi_i) * len(table.theta_i)
     cell = np.broadcast_to(table_cells(table).reshape(n_dirs, 1, -1, 6), (n_dirs, N, len(table.phi_o) *
                                                                             len(table.theta_o), 6)).reshape(-1, 6)[first]
-    extra_cell = np.stack([h_edges[HC], h_edges[HC + 1]], -1).reshape(-1, 1, 2)[first] if spec.inputs else None
+    extra_cell = np.stack([np.stack([h_edges[HC], h_edges[HC + 1]], -1).reshape(-1, 2) if name == "offset" else
+                           np.full((HC.size, 2), constants[name]) for name in spec.inputs], 1)[first] \
+        if spec.inputs else None
 
     y = np.log1p(S / spec.s0)
     sigma_y = E / (spec.s0 + S)  # first-order propagation of the standard error
