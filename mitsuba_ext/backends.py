@@ -72,6 +72,7 @@ class TableBackend:
     (``linear``), or the nearest node's bin (``nearest``)."""
 
     name = "table"
+    constants = ()  # a table holds the one ply it was baked for: no inputs beyond the directions
 
     def __init__(self, table_path, Float, lookup: str = "linear", dye=None, near_field: bool = True):
         if lookup not in ("linear", "nearest"):

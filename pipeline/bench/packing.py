@@ -24,9 +24,9 @@ only trains and measures).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -41,7 +41,6 @@ from models.neural import save_onnx, save_weights, table_cells
 from pipeline.artifacts import stage_dir
 from pipeline.config import TRAIN_SECTIONS
 from pipeline.loading import load_config, sweep_members
-from pipeline.stages import sweep as sweep_stage
 
 from . import results
 
@@ -62,7 +61,9 @@ def family(kind: str, packings, artifacts: Path, paths: int) -> list[tuple[float
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(data))
     cfg = load_config(path)
-    sweep_stage.run(cfg, artifacts)
+    # the sweep as a user runs it (its own command: up-to-date members are skipped)
+    subprocess.run([sys.executable, "-m", "pipeline.cli", "--artifacts", str(artifacts), "sweep", str(path)],
+                   check=True, stdout=sys.stderr)
     root = stage_dir(cfg, "sweep", artifacts)
     return [(point["bundle.packing"], BundleTable.load(root / m.name / "bake" / "bundle_table.npz", expand=True))
             for point, m in sweep_members(cfg)]
@@ -101,9 +102,8 @@ def main(argv=None):
     artifacts = Path(args.artifacts)
     paths = 200_000 if args.quick else 1_000_000
     with results.recorded("packing", smoke=args.quick):
-        with contextlib.redirect_stdout(sys.stderr):   # the sweeps' progress is not the record
-            trained = family("train", TRAINED, artifacts, paths)
-            held = family("held", HELD_OUT, artifacts, paths)
+        trained = family("train", TRAINED, artifacts, paths)   # the sweeps' progress goes to stderr, off the record
+        held = family("held", HELD_OUT, artifacts, paths)
         cfg = load_config(artifacts / "packing_family_train.yaml")
         c = cfg.train.model_copy(update={"inputs": ["packing"], "epochs": 30 if args.quick else cfg.train.epochs})
         problem = prepare_family(trained, c, cfg.hash(*TRAIN_SECTIONS))
