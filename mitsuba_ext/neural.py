@@ -198,7 +198,7 @@ class DrJitMLP:
         y = self._matvec(Float, x) if self.cooperative(Float) else self._literal(x)
         s0, y_max = self.spec.s0, self.spec.y_max
         S = [s0 * stable_expm1(dr, dr.clip(v, 0.0, y_max)) for v in y]
-        gain = energy_gain(dr, self.spec, theta_i)
+        gain = energy_gain(dr, self.spec, theta_i, *extra)
         return S if gain is None else [s * g for s, g in zip(S, gain)]
 
     def _line_products(self, Float, coords):

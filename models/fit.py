@@ -404,7 +404,7 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     outgoing bins, is the table's scattered fraction: at each of the table's ``theta_i``
     the ratio of the two (over the ``phi_i`` that share it), piecewise linear between them.
     The rows include the held-out bins: their values are never fitted, but the row's total
-    is the target. The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
+    is the target. A family's model (``packing`` input) gets one gain per trained packing. The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
     every bin: the ridge along the specular cone is narrower than a bin, and random points
     (the fit's) would put their own noise into the gain.
 
@@ -422,13 +422,20 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     theta = np.abs(theta) if "theta" in spec.folds else theta
     nodes = np.unique(np.round(theta, 12))
     at = np.searchsorted(nodes, np.round(theta, 12))
-    num, den = np.zeros((len(nodes), table_albedo.shape[1])), np.zeros((len(nodes), table_albedo.shape[1]))
-    np.add.at(num, at, table_albedo)
-    np.add.at(den, at, model_albedo)
+    # a family's model: one gain per trained packing (each group is one member's direction)
+    packing = np.zeros(len(table_albedo))
+    if "packing" in spec.inputs:
+        packing[p.data.group] = p.data.extra_cell[:, spec.inputs.index("packing"), 0]
+    k = np.searchsorted(np.asarray(spec.packings or [0.0]), packing) if "packing" in spec.inputs else 0 * at
+    shape = (len(spec.packings) if "packing" in spec.inputs else 1, len(nodes), table_albedo.shape[1])
+    num, den = np.zeros(shape), np.zeros(shape)
+    np.add.at(num, (k, at), table_albedo)
+    np.add.at(den, (k, at), model_albedo)
     gain = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), 1.0)
-    spec.gain, spec.gain_theta_i = gain.tolist(), np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)
+    spec.gain = (gain if "packing" in spec.inputs else gain[0]).tolist()
+    spec.gain_theta_i = np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)
     # after: integrated on another grid (strata + 1 midpoints a side, none shared), so that the
     # figure holds the gain's own quadrature error, not zero by construction
-    after = p.model_albedo(_midpoint_means(model, p, strata + 1)) * gain[at]
+    after = p.model_albedo(_midpoint_means(model, p, strata + 1)) * gain[k, at]
     return {"worst_albedo_error_before": p.worst_albedo_error(model_albedo),
             "worst_albedo_error_after": p.worst_albedo_error(after)}

@@ -157,10 +157,11 @@ class NeuralSpec:
                              "need three node counts >= 2 and at least one channel (or none of either)")
         if self.gain or self.gain_theta_i:
             g, t = np.asarray(self.gain, float), np.asarray(self.gain_theta_i, float)
-            if g.shape != (len(t), len(wl)) or not (np.all(np.isfinite(g)) and np.all(g > 0)) or \
+            shape = ((len(self.packings),) if "packing" in self.inputs else ()) + (len(t), len(wl))
+            if g.shape != shape or not (np.all(np.isfinite(g)) and np.all(g > 0)) or \
                     not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0) or np.any(np.abs(t) > np.pi / 2):
-                raise ValueError("model metadata: gain must hold a positive finite value per (gain_theta_i node, "
-                                 "wavelength), the nodes increasing longitudes within +-pi/2")
+                raise ValueError("model metadata: gain must hold a positive finite value per ([packing node,] "
+                                 "gain_theta_i node, wavelength), the nodes increasing longitudes within +-pi/2")
         if [i for i in self.inputs if i not in INPUTS] or len(set(self.inputs)) != len(self.inputs):
             raise ValueError(f"model metadata: inputs {self.inputs}; known extra inputs: {INPUTS}, each once")
         if "offset" in self.inputs and not (self.relative_phi and isinstance(self.offset_cells, int)
@@ -502,32 +503,62 @@ def stable_expm1(lib, y):
     return where(y < 1e-2, series, lib.exp(y) - 1.0)
 
 
-def energy_gain(lib, spec: NeuralSpec, theta_i):
-    """The energy gain at incident longitudes ``theta_i``: one factor per wavelength that
-    multiplies the network's spectrum, so that each incident direction's albedo is the
-    table's (:func:`models.fit.energy_gain`). Piecewise linear in ``theta_i`` (``|theta_i|``
-    under the theta fold) through ``spec.gain_theta_i``, constant beyond the end nodes,
-    written as a sum of clipped segments, ``g_0 + sum_k m_k (clip(t, t_k, t_k+1) - t_k)``, the
-    slopes ``m_k``: ops every backend has. ``lib`` as :func:`features`; returns ``[..., n_lambda]``
-    for numpy and PyTorch (the segments times a matrix: one ``MatMul`` in the ONNX graph), a
-    list over wavelengths for Dr.Jit and bounded arithmetic, or ``None`` without a gain."""
+def energy_gain(lib, spec: NeuralSpec, theta_i, *extra):
+    """The energy gain at incident longitudes ``theta_i`` (and the query's extra inputs
+    ``extra``): one factor per wavelength that multiplies the network's spectrum, so that each
+    incident direction's albedo is the table's (:func:`models.fit.energy_gain`). Piecewise
+    linear in ``theta_i`` (``|theta_i|`` under the theta fold) through ``spec.gain_theta_i``,
+    constant beyond the end nodes, written as a sum of clipped segments, ``g_0 + sum_k m_k
+    (clip(t, t_k, t_k+1) - t_k)``, the slopes ``m_k``: ops every backend has. A family's model
+    (a ``packing`` input) holds one such gain per trained packing, piecewise linear between
+    them the same way. ``lib`` as :func:`features`; returns ``[..., n_lambda]`` for numpy and
+    PyTorch (the segments times a matrix: one ``MatMul`` in the ONNX graph), a list over
+    wavelengths for Dr.Jit and bounded arithmetic, or ``None`` without a gain."""
     if not spec.gain:
         return None
     clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
     t = clip(theta_i, float(-np.pi / 2), float(np.pi / 2))
     t = lib.abs(t) if "theta" in spec.folds else t
-    nodes, g = np.asarray(spec.gain_theta_i, np.float64), np.asarray(spec.gain, np.float64)
-    segments = [clip(t, float(a), float(b)) - float(a) for a, b in zip(nodes[:-1], nodes[1:])]
+    g = np.asarray(spec.gain, np.float64)
+    if g.ndim == 2:
+        return _piecewise_linear(lib, clip, t, spec.gain_theta_i, g)
+    p = extra[spec.inputs.index("packing")]
+    rows = np.moveaxis(g, 0, 1).reshape(len(spec.gain_theta_i), -1)   # [theta node, packing node x lambda]
+    per_packing = _piecewise_linear(lib, clip, t, spec.gain_theta_i, rows)   # the gain of every packing node
+    L = g.shape[-1]
+    if isinstance(per_packing, list):   # Dr.Jit, bounded arithmetic: a value per wavelength
+        return [_between(clip, p, spec.packings, [per_packing[k * L + l] for k in range(len(g))], False)
+                for l in range(L)]
+    stacked = per_packing.reshape(per_packing.shape[:-1] + (len(g), L))
+    return _between(clip, p, spec.packings, [stacked[..., k, :] for k in range(len(g))], True)
+
+
+def _between(clip, x, nodes, at_nodes, spectra: bool):
+    """Linear between the values ``at_nodes`` (arrays, one per node; ``spectra``: ``[..., m]``
+    against ``x [...]``) at ``nodes``, constant beyond, as clipped segments."""
+    out = at_nodes[0]
+    for k, (a, b) in enumerate(zip(nodes[:-1], nodes[1:])):
+        w = (clip(x, float(a), float(b)) - float(a)) * float(1.0 / (b - a))
+        out = out + (w[..., None] if spectra else w) * (at_nodes[k + 1] - at_nodes[k])
+    return out
+
+
+def _piecewise_linear(lib, clip, x, nodes, values):
+    """The function through the constants ``values [node, m]`` at ``nodes``, linear between
+    them, constant beyond: ``v_0 + sum_k m_k (clip(x, x_k, x_k+1) - x_k)``."""
+    nodes = np.asarray(nodes, np.float64)
+    segments = [clip(x, float(a), float(b)) - float(a) for a, b in zip(nodes[:-1], nodes[1:])]
+    g = np.asarray(values, np.float64)
     slopes = np.diff(g, axis=0) / np.diff(nodes)[:, None]
     if lib is np or getattr(lib, "__name__", "") == "torch":  # one matrix product: one MatMul in ONNX
-        g0 = lib.asarray(g[0], dtype=t.dtype)  # constants of the evaluation's precision, as elsewhere
+        g0 = lib.asarray(g[0], dtype=x.dtype)  # constants of the evaluation's precision, as elsewhere
         if not segments:
-            return t[..., None] * 0.0 + g0
+            return x[..., None] * 0.0 + g0
         seg = lib.stack(segments, -1)
         return seg @ lib.asarray(slopes, dtype=seg.dtype) + g0
     out = []
     for k in range(g.shape[1]):
-        acc = t * 0.0 + float(g[0, k])
+        acc = x * 0.0 + float(g[0, k])
         for segment, m in zip(segments, slopes[:, k]):
             acc = segment * float(m) + acc
         out.append(acc)
@@ -560,7 +591,7 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
             x = x[:-3] + line_products(spec, lines, x[-3:])
         y = rd.relu_mlp(rd.stack(x, u), layers)
         out = spec.s0 * stable_expm1(rd.BOUNDED, rd.clip(y, 0.0, spec.y_max))
-        gain = energy_gain(rd.BOUNDED, spec, a[1])
+        gain = energy_gain(rd.BOUNDED, spec, a[1], *a[4:])
         if gain is not None:
             out = out * rd.stack(gain, u)
         S.append(out.value)
@@ -643,7 +674,7 @@ def make_export_module(spec: NeuralSpec, mlp):
         def forward(self, angles):
             y = self.mlp(torch.stack(features(torch, spec, *angles.unbind(-1)), -1))
             S = spec.s0 * stable_expm1(torch, torch.clamp(y, 0.0, spec.y_max))
-            gain = energy_gain(torch, spec, angles[..., 1])
+            gain = energy_gain(torch, spec, angles[..., 1], *angles[..., 4:].unbind(-1))
             return S if gain is None else S * gain
 
     return Exported()
