@@ -188,6 +188,7 @@ class _NeuralBackend:
                              "re-run `bcsdf train` and `bcsdf export`")
         self.Float = Float
         self.spec = spec
+        self.passthrough_values = spec.passthrough   # P_pass per phi_i node (a family's: at its packing)
         if "packing" in spec.inputs:
             lo, hi = spec.input_range["packing"]
             if packing is None:
@@ -242,8 +243,8 @@ class _NeuralBackend:
 
     def passthrough(self, phi_i, theta_i):
         s = self.spec
-        return passthrough_at(self.Float, getattr(self, "passthrough_values", s.passthrough), s.passthrough_phi_i,
-                              phi_i, theta_i, s.passthrough_theta or None, s.passthrough_theta_i)
+        return passthrough_at(self.Float, self.passthrough_values, s.passthrough_phi_i, phi_i, theta_i,
+                              s.passthrough_theta or None, s.passthrough_theta_i)
 
     def sampling_grid(self, uniform: float, n_phi: int = 72, n_theta: int = 36, n_theta_i: int = 37):
         """Tabulate the model's mean over wavelengths at cell centres (2 x 2 per cell)."""

@@ -150,6 +150,12 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
                       passthrough_offset=[] if near is None else table.near_passthrough[0].tolist(),
                       passthrough_offset_theta_i=[] if near is None else table.theta_i.tolist(), encoding=encoding)
     data = fold_table(table, base)
+    return split_and_weigh(base, data, c)
+
+
+def split_and_weigh(base: NeuralSpec, data, c) -> Problem:
+    """The random split of ``data``'s samples (``c.val_fraction``, ``c.seed``) and the loss
+    weights ``1 / (sigma_y^2 + sigma_floor^2)``, normalized to a mean of 1 over the training set."""
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
     w = (w / w[train_idx].mean()).astype(np.float32)
@@ -182,14 +188,12 @@ def prepare_family(members, c, config_hash: str) -> Problem:
                       config_hash=config_hash, reductions=first.meta["reductions"], folds=choose_folds(first, relative),
                       passthrough=np.mean([t.passthrough for t in tables], 0).tolist(),
                       passthrough_phi_i=first.phi_i.tolist(),
-                      single_share=[] if first.single is None else np.mean([t.single_share() for t in tables], 0).tolist(),
+                      single_share=[] if first.single is None else
+                      np.mean([t.single_share() for t in tables], 0).tolist(),
                       inputs=["packing"], input_range={"packing": [float(nodes[0]), float(nodes[-1])]},
                       passthrough_packing=passthrough, packings=nodes.tolist())
     data = concatenate([fold_table(t, base, {"packing": p}) for p, t in members])
-    train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
-    w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
-    w = (w / w[train_idx].mean()).astype(np.float32)
-    return Problem(base, data, train_idx, val_idx, w)
+    return split_and_weigh(base, data, c)
 
 
 def concatenate(parts) -> FoldedTable:
@@ -404,7 +408,8 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     outgoing bins, is the table's scattered fraction: at each of the table's ``theta_i``
     the ratio of the two (over the ``phi_i`` that share it), piecewise linear between them.
     The rows include the held-out bins: their values are never fitted, but the row's total
-    is the target. A family's model (``packing`` input) gets one gain per trained packing. The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
+    is the target. A family's model (``packing`` input) gets one gain per trained packing.
+    The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
     every bin: the ridge along the specular cone is narrower than a bin, and random points
     (the fit's) would put their own noise into the gain.
 
@@ -426,7 +431,7 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     packing = np.zeros(len(table_albedo))
     if "packing" in spec.inputs:
         packing[p.data.group] = p.data.extra_cell[:, spec.inputs.index("packing"), 0]
-    k = np.searchsorted(np.asarray(spec.packings or [0.0]), packing) if "packing" in spec.inputs else 0 * at
+    k = np.searchsorted(spec.packings, packing) if "packing" in spec.inputs else np.zeros_like(at)
     shape = (len(spec.packings) if "packing" in spec.inputs else 1, len(nodes), table_albedo.shape[1])
     num, den = np.zeros(shape), np.zeros(shape)
     np.add.at(num, (k, at), table_albedo)

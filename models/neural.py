@@ -478,8 +478,8 @@ def fold_table(table, spec: NeuralSpec, constants: dict | None = None) -> Folded
     # each class's first bin, for training at points inside the bin (the table holds bin
     # averages; at the centres alone a network may peak between them, unseen)
     n_dirs = len(table.phi_i) * len(table.theta_i)
-    cell = np.broadcast_to(table_cells(table).reshape(n_dirs, 1, -1, 6), (n_dirs, N, len(table.phi_o) *
-                                                                            len(table.theta_o), 6)).reshape(-1, 6)[first]
+    n_out = len(table.phi_o) * len(table.theta_o)
+    cell = np.broadcast_to(table_cells(table).reshape(n_dirs, 1, n_out, 6), (n_dirs, N, n_out, 6)).reshape(-1, 6)[first]
     extra_cell = np.stack([np.stack([h_edges[HC], h_edges[HC + 1]], -1).reshape(-1, 2) if name == "offset" else
                            np.full((HC.size, 2), constants[name]) for name in spec.inputs], 1)[first] \
         if spec.inputs else None

@@ -97,11 +97,14 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
     held = by_rows(np.broadcast_to(held[:, None], truth.shape).reshape(table.values.shape))
     row_omega, truth_rows = table.solid_angle.ravel(), by_rows(table.values)
 
-    def errors(predict):
-        """predict(list of 4 arrays) -> [n, n_lambda]; every bin's average over 4 x 4 points,
+    def errors(predict, spec=None):
+        """predict(list of queries) -> [n, n_lambda]; every bin's average over 4 x 4 points,
         as the table's bins are averages (at the centres alone a model may peak unseen
-        between them, and its albedo at the centres says little of its worst row's)."""
-        pred = bin_average(lambda *q: predict([a.astype(np.float32) for a in q]), cells).astype(np.float64)
+        between them, and its albedo at the centres says little of its worst row's); a model
+        of ``spec`` by its far field (:func:`models.neural.far_field`)."""
+        def angles(*q):
+            return predict([np.asarray(a, np.float32) for a in q])
+        pred = bin_average(angles if spec is None else far_field(angles, spec), cells).astype(np.float64)
         p, t = pred[val], truth[val]
         albedo = (pred * omega[:, None]).reshape(table.values.shape[:2] + (-1, n_l)).sum(axis=2)
         return {
@@ -113,8 +116,8 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
 
     rows = []
 
-    def report(name, backend, nbytes, predict, timed):
-        err = errors(predict)
+    def report(name, backend, nbytes, predict, timed, spec=None):
+        err = errors(predict, spec)
         seconds = _best_of(timed)
         rows.append({"method": name, "backend": backend, "bytes": int(nbytes),
                      "ns_per_query": seconds / n * 1e9, **err})
@@ -165,16 +168,15 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
         nbytes = sum(p.numel() * 4 for p in mlp.parameters())
 
         extra = [rng.uniform(-1, 1, n).astype(np.float32) for _ in spec.inputs]  # the timed queries' offsets
-        far = lambda predict, spec=spec: lambda q: far_field(lambda *a: predict(list(a)), spec)(*q)  # noqa: E731
 
         def torch_eval(q, module=module):
             with torch.no_grad():
                 return module(torch.from_numpy(np.stack(q, -1).astype(np.float32))).numpy()
-        report(f"mlp {name}", "pytorch", nbytes, far(torch_eval), lambda f=torch_eval: f(rand32 + extra))
+        report(f"mlp {name}", "pytorch", nbytes, torch_eval, lambda f=torch_eval: f(rand32 + extra), spec)
 
         onnx = OnnxMLP(export_root / name / "model.onnx", threads=2)
-        report(f"mlp {name}", "onnxruntime", nbytes, far(lambda q, m=onnx: m.eval(*q)),
-               lambda m=onnx: m.eval(*rand32, *extra))
+        report(f"mlp {name}", "onnxruntime", nbytes, lambda q, m=onnx: m.eval(*q),
+               lambda m=onnx: m.eval(*rand32, *extra), spec)
 
         jit = DrJitMLP(export_root / name / "weights.npz")
         qs = [to_drjit(mi.Float, a) for a in rand32 + extra]
@@ -190,7 +192,7 @@ def measure(cfg, artifacts="artifacts", queries=1_000_000) -> dict:
             dr.eval(out)
             dr.sync_thread()
         jit_timed()  # compile once; the kernel cache serves the timed runs
-        report(f"mlp {name}", "drjit", nbytes, far(jit_run), jit_timed)
+        report(f"mlp {name}", "drjit", nbytes, jit_run, jit_timed, spec)
 
     out = stage_dir(cfg, "export", artifacts)
     noise = noise_l1(truth_rows, by_rows(table.stderr), row_omega, where=held)

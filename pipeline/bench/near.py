@@ -126,8 +126,8 @@ def main(argv=None):
                     fitted = train(table, Path(tmp) / "near.npz", Path(tmp) / f"model{cells}")
                     mi.set_variant("llvm_ad_mono")
                     mitsuba_ext.register()
-                    backends.append((f"mlp {fitted['spec'].hidden}",
-                                     {**bsdf, "backend": "mlp", "model": str(Path(tmp) / f"model{cells}" / "weights.npz")},
+                    weights = Path(tmp) / f"model{cells}" / "weights.npz"
+                    backends.append((f"mlp {fitted['spec'].hidden}", {**bsdf, "backend": "mlp", "model": str(weights)},
                                      {"train_s": fitted["seconds"], "bytes": fitted["bytes"]}))
                 for backend, b, extra in backends:
                     rendered = closure.bundle_profiles(mi, b, R, requests, COLUMNS)

@@ -195,8 +195,8 @@ def summary_section(cfg, root: Path, out_root) -> str:
         albedo = m.worst_albedo_error_after
         lines.append(f"<p><b>Model to render with: {html.escape(pick)}</b> {cfg.train.models[pick]} "
                      f"({m.parameters:,} parameters): held-out relative L1 {m.relative_l1:.1%} (the table's own "
-                     f"noise on those bins {m.table_noise_l1:.1%})" + (f", worst albedo error {albedo:.2%}" if albedo is not None
-                                                            else "") + f"{cost}.")
+                     f"noise on those bins {m.table_noise_l1:.1%})"
+                     + (f", worst albedo error {albedo:.2%}" if albedo is not None else "") + f"{cost}.")
         used = model_size(cfg)
         lines.append(f" The renders below use <b>{html.escape(used)}</b> (<code>render.model</code>).</p>"
                      if used != pick else " The renders below use it (<code>render.model</code>).</p>")
