@@ -27,10 +27,10 @@ from mitsuba_ext.neural import DrJitMLP, OnnxMLP
 from mitsuba_ext.sampling import DirectionGrid
 from mitsuba_ext.table import DrJitTable
 from models.bake.tally import cell_of_offset
-from models.bundle_table import BundleTable
+from models.bundle_table import BundleTable, dyed
 from models.grid import bin_solid_angle, linear
 from models.jit import to_drjit
-from models.neural import far_field
+from models.neural import far_field, order_channels
 
 BACKENDS = ("table", "mlp", "onnx")
 
@@ -181,6 +181,7 @@ class _NeuralBackend:
 
     near = None   # True where the model holds the near field and it is used
     constants = ()  # the values of the inputs that hold for the whole shape (a family's packing)
+    albedo = None   # a uniform dye: the per-event albedo at the model's wavelengths (set_dye)
 
     def _init_spec(self, spec, Float, near_field: bool = True, packing: float | None = None):
         if not spec.passthrough:
@@ -219,8 +220,36 @@ class _NeuralBackend:
                                    for column in np.asarray(s.passthrough_packing, float).T]
         self.constants = (self.Float(packing),)
 
+    def set_dye(self, dye) -> None:
+        """Dye a model of orders of scattering (``train.orders``): ``dye`` a function of the
+        model's wavelengths giving the per-event albedo (applied at every evaluation), or a
+        texture (the plugin applies it per hit through :meth:`eval_orders`)."""
+        if not self.spec.orders:
+            raise ValueError(f"fiber_bundle: 'albedo' dyes a table or model that keeps the orders of scattering "
+                             f"apart; this model ({self.name}) holds the one dye it was trained on: train it with "
+                             "`train.orders: true` on a bake with `bake.orders: K`")
+        if callable(dye):
+            self.albedo = [float(a) for a in dye(self.wavelength)]
+
+    def upload_orders(self):
+        """Nothing to upload: the model returns its orders (:meth:`eval_orders`); refused without them."""
+        self.set_dye(None)
+
+    def eval_orders(self, phi_i, theta_i, phi_o, theta_o):
+        """``(S_k, rho)``: the model's orders ``S_1 .. S_{K-1}``, its tail ``T`` (each a list over
+        the model's wavelengths) and the tail's ratio (a list over them, bilinear in the
+        incident direction's nodes), as :meth:`TableBackend.eval_orders`."""
+        s = self.spec
+        orders = order_channels(s, self._eval(phi_i, theta_i, phi_o, theta_o, orders=True))
+        rho = np.asarray(s.tail_ratio, float)
+        return orders, [passthrough_at(self.Float, None, s.passthrough_phi_i, phi_i, theta_i, rho[..., l],
+                                       s.tail_ratio_theta_i) for l in range(len(self.wavelength))]
+
     def eval(self, phi_i, theta_i, phi_o, theta_o):
-        """The far field: the model itself, or its mean over the offset."""
+        """The far field: the model itself, or its mean over the offset; dyed with a uniform dye."""
+        if self.albedo is not None:
+            orders, rho = self.eval_orders(phi_i, theta_i, phi_o, theta_o)
+            return [dyed([S_k[l] for S_k in orders], a, rho[l]) for l, a in enumerate(self.albedo)]
         return far_field(self._eval, self.spec)(phi_i, theta_i, phi_o, theta_o)
 
     def eval_near(self, phi_i, theta_i, phi_o, theta_o, h):
@@ -276,8 +305,8 @@ class MLPBackend(_NeuralBackend):
         self._init_spec(self.mlp.spec, Float, near_field, packing)
         self.nbytes = self.mlp.nbytes
 
-    def _eval(self, *queries):
-        return self.mlp.eval(*queries, *self.constants)
+    def _eval(self, *queries, orders: bool = False):
+        return self.mlp.eval(*queries, *self.constants, orders=orders)
 
 
 class OnnxBackend(_NeuralBackend):
@@ -295,7 +324,7 @@ class OnnxBackend(_NeuralBackend):
         self._init_spec(self.model.spec, Float, near_field, packing)
         self.nbytes = os.path.getsize(onnx_path)
 
-    def _eval(self, *queries):
+    def _eval(self, *queries, orders: bool = False):
         queries = queries + self.constants
         if dr.flag(dr.JitFlag.SymbolicScope):  # inside a recorded loop or call: no numpy here
             raise RuntimeError("the onnx backend needs Dr.Jit's evaluated mode: render inside "
@@ -304,7 +333,7 @@ class OnnxBackend(_NeuralBackend):
         n = max(dr.width(a) for a in queries)
         args = [a if dr.width(a) == n else a + dr.zeros(self.Float, n) for a in queries]
         dr.eval(*args)
-        out = self.model.eval(*(np.asarray(a, np.float32) for a in args))  # [n, n_lambda]
+        out = self.model.eval(*(np.asarray(a, np.float32) for a in args), orders=orders)  # [n, outputs]
         return [to_drjit(self.Float, out[:, k]) for k in range(out.shape[1])]
 
 
@@ -312,8 +341,9 @@ def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "lin
                  near_field: bool = True, packing: float | None = None):
     """Build the backend ``kind`` ('table', 'mlp' or 'onnx') from its file; ``dye``: a
     function of the table's wavelengths giving the per-event albedo that recolours an
-    order-resolved table once (``BundleTable.recolour``), or a Mitsuba texture that varies
-    over the shape (then the orders are uploaded for a per-hit dye)."""
+    order-resolved table once (``BundleTable.recolour``) or a model of orders at every
+    evaluation, or a Mitsuba texture that varies over the shape (then the orders are read
+    for a per-hit dye)."""
     if kind not in BACKENDS:
         raise ValueError(f"fiber_bundle: backend {kind!r}; use one of {', '.join(BACKENDS)}")
     if kind == "table":
@@ -328,9 +358,6 @@ def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "lin
             backend.upload_orders()
             return backend
         return TableBackend(table, Float, lookup, dye, near_field)
-    if dye is not None:
-        raise ValueError(f"fiber_bundle: 'albedo' recolours an order-resolved table (backend 'table', baked with "
-                         f"bake.orders); a neural model holds the one dye it was trained on (backend {kind!r})")
     if not model:
         what = "weights.npz" if kind == "mlp" else "model.onnx"
         raise ValueError(f"fiber_bundle: backend {kind!r} needs the parameter 'model' "
@@ -338,7 +365,11 @@ def load_backend(kind: str, Float, *, table=None, model=None, lookup: str = "lin
     if kind == "mlp":
         if str(model).endswith(".onnx"):
             raise ValueError(f"fiber_bundle: backend 'mlp' reads weights.npz, got {model}")
-        return MLPBackend(model, Float, near_field=near_field, packing=packing)
-    if not str(model).endswith(".onnx"):
-        raise ValueError(f"fiber_bundle: backend 'onnx' reads model.onnx, got {model}")
-    return OnnxBackend(model, Float, near_field=near_field, packing=packing)
+        backend = MLPBackend(model, Float, near_field=near_field, packing=packing)
+    else:
+        if not str(model).endswith(".onnx"):
+            raise ValueError(f"fiber_bundle: backend 'onnx' reads model.onnx, got {model}")
+        backend = OnnxBackend(model, Float, near_field=near_field, packing=packing)
+    if dye is not None:
+        backend.set_dye(dye)
+    return backend

@@ -21,6 +21,7 @@ from mitsuba_ext.crossing import refuse_other_integrators
 from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, line_offset,
                                resolve_path, spectral_weights, split_uniform)
 from mitsuba_ext.params import boolean, jit_variant_only, number, spectrum_at, spectrum_property, vector3
+from models.bundle_table import dyed
 from models.fiber import lobes
 from models.fiber.base import FiberTable
 from models.fiber.lobes import LobeSampler
@@ -195,13 +196,14 @@ class FiberBundleBSDF(CurveBSDF):
          - none
          - fraction
          - A dye: every fiber event keeps this fraction of the baked fiber's scattering
-           (``BundleTable.recolour``; table backend, a table baked with
-           ``bake.orders``). A number or a uniform Mitsuba spectrum (``spectrum``,
-           ``srgb``, ...) recolours the table once, at load: spectral variants
-           evaluate it at the table's wavelengths, RGB variants upsample its colour
-           as Mitsuba's spectral variants do (Jakob and Hanika 2019). A texture on
-           the shape's UV (space-dyed yarn, e.g. a ``bitmap``) is applied per hit to
-           the orders (K lookups); in RGB variants then per channel.
+           (``BundleTable.recolour``): a table baked with ``bake.orders``, or a model
+           trained on one with ``train.orders: true``. A number or a uniform Mitsuba
+           spectrum (``spectrum``, ``srgb``, ...) recolours the table once, at load (a
+           model at every evaluation): spectral variants evaluate it at the table's
+           wavelengths, RGB variants upsample its colour as Mitsuba's spectral variants
+           do (Jakob and Hanika 2019). A texture on the shape's UV (space-dyed yarn,
+           e.g. a ``bitmap``) is applied per hit to the orders (K lookups; one
+           evaluation of a model); in RGB variants then per channel.
        * - packing
          - float
          - none
@@ -403,12 +405,8 @@ class FiberBundleBSDF(CurveBSDF):
         per channel, an approximation of the spectral product)."""
         orders, rho = self.backend.eval_orders(phi_l, theta_l, phi_c, theta_c)
         a = dr.clip(mi.UnpolarizedSpectrum(self.dye.eval(si)), 0.0, 1.0)
-        value, power = dr.zeros(mi.UnpolarizedSpectrum, dr.width(theta_c)), mi.UnpolarizedSpectrum(1.0)
-        for S_k in orders[:-1]:
-            power = power * a
-            value += power * self._spectrum(S_k, si)
-        r = self._spectrum(rho, si)
-        return value + power * a * (1 - r) / dr.maximum(1 - a * r, 1e-6) * self._spectrum(orders[-1], si)
+        r = dr.minimum(self._spectrum(rho, si), 1.0 - 1e-6)   # < 1 as baked; kept so in float32: 1 - a rho > 0
+        return dyed([self._spectrum(S_k, si) for S_k in orders], a, r)
 
     # -- the BSDF interface ---------------------------------------------
     def eval(self, ctx, si, wo, active=True):

@@ -26,7 +26,7 @@ import numpy as np
 
 from models import lines as fl
 from models.jit import to_drjit
-from models.neural import NeuralSpec, check_inputs, energy_gain, features, stable_expm1
+from models.neural import NeuralSpec, check_inputs, energy_gain, features, order_sum, stable_expm1
 from models.queries import directions
 
 
@@ -93,19 +93,25 @@ class OnnxMLP:
             self.spec = NeuralSpec.from_dict(json.loads(meta["bcsdf_spec"]))
         except (ValueError, TypeError) as e:
             raise ValueError(f"{path}: {e}; re-run `bcsdf export`") from None
-        out = self.eval(0.0, 0.3, 1.0, -0.3, *[0.0] * len(self.spec.inputs))  # the graph must predict what its
-        # metadata says
-        if out.shape != (len(self.spec.wavelength),) or not np.all(np.isfinite(out)):
-            raise ValueError(f"{path}: the graph returns {out.shape[-1] if out.ndim else 0} values per query, its "
-                             f"metadata names {len(self.spec.wavelength)} wavelengths; re-run `bcsdf export`")
+        names = [o.name for o in self.session.get_outputs()]
+        if names != (["S", "orders"] if self.spec.orders else ["S"]):
+            raise ValueError(f"{path}: the graph's outputs {names} are not those its metadata names; "
+                             "re-run `bcsdf export`")
+        probe = (0.0, 0.3, 1.0, -0.3, *[0.0] * len(self.spec.inputs))  # the graph must predict what its metadata says
+        for out, n in ((self.eval(*probe), len(self.spec.wavelength)),) + \
+                (((self.eval(*probe, orders=True), self.spec.n_outputs),) if self.spec.orders else ()):
+            if out.shape != (n,) or not np.all(np.isfinite(out)):
+                raise ValueError(f"{path}: the graph returns {out.shape[-1] if out.ndim else 0} values per query, "
+                                 f"its metadata {n}; re-run `bcsdf export`")
 
-    def eval(self, phi_i, theta_i, phi_o, theta_o, *extra) -> np.ndarray:
+    def eval(self, phi_i, theta_i, phi_o, theta_o, *extra, orders: bool = False) -> np.ndarray:
         """``S`` at every table wavelength, ``[..., n_lambda]`` (radians in, checked:
-        :func:`models.queries.directions`; ``extra``: the model's extra inputs, ``spec.inputs``)."""
+        :func:`models.queries.directions`; ``extra``: the model's extra inputs, ``spec.inputs``);
+        ``orders``: a model's orders of scattering instead, ``[..., K x n_lambda]``."""
         queries = np.stack(np.broadcast_arrays(*directions(phi_i, theta_i, phi_o, theta_o),
                                                *checked_extra(self.spec, extra)), -1).astype(np.float32)
-        return self.session.run(None, {"angles": queries.reshape(-1, self.spec.n_queries)})[0].reshape(
-            queries.shape[:-1] + (-1,))
+        return self.session.run(["orders" if orders else "S"], {"angles": queries.reshape(-1, self.spec.n_queries)}
+                                )[0].reshape(queries.shape[:-1] + (-1,))
 
 
 def checked_extra(spec: NeuralSpec, extra) -> list:
@@ -174,9 +180,10 @@ class DrJitMLP:
             return True
         return not dr.flag(dr.JitFlag.SymbolicScope) and sum(W.size for W, _ in self.layers) > LITERAL_WEIGHTS_MAX
 
-    def eval(self, phi_i, theta_i, phi_o, theta_o, *extra):
+    def eval(self, phi_i, theta_i, phi_o, theta_o, *extra, orders: bool = False):
         """``S`` at every table wavelength (radians in; never negative); ``extra``: the
-        model's extra inputs (``spec.inputs``, e.g. the exit line's offset ``h``).
+        model's extra inputs (``spec.inputs``, e.g. the exit line's offset ``h``); ``orders``:
+        a model's orders of scattering instead, ``K x n_lambda`` (order-major).
 
         Dr.Jit arrays in (any float type, e.g. ``mi.Float``): a list of ``n_lambda``
         arrays of that type, traced into the caller's kernel. numpy arrays (or floats)
@@ -190,7 +197,7 @@ class DrJitMLP:
             checked = np.broadcast_arrays(*directions(phi_i, theta_i, phi_o, theta_o), *checked_extra(self.spec, extra))
             shape = checked[0].shape
             flat = [to_drjit(Float, np.ascontiguousarray(a, np.float32).ravel()) for a in checked]
-            return np.stack([np.asarray(s) for s in self.eval(*flat)], -1).reshape(shape + (-1,))
+            return np.stack([np.asarray(s) for s in self.eval(*flat, orders=orders)], -1).reshape(shape + (-1,))
         Float = type(next(a for a in args if dr.is_array_v(a)))
         x = features(dr, self.spec, phi_i, theta_i, phi_o, theta_o, *extra)
         if self.spec.lines:
@@ -199,7 +206,8 @@ class DrJitMLP:
         s0, y_max = self.spec.s0, self.spec.y_max
         S = [s0 * stable_expm1(dr, dr.clip(v, 0.0, y_max)) for v in y]
         gain = energy_gain(dr, self.spec, theta_i, *extra)
-        return S if gain is None else [s * g for s, g in zip(S, gain)]
+        S = S if gain is None else [s * g for s, g in zip(S, gain)]
+        return S if orders else order_sum(self.spec, S)
 
     def _line_products(self, Float, coords):
         """``A_c B_c D_c`` at the line coordinates: a gather and a lerp per line and channel,

@@ -90,6 +90,19 @@ def tail_factor(a, rho):
     return (1 - rho) / (1 - a * rho)
 
 
+def dyed(orders, a, rho):
+    """``sum_{k<K} a^k S_k + a^K T (1 - rho) / (1 - a rho)``: the scattering of a fiber dyed
+    with per-event albedo ``a`` from the orders ``[S_1, .., S_{K-1}, T]`` of the undyed one
+    and the tail's ratio ``rho`` (:func:`tail_factor`). Any arithmetic: numpy arrays (the
+    table's :meth:`BundleTable.recolour`), Dr.Jit arrays (a neural model's orders), Mitsuba
+    spectra (the plugin's dye per hit)."""
+    value, power = 0.0, 1.0
+    for S_k in orders[:-1]:
+        power = power * a
+        value = value + power * S_k
+    return value + power * a * tail_factor(a, rho) * orders[-1]
+
+
 @dataclass
 class BundleTable:
     values: np.ndarray              # [phi_i, theta_i, phi_o, theta_o, lambda] float32, 1/sr
@@ -299,7 +312,7 @@ class BundleTable:
         power = a[None, :] ** np.arange(1, K)[:, None]                   # [K - 1, lambda]
         tail = a**K * tail_factor(a, self.tail_ratio)                     # [phi_i, theta_i, lambda]
         o, e = self.orders.astype(np.float64), self.orders_stderr.astype(np.float64)
-        values = np.einsum("kabpql,kl->abpql", o[:-1], power) + o[-1] * tail[:, :, None, None, :]
+        values = dyed(list(o), a, self.tail_ratio[:, :, None, None, :])
         var = np.einsum("kabpql,kl->abpql", e[:-1] ** 2, power**2) + (e[-1] * tail[:, :, None, None, :]) ** 2
         out = self._replace(values=values.astype(np.float32), stderr=np.sqrt(var).astype(np.float32),
                             single=None if self.single is None else self.single * a,

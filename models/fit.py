@@ -44,7 +44,7 @@ from tqdm import tqdm
 
 from . import errors
 from .neural import (FoldedTable, NeuralSpec, bin_average, features, fold_table, make_export_module, make_torch_model,
-                     points_in_bins)
+                     order_sum, points_in_bins)
 
 
 def load_checkpoint(path) -> dict:
@@ -138,6 +138,10 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     y_top = float(np.log1p((table.values if near is None else near).max() / s0))
     encoding = getattr(c, "encoding", "cone")
     folds = choose_folds(table, relative, inputs=inputs) if encoding == "cone" else []  # baselines learn every bin
+    if getattr(c, "orders", False) and table.orders is None:
+        raise ValueError(f"{table_path}: train.orders learns the orders of scattering, and this table has none; "
+                         "bake it with `bake.orders: K` (e.g. 8)")
+    orders = len(table.orders) if getattr(c, "orders", False) else 0
     base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
                       wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
                       config_hash=config_hash, reductions=table.meta["reductions"],
@@ -148,7 +152,9 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
                       lines=list(c.line_nodes), line_channels=c.line_channels if c.line_nodes else 0,
                       inputs=inputs, offset_cells=0 if near is None else len(near),
                       passthrough_offset=[] if near is None else table.near_passthrough[0].tolist(),
-                      passthrough_offset_theta_i=[] if near is None else table.theta_i.tolist(), encoding=encoding)
+                      passthrough_offset_theta_i=[] if near is None else table.theta_i.tolist(), encoding=encoding,
+                      orders=orders, tail_ratio=table.tail_ratio.tolist() if orders else [],
+                      tail_ratio_theta_i=table.theta_i.tolist() if orders else [])
     data = fold_table(table, base)
     return split_and_weigh(base, data, c)
 
@@ -212,14 +218,16 @@ def concatenate(parts) -> FoldedTable:
         row_omega=parts[0].row_omega)
 
 
-def model_bin_averages(spec: NeuralSpec, model, cell, k: int = 4, extra_cell=None) -> np.ndarray:
+def model_bin_averages(spec: NeuralSpec, model, cell, k: int = 4, extra_cell=None, orders: bool = False) -> np.ndarray:
     """The model's (exported transform's, its gain included) average over each bin of ``cell``
-    (k x k midpoints; ``extra_cell``: the bins' ranges in the extra inputs), float64."""
-    module = make_export_module(spec, model).eval()
+    (k x k midpoints; ``extra_cell``: the bins' ranges in the extra inputs), float64; ``orders``:
+    its outputs (a model of orders: each order's), not their sum."""
+    module = make_export_module(spec, model, orders=orders).eval()
 
     def predict(*queries):
         with torch.no_grad():
-            return module(torch.from_numpy(np.stack(queries, -1).astype(np.float32))).numpy().astype(np.float64)
+            out = module(torch.from_numpy(np.stack(queries, -1).astype(np.float32)))
+            return (out[1] if orders else out).numpy().astype(np.float64)
     return bin_average(predict, cell, k, extra_cell)
 
 
@@ -228,12 +236,13 @@ def held_out_metrics(spec: NeuralSpec, model, data, val_idx) -> dict:
     on the held-out bins, each expanded bin against its own baked value, the model's as its
     bin average (4 x 4 points); the log MAE over the held-out classes."""
     S_pred = model_bin_averages(spec, model, data.cell[val_idx],
-                                extra_cell=None if data.extra_cell is None else data.extra_cell[val_idx])
+                                extra_cell=None if data.extra_cell is None else data.extra_cell[val_idx],
+                                orders=bool(spec.orders))   # the samples' outputs; the bins' errors of their sum
     position = np.full(len(data.S), -1)
     position[val_idx] = np.arange(len(val_idx))
     held = position[data.bin_class] >= 0
     pred = np.zeros_like(data.bins_S)
-    pred[held] = S_pred[position[data.bin_class[held]]]
+    pred[held] = order_sum(spec, S_pred)[position[data.bin_class[held]]]
     by_rows = lambda a: errors.by_rows(np.asarray(a).reshape(data.bins_shape))  # noqa: E731
     where = by_rows(np.broadcast_to(held[:, None], pred.shape))
     error = errors.core_l1(by_rows(pred), by_rows(data.bins_S), data.row_omega, where=where)

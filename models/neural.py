@@ -51,6 +51,13 @@ features above (before the line coordinates):
   (``bcsdf sweep``; :func:`models.fit.prepare_family`); its feature is itself. A model
   answers only within the range it was trained on (``spec.input_range``).
 
+**Orders of scattering** (``spec.orders``: ``K``, from an order-resolved bake, ``bake.orders``
+and ``train.orders``): the network returns the table's orders ``S_1 .. S_{K-1}`` and tail
+``T`` as ``K x n_lambda`` channels (order-major), each with its own energy gain, so that a
+renderer dyes the model as it dyes the table (:func:`models.bundle_table.dyed`, with the
+tail's ratio ``spec.tail_ratio``). Every evaluator returns their sum, the undyed fiber's
+``S``, unless asked for the orders (:func:`order_sum`).
+
 The training set is the table *folded*: bins that the features cannot tell apart are
 one sample (their mean), and held-out validation bins are whole such classes, so a
 held-out bin never has its mirror image in the training set.
@@ -126,6 +133,11 @@ class NeuralSpec:
     passthrough_packing: list = field(default_factory=list)
     packings: list = field(default_factory=list)
     encoding: str = "cone"   # ENCODINGS: the directions' features (above)
+    # the orders of scattering (above): K channels of the spectrum, 0: none; the tail's ratio
+    # rho [passthrough_phi_i node][tail_ratio_theta_i node][wavelength]
+    orders: int = 0
+    tail_ratio: list = field(default_factory=list)
+    tail_ratio_theta_i: list = field(default_factory=list)
     format: str = FORMAT
 
     def __post_init__(self):
@@ -157,11 +169,11 @@ class NeuralSpec:
                              "need three node counts >= 2 and at least one channel (or none of either)")
         if self.gain or self.gain_theta_i:
             g, t = np.asarray(self.gain, float), np.asarray(self.gain_theta_i, float)
-            shape = ((len(self.packings),) if "packing" in self.inputs else ()) + (len(t), len(wl))
+            shape = ((len(self.packings),) if "packing" in self.inputs else ()) + (len(t), self.n_outputs)
             if g.shape != shape or not (np.all(np.isfinite(g)) and np.all(g > 0)) or \
                     not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0) or np.any(np.abs(t) > np.pi / 2):
                 raise ValueError("model metadata: gain must hold a positive finite value per ([packing node,] "
-                                 "gain_theta_i node, wavelength), the nodes increasing longitudes within +-pi/2")
+                                 "gain_theta_i node, output), the nodes increasing longitudes within +-pi/2")
         if [i for i in self.inputs if i not in INPUTS] or len(set(self.inputs)) != len(self.inputs):
             raise ValueError(f"model metadata: inputs {self.inputs}; known extra inputs: {INPUTS}, each once")
         if "offset" in self.inputs and not (self.relative_phi and isinstance(self.offset_cells, int)
@@ -182,6 +194,14 @@ class NeuralSpec:
                     or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
                 raise ValueError("model metadata: passthrough_offset must hold a probability per "
                                  "(passthrough_offset_theta_i node, offset cell), the nodes increasing")
+        if self.orders or self.tail_ratio:
+            r, t = np.asarray(self.tail_ratio, float), np.asarray(self.tail_ratio_theta_i, float)
+            if not (isinstance(self.orders, int) and self.orders >= 2) or self.inputs or \
+                    r.shape != (len(p), len(t), len(wl)) or not np.all(np.isfinite(r)) or \
+                    np.any((r < 0) | (r >= 1)) or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+                raise ValueError("model metadata: orders K >= 2 need tail_ratio in [0, 1) per (passthrough_phi_i "
+                                 "node, tail_ratio_theta_i node, wavelength), the nodes increasing; not with extra "
+                                 "inputs")
         if self.encoding not in ENCODINGS or (self.encoding != "cone" and (self.folds or self.lines or self.inputs)):
             raise ValueError(f"model metadata: encoding {self.encoding!r} (known: {ENCODINGS}; the baselines "
                              "take no folds, feature lines or extra inputs)")
@@ -216,7 +236,8 @@ class NeuralSpec:
 
     @property
     def n_outputs(self) -> int:
-        return len(self.wavelength)
+        """The network's outputs: a spectrum, or one per order of scattering (``orders``)."""
+        return len(self.wavelength) * max(1, self.orders)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -301,6 +322,31 @@ def extra_features(lib, spec: NeuralSpec, dphi, *extra) -> list:
         elif name == "packing":
             out.append(v * 1.0)
     return out
+
+
+def order_sum(spec: NeuralSpec, S):
+    """The undyed fiber's ``S`` from a model's outputs: the sum of its orders of scattering
+    (``spec.orders``; else ``S`` itself). ``S``: ``[..., K x n_lambda]`` (numpy, PyTorch,
+    bounded arithmetic: its bound grows by the summation's ``gamma_{K-1}``, any order of
+    addition) or a list over the outputs (Dr.Jit)."""
+    K, L = spec.orders, len(spec.wavelength)
+    if not K:
+        return S
+    if isinstance(S, list):
+        return [sum(S[k * L + l] for k in range(1, K)) + S[l] for l in range(L)]
+    if isinstance(S, rd.Bounded):
+        v, e = S.value.reshape(S.value.shape[:-1] + (K, L)), S.err.reshape(S.err.shape[:-1] + (K, L))
+        return rd.Bounded(v.sum(-2), e.sum(-2) + rd.gamma(K - 1, S.u) * (np.abs(v) + e).sum(-2), S.u)
+    return S.reshape(S.shape[:-1] + (K, L)).sum(-2)
+
+
+def order_channels(spec: NeuralSpec, S) -> list:
+    """The outputs of a model of ``spec.orders`` as ``[S_1, .., S_{K-1}, T]``, each a list over
+    wavelengths (Dr.Jit's list of outputs) or an array ``[..., n_lambda]`` (numpy, PyTorch)."""
+    L = len(spec.wavelength)
+    if isinstance(S, list):
+        return [S[k * L:(k + 1) * L] for k in range(spec.orders)]
+    return [S[..., k * L:(k + 1) * L] for k in range(spec.orders)]
 
 
 def offset_midpoints(spec: NeuralSpec) -> np.ndarray:
@@ -425,6 +471,12 @@ def fold_table(table, spec: NeuralSpec, constants: dict | None = None) -> Folded
                              "`bake.offsets: N` (e.g. 8) in the config")
         N = len(table.near)
         values, stderr = np.moveaxis(table.near, 0, 2), np.moveaxis(table.near_stderr, 0, 2)
+    if spec.orders:   # the orders as channels of the spectrum, order-major (a bin's value: their sum)
+        if table.orders is None or len(table.orders) != spec.orders:
+            raise ValueError(f"a model of {spec.orders} orders of scattering learns an order-resolved table: bake "
+                             f"it with `bake.orders: {spec.orders}`")
+        channels = lambda a: np.moveaxis(a, 0, -2).reshape(a.shape[1:-1] + (-1,))  # noqa: E731
+        values, stderr = channels(table.orders), channels(table.orders_stderr)
     h_edges = np.linspace(-1.0, 1.0, N + 1)
     PI, TI, HC, PO, TO = np.meshgrid(table.phi_i, table.theta_i, np.arange(N), table.phi_o, table.theta_o,
                                      indexing="ij")
@@ -437,7 +489,7 @@ def fold_table(table, spec: NeuralSpec, constants: dict | None = None) -> Folded
     _, first, bin_class, count = np.unique(np.round(f, 6), axis=0, return_index=True, return_inverse=True,
                                            return_counts=True)
     bin_class = bin_class.ravel()
-    n = len(count)
+    n, n_l = len(count), values.shape[-1]   # n_l: the outputs (wavelengths, or orders x wavelengths)
     S_bins = values.reshape(-1, n_l).astype(np.float64)
     E_bins = stderr.reshape(-1, n_l).astype(np.float64)
     S = np.zeros((n, n_l))
@@ -470,9 +522,12 @@ def fold_table(table, spec: NeuralSpec, constants: dict | None = None) -> Folded
     omega_bins = np.broadcast_to(table.solid_angle / N, values.shape[:-1]).ravel()
     omega = np.bincount(bin_class, omega_bins, n) / members[group_canonical[bin_group[first]]]
     group = group_canonical[bin_group[first]]
-    # the baked scattered fraction of each canonical incident direction (its members' mean)
+    # the baked scattered fraction of each canonical incident direction (its members' mean);
+    # of each order, the integral of its bins
+    scattered = table.scattered if not spec.orders else \
+        np.einsum("kabpql,pq->abkl", table.orders.astype(np.float64), table.solid_angle)
     albedo = np.zeros((members.size, n_l))
-    np.add.at(albedo, group_canonical, table.scattered.reshape(-1, n_l).astype(np.float64))
+    np.add.at(albedo, group_canonical, scattered.reshape(-1, n_l))
     albedo /= members[:, None]
 
     # each class's first bin, for training at points inside the bin (the table holds bin
@@ -486,10 +541,13 @@ def fold_table(table, spec: NeuralSpec, constants: dict | None = None) -> Folded
 
     y = np.log1p(S / spec.s0)
     sigma_y = E / (spec.s0 + S)  # first-order propagation of the standard error
+    if spec.orders:   # the errors compare the table's own values (the orders' sum)
+        S_bins, E_bins = (a.reshape(-1, len(table.wavelength)).astype(np.float64) for a in (table.values, table.stderr))
     return FoldedTable(x=f[first].astype(np.float32), y=y.astype(np.float32), sigma_y=sigma_y.astype(np.float32),
                        S=S, E=E, count=count, bin_class=bin_class, group=group, omega=omega, albedo=albedo,
                        chi2_per_dof=chi2, cell=cell, extra_cell=extra_cell, bins_S=S_bins, bins_E=E_bins,
-                       bins_shape=values.shape, row_omega=omega_bins[:n_bins_group])
+                       bins_shape=table.values.shape if spec.orders else values.shape,
+                       row_omega=omega_bins[:n_bins_group])
 
 
 def stable_expm1(lib, y):
@@ -567,7 +625,7 @@ def _piecewise_linear(lib, clip, x, nodes, values):
 
 def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int = 4096, lines=()):
     """``(S, err)``: the exported model at ``angles [n, spec.n_queries]`` (the four angles, then
-    the extra inputs; exact, float64) and a bound on
+    the extra inputs; exact, float64; the sum of its orders, :func:`order_sum`) and a bound on
     how far an evaluation of it in floating point (unit roundoff ``u``, float32 by
     default) can be from that, per query and wavelength.
 
@@ -594,6 +652,7 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
         gain = energy_gain(rd.BOUNDED, spec, a[1], *a[4:])
         if gain is not None:
             out = out * rd.stack(gain, u)
+        out = order_sum(spec, out)
         S.append(out.value)
         err.append(out.err)
     return np.concatenate(S), np.concatenate(err)
@@ -642,28 +701,33 @@ def save_weights(path, spec: NeuralSpec, mlp) -> int:
 
 def save_onnx(path, spec: NeuralSpec, mlp) -> None:
     """Write the PyTorch model ``mlp`` of ``spec`` as one ONNX graph, atomically: queries
-    ``[batch, spec.n_queries]`` -> ``S [batch, n_lambda]`` (:func:`make_export_module`), the
-    batch axis dynamic, the metadata ``bcsdf_spec``, checked by ``onnx.checker``."""
+    ``[batch, spec.n_queries]`` -> ``S [batch, n_lambda]`` (:func:`make_export_module`; a model
+    of orders also ``orders [batch, K x n_lambda]``), the batch axis dynamic, the metadata
+    ``bcsdf_spec``, checked by ``onnx.checker``."""
     import onnx
     import torch
 
+    names = ["S", "orders"] if spec.orders else ["S"]
     with atomic_path(path) as tmp:
-        torch.onnx.export(make_export_module(spec, mlp).eval(), (torch.zeros(8, spec.n_queries),), tmp,
-                          input_names=["angles"], output_names=["S"],
-                          dynamic_axes={"angles": {0: "batch"}, "S": {0: "batch"}}, opset_version=17, dynamo=False)
+        torch.onnx.export(make_export_module(spec, mlp, orders=bool(spec.orders)).eval(),
+                          (torch.zeros(8, spec.n_queries),), tmp, input_names=["angles"], output_names=names,
+                          dynamic_axes={"angles": {0: "batch"}, **{n: {0: "batch"} for n in names}},
+                          opset_version=17, dynamo=False)
         model = onnx.load(tmp)
         model.doc_string = (f"Bundle scattering function S(phi_i, theta_i, phi_o, theta_o"
-                            f"{''.join(', ' + i for i in spec.inputs)}) in 1/sr, one output per wavelength; "
-                            "angles in radians")
+                            f"{''.join(', ' + i for i in spec.inputs)}) in 1/sr, one output per wavelength"
+                            + (f"; 'orders': its {spec.orders} orders of scattering, order-major"
+                               if spec.orders else "") + "; angles in radians")
         entry = model.metadata_props.add()
         entry.key, entry.value = "bcsdf_spec", json.dumps(spec.to_dict())
         onnx.checker.check_model(model)
         onnx.save(model, tmp)
 
 
-def make_export_module(spec: NeuralSpec, mlp):
+def make_export_module(spec: NeuralSpec, mlp, orders: bool = False):
     """Raw queries [n, spec.n_queries] (the four angles, then the extra inputs) -> S [n, n_lambda]:
-    encoding, MLP and output transform in one graph."""
+    encoding, MLP and output transform in one graph; ``orders``: ``(S, orders [n, K x n_lambda])``
+    (a model of orders of scattering, :func:`order_sum`)."""
     import torch
 
     class Exported(torch.nn.Module):
@@ -675,6 +739,7 @@ def make_export_module(spec: NeuralSpec, mlp):
             y = self.mlp(torch.stack(features(torch, spec, *angles.unbind(-1)), -1))
             S = spec.s0 * stable_expm1(torch, torch.clamp(y, 0.0, spec.y_max))
             gain = energy_gain(torch, spec, angles[..., 1], *angles[..., 4:].unbind(-1))
-            return S if gain is None else S * gain
+            S = S if gain is None else S * gain
+            return (order_sum(spec, S), S) if orders else order_sum(spec, S)
 
     return Exported()

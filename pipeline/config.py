@@ -443,6 +443,8 @@ class TrainCfg(Strict):
     inputs: list[Literal["offset"]] = Field(
         default_factory=list, description="extra inputs of the model beyond the directions: [offset] learns the near "
                                           "field (bake.offsets), the light by its exit line's offset across the ply")
+    orders: bool = Field(False, description="learn the orders of scattering apart (bake.orders), so that the plugin "
+                                            "dyes the model (fiber_bundle's albedo) as it dyes the table")
 
     @field_validator("line_nodes")
     @classmethod
@@ -679,6 +681,12 @@ class Config(Strict):
         if b.offsets == 1 or (b.offsets and (b.orders or b.estimator != "fast")):
             raise ValueError("bake.offsets: 0 (none) or N >= 2 cells, with bake.estimator: fast and without "
                              "bake.orders")
+        if self.train.orders and not b.orders:
+            raise ValueError("train.orders learns the orders of scattering: bake them with bake.orders: K (e.g. 8), "
+                             "or drop train.orders")
+        if self.train.orders and (self.train.inputs or self.train.encoding != "cone"):
+            raise ValueError("train.orders: with the cone encoding and without train.inputs (a dyed near field or "
+                             "family is not supported)")
         if "offset" in self.train.inputs and not b.offsets:
             raise ValueError("train.inputs [offset] learns the near field: bake it with bake.offsets: N (e.g. 8), "
                              "or drop the offset input")

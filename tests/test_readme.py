@@ -112,6 +112,10 @@ def test_the_dye_commands_and_snippet_run_as_printed(tmp_path):
     assert red.orders is None and plain.orders.shape[0] == 8
     s_red, s_plain = red.scattered.mean(axis=(0, 1)), plain.scattered.mean(axis=(0, 1))
     assert s_red[-1] / s_plain[-1] > 3 * s_red[0] / s_plain[0]   # red keeps red light, not blue
+    from mitsuba_ext.neural import load_weights
+
+    spec = load_weights(repo / "artifacts" / "dyed" / "export" / "small" / "weights.npz")[0]
+    assert spec.orders == 8 and spec.n_outputs == 8 * len(spec.wavelength)   # the model the snippet dyes
 
 
 def test_the_documents_quote_only_recorded_figures():
