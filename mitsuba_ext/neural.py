@@ -102,7 +102,7 @@ class OnnxMLP:
                 (((self.eval(*probe, orders=True), self.spec.n_outputs),) if self.spec.orders else ()):
             if out.shape != (n,) or not np.all(np.isfinite(out)):
                 raise ValueError(f"{path}: the graph returns {out.shape[-1] if out.ndim else 0} values per query, "
-                                 f"its metadata {n}; re-run `bcsdf export`")
+                                 f"its metadata names {n}; re-run `bcsdf export`")
 
     def eval(self, phi_i, theta_i, phi_o, theta_o, *extra, orders: bool = False) -> np.ndarray:
         """``S`` at every table wavelength, ``[..., n_lambda]`` (radians in, checked:
