@@ -62,7 +62,8 @@ The training set is the table *folded*: bins that the features cannot tell apart
 one sample (their mean), and held-out validation bins are whole such classes, so a
 held-out bin never has its mirror image in the training set.
 
-The MLP (ReLU hidden layers) returns one value per table wavelength in log space:
+The MLP (ReLU hidden layers) returns one value per table wavelength (per order and
+wavelength with ``spec.orders``) in log space:
 ``y = log(1 + S / s0)``; the output transform is ``S = s0 * expm1(clip(y, 0, y_max))``
 so every backend returns finite, non-negative values for any input. The network is
 trained on the table with its symmetry reductions expanded, so no backend needs to
@@ -563,8 +564,8 @@ def stable_expm1(lib, y):
 
 def energy_gain(lib, spec: NeuralSpec, theta_i, *extra):
     """The energy gain at incident longitudes ``theta_i`` (and the query's extra inputs
-    ``extra``): one factor per wavelength that multiplies the network's spectrum, so that each
-    incident direction's albedo is the table's (:func:`models.fit.energy_gain`). Piecewise
+    ``extra``): one factor per output (wavelength; order and wavelength) that multiplies the
+    network's spectrum, so that each incident direction's albedo (each order's) is the table's (:func:`models.fit.energy_gain`). Piecewise
     linear in ``theta_i`` (``|theta_i|`` under the theta fold) through ``spec.gain_theta_i``,
     constant beyond the end nodes, written as a sum of clipped segments, ``g_0 + sum_k m_k
     (clip(t, t_k, t_k+1) - t_k)``, the slopes ``m_k``: ops every backend has. A family's model
