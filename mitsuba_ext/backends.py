@@ -60,6 +60,14 @@ def passthrough_at(Float, values, phi_nodes, phi_i, theta_i, per_theta=None, the
     return out
 
 
+def tail_ratio_at(Float, rho, phi_nodes, theta_nodes, phi_i, theta_i) -> list:
+    """The tail's ratio ``rho [phi node, theta node, lambda]`` of an order-resolved table or
+    model at the incident direction, a list over wavelengths, bilinear as :func:`passthrough_at`."""
+    rho = np.asarray(rho, float)
+    return [passthrough_at(Float, None, phi_nodes, phi_i, theta_i, rho[..., l], theta_nodes)
+            for l in range(rho.shape[-1])]
+
+
 def _cell_passthrough(Float, values, theta_nodes, theta_i, cell, n_cells: int):
     """``values [theta node, cell]`` (flat, of type ``Float``) at ``theta_i``, linear between
     the nodes (held beyond them), in offset cell ``cell``: the passthrough by entry cell."""
@@ -139,9 +147,7 @@ class TableBackend:
         t, L = self.table, len(self.table.wavelength)
         flat = self.orders.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup)
         orders = [flat[k * L:(k + 1) * L] for k in range(len(t.orders))]
-        rho = [passthrough_at(self.Float, None, t.phi_i, phi_i, theta_i, t.tail_ratio[..., l], t.theta_i)
-               for l in range(L)]
-        return orders, rho
+        return orders, tail_ratio_at(self.Float, t.tail_ratio, t.phi_i, t.theta_i, phi_i, theta_i)
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         return self.dj.eval(phi_i, theta_i, phi_o, theta_o, mode=self.lookup)
@@ -231,19 +237,14 @@ class _NeuralBackend:
         if callable(dye):
             self.albedo = [float(a) for a in dye(self.wavelength)]
 
-    def upload_orders(self):
-        """Nothing to upload: the model returns its orders (:meth:`eval_orders`); refused without them."""
-        self.set_dye(None)
-
     def eval_orders(self, phi_i, theta_i, phi_o, theta_o):
         """``(S_k, rho)``: the model's orders ``S_1 .. S_{K-1}``, its tail ``T`` (each a list over
         the model's wavelengths) and the tail's ratio (a list over them, bilinear in the
         incident direction's nodes), as :meth:`TableBackend.eval_orders`."""
         s = self.spec
         orders = order_channels(s, self._eval(phi_i, theta_i, phi_o, theta_o, orders=True))
-        rho = np.asarray(s.tail_ratio, float)
-        return orders, [passthrough_at(self.Float, None, s.passthrough_phi_i, phi_i, theta_i, rho[..., l],
-                                       s.tail_ratio_theta_i) for l in range(len(self.wavelength))]
+        return orders, tail_ratio_at(self.Float, s.tail_ratio, s.passthrough_phi_i, s.tail_ratio_theta_i, phi_i,
+                                     theta_i)
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         """The far field: the model itself, or its mean over the offset; dyed with a uniform dye."""

@@ -98,8 +98,9 @@ class OnnxMLP:
             raise ValueError(f"{path}: the graph's outputs {names} are not those its metadata names; "
                              "re-run `bcsdf export`")
         probe = (0.0, 0.3, 1.0, -0.3, *[0.0] * len(self.spec.inputs))  # the graph must predict what its metadata says
-        for out, n in ((self.eval(*probe), len(self.spec.wavelength)),) + \
-                (((self.eval(*probe, orders=True), self.spec.n_outputs),) if self.spec.orders else ()):
+        for orders, n in [(False, len(self.spec.wavelength))] + ([(True, self.spec.n_outputs)] if self.spec.orders
+                                                                 else []):
+            out = self.eval(*probe, orders=orders)
             if out.shape != (n,) or not np.all(np.isfinite(out)):
                 raise ValueError(f"{path}: the graph returns {out.shape[-1] if out.ndim else 0} values per query, "
                                  f"its metadata names {n}; re-run `bcsdf export`")

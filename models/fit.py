@@ -138,10 +138,11 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     y_top = float(np.log1p((table.values if near is None else near).max() / s0))
     encoding = getattr(c, "encoding", "cone")
     folds = choose_folds(table, relative, inputs=inputs) if encoding == "cone" else []  # baselines learn every bin
-    if getattr(c, "orders", False) and table.orders is None:
+    learns_orders = getattr(c, "orders", False)
+    if learns_orders and table.orders is None:
         raise ValueError(f"{table_path}: train.orders learns the orders of scattering, and this table has none; "
                          "bake it with `bake.orders: K` (e.g. 8)")
-    orders = len(table.orders) if getattr(c, "orders", False) else 0
+    orders = len(table.orders) if learns_orders else 0
     base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
                       wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
                       config_hash=config_hash, reductions=table.meta["reductions"],

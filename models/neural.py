@@ -565,7 +565,8 @@ def stable_expm1(lib, y):
 def energy_gain(lib, spec: NeuralSpec, theta_i, *extra):
     """The energy gain at incident longitudes ``theta_i`` (and the query's extra inputs
     ``extra``): one factor per output (wavelength; order and wavelength) that multiplies the
-    network's spectrum, so that each incident direction's albedo (each order's) is the table's (:func:`models.fit.energy_gain`). Piecewise
+    network's spectrum, so that each incident direction's albedo (each order's) is the table's
+    (:func:`models.fit.energy_gain`). Piecewise
     linear in ``theta_i`` (``|theta_i|`` under the theta fold) through ``spec.gain_theta_i``,
     constant beyond the end nodes, written as a sum of clipped segments, ``g_0 + sum_k m_k
     (clip(t, t_k, t_k+1) - t_k)``, the slopes ``m_k``: ops every backend has. A family's model
