@@ -18,6 +18,7 @@ render time: they tabulate their own output on a coarse grid when the BSDF is bu
 
 from __future__ import annotations
 
+import copy
 import os
 
 import drjit as dr
@@ -30,7 +31,7 @@ from models.bake.tally import cell_of_offset
 from models.bundle_table import BundleTable, dyed
 from models.grid import bin_solid_angle, linear
 from models.jit import to_drjit
-from models.neural import far_field, order_channels
+from models.neural import between, far_field, order_channels
 
 BACKENDS = ("table", "mlp", "onnx")
 
@@ -195,7 +196,6 @@ class _NeuralBackend:
                              "re-run `bcsdf train` and `bcsdf export`")
         self.Float = Float
         self.spec = spec
-        self.passthrough_values = spec.passthrough   # P_pass per phi_i node (a family's: at its packing)
         if "packing" in spec.inputs:
             lo, hi = spec.input_range["packing"]
             if packing is None:
@@ -213,18 +213,36 @@ class _NeuralBackend:
         if self.near and spec.passthrough_offset:
             self.near_passthrough = Float(np.asarray(spec.passthrough_offset, np.float32).ravel())
 
-    def set_packing(self, packing: float) -> None:
-        """Evaluate a family's model at ``packing``, within the range it was trained on (it
-        does not extrapolate); the passthrough linear between the trained packings."""
-        s = self.spec
-        lo, hi = s.input_range["packing"]
-        if not np.float32(lo) <= np.float32(packing) <= np.float32(hi):   # as precise as a Mitsuba parameter
+    def check_packing(self, packing: float) -> float:
+        """``packing`` within the range the family's model was trained on (it does not
+        extrapolate), or a ``ValueError`` that says so; compared in float32, the precision of
+        a Mitsuba parameter."""
+        lo, hi = self.spec.input_range["packing"]
+        if not np.float32(lo) <= np.float32(packing) <= np.float32(hi):
             raise ValueError(f"fiber_bundle: packing {packing:g} lies outside {lo:g} .. {hi:g}, the range this model "
                              "was trained on; a model does not extrapolate: bake and train a family that covers it")
-        packing = float(np.clip(packing, lo, hi))
-        self.passthrough_values = [float(np.interp(packing, s.packings, column))
-                                   for column in np.asarray(s.passthrough_packing, float).T]
-        self.constants = (self.Float(packing),)
+        return float(np.clip(packing, lo, hi))
+
+    def set_packing(self, packing: float) -> None:
+        """Evaluate a family's model at ``packing`` everywhere (:meth:`check_packing`)."""
+        self.constants = (self.Float(self.check_packing(packing)),)
+
+    def at_packing(self, packing):
+        """This backend read at ``packing``, a Dr.Jit array with one value per lane (a
+        texture's, per hit; clamped to the trained range: the texture was checked at load)."""
+        lo, hi = self.spec.input_range["packing"]
+        view = copy.copy(self)
+        view.constants = (dr.clip(packing, lo, hi),)
+        return view
+
+    def _per_packing(self, at_node):
+        """A family's quantity at this backend's packing (per lane), linear between its values
+        at the trained packings, ``at_node(k)`` (a Dr.Jit array or a list of them)."""
+        values = [at_node(k) for k in range(len(self.spec.packings))]
+        p, nodes = self.constants[0], self.spec.packings
+        if isinstance(values[0], list):
+            return [between(dr.clip, p, nodes, [v[l] for v in values], False) for l in range(len(values[0]))]
+        return between(dr.clip, p, nodes, values, False)
 
     def set_dye(self, dye) -> None:
         """Dye a model of orders of scattering (``train.orders``): ``dye`` a function of the
@@ -243,8 +261,11 @@ class _NeuralBackend:
         incident direction's nodes), as :meth:`TableBackend.eval_orders`."""
         s = self.spec
         orders = order_channels(s, self._eval(phi_i, theta_i, phi_o, theta_o, orders=True))
-        return orders, tail_ratio_at(self.Float, s.tail_ratio, s.passthrough_phi_i, s.tail_ratio_theta_i, phi_i,
-                                     theta_i)
+        rho = lambda values: tail_ratio_at(self.Float, values, s.passthrough_phi_i, s.tail_ratio_theta_i,  # noqa: E731
+                                           phi_i, theta_i)
+        if "packing" in s.inputs:
+            return orders, self._per_packing(lambda k: rho(s.tail_ratio[k]))
+        return orders, rho(s.tail_ratio)
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
         """The far field: the model itself, or its mean over the offset; dyed with a uniform dye."""
@@ -273,7 +294,10 @@ class _NeuralBackend:
 
     def passthrough(self, phi_i, theta_i):
         s = self.spec
-        return passthrough_at(self.Float, self.passthrough_values, s.passthrough_phi_i, phi_i, theta_i,
+        if "packing" in s.inputs:   # a family's: linear between the trained packings
+            return self._per_packing(lambda k: passthrough_at(self.Float, s.passthrough_packing[k],
+                                                              s.passthrough_phi_i, phi_i, theta_i))
+        return passthrough_at(self.Float, s.passthrough, s.passthrough_phi_i, phi_i, theta_i,
                               s.passthrough_theta or None, s.passthrough_theta_i)
 
     def sampling_grid(self, uniform: float, n_phi: int = 72, n_theta: int = 36, n_theta_i: int = 37):

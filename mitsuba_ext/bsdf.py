@@ -20,7 +20,8 @@ from mitsuba_ext.backends import load_backend
 from mitsuba_ext.crossing import refuse_other_integrators
 from mitsuba_ext.frame import (adjoint_factor, angles, bundle_frame, direction, light_and_camera, line_offset,
                                resolve_path, spectral_weights, split_uniform)
-from mitsuba_ext.params import boolean, jit_variant_only, number, spectrum_at, spectrum_property, vector3
+from mitsuba_ext.params import (boolean, jit_variant_only, number, spectrum_at, spectrum_property, texture_values,
+                                vector3)
 from models.bundle_table import dyed
 from models.fiber import lobes
 from models.fiber.base import FiberTable
@@ -205,13 +206,15 @@ class FiberBundleBSDF(CurveBSDF):
            e.g. a ``bitmap``) is applied per hit to the orders (K lookups; one
            evaluation of a model); in RGB variants then per channel.
        * - packing
-         - float
+         - float or texture
          - none
          - fraction
          - The ply's packing fraction, for a model trained on a family of bakes
            (``train.inputs: [packing]``, ``python -m pipeline.bench.packing``): within
-           the range it was trained on (refused outside: it does not extrapolate);
-           editable at render time through ``mi.traverse``. Refused by the table
+           the range it was trained on (refused outside: it does not extrapolate). A
+           number is editable at render time through ``mi.traverse``; a texture on the
+           shape's UV (a ``bitmap`` with ``raw: true``, say) sets it per hit, its values
+           checked at load on a 256 x 256 grid of the UV square. Refused by the table
            backend and by models of one ply.
        * - near_field
          - boolean
@@ -339,6 +342,15 @@ class FiberBundleBSDF(CurveBSDF):
         albedo = spectrum_property(props, "albedo") if "albedo" in props else None
         varying = isinstance(albedo, mi.Texture) and albedo.is_spatially_varying()
         self.dye = albedo if varying else None
+        # a family's packing: a number (editable through mi.traverse) or a texture on the UV,
+        # read per hit, its values checked against the trained range at load
+        packing = props["packing"] if "packing" in props else None
+        self.packing = packing if isinstance(packing, mi.Texture) else None
+        if self.packing is not None:
+            values = texture_values(self.packing)
+            packing = float(np.mean(values))   # the sampling grid's
+        elif packing is not None:
+            packing = number(self.plugin, "packing", packing, 0.0, 1.0)
         self.backend = load_backend(props.get("backend", "table"), mi.Float,
                                     table=resolve_path(self.plugin, "table", props.get("table", None)),
                                     model=resolve_path(self.plugin, "model", props.get("model", None)),
@@ -346,16 +358,22 @@ class FiberBundleBSDF(CurveBSDF):
                                     dye=None if albedo is None else
                                     self.dye if varying else partial(spectrum_at, self.plugin, "albedo", albedo),
                                     near_field=boolean(self.plugin, "near_field", props.get("near_field", True)),
-                                    packing=number(self.plugin, "packing", props["packing"], 0.0, 1.0)
-                                    if "packing" in props else None)
+                                    packing=packing)
+        if self.packing is not None:
+            try:
+                for extreme in (values.min(), values.max()):
+                    self.backend.check_packing(extreme)
+            except ValueError as e:
+                raise ValueError(f"{e} ('packing' texture: its values span {values.min():g} .. {values.max():g})") \
+                    from None
         uniform = number(self.plugin, "sampling_uniform", props.get("sampling_uniform", 0.1), 0.0, 1.0)
         self.grid = self.backend.sampling_grid(uniform)
         self.camera_grid = None if self.backend.near is None else self.backend.camera_grid(uniform)
         self.use_passthrough = boolean(self.plugin, "passthrough", props.get("passthrough", True))
         self._init_curve(props, self.backend.wavelength)
         self.params["sampling_uniform"] = mi.Float(uniform)
-        if self.backend.constants:   # a family's model: its packing changes at render time (mi.traverse)
-            self.params["packing"] = mi.Float(props["packing"])
+        if self.backend.constants and self.packing is None:   # a family's: its packing edited at render time
+            self.params["packing"] = mi.Float(packing)
         scatter = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.GlossyTransmission |
                    mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide | mi.BSDFFlags.NonSymmetric)
         passing = mi.BSDFFlags.Null | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
@@ -380,7 +398,7 @@ class FiberBundleBSDF(CurveBSDF):
             frame = bundle_frame(si, mi.Vector3f(*self.up), self.twist, self.twist_rate)
             P = self.backend.passthrough_near(theta_i, -line_offset(si, frame, phi_i))
         else:
-            P = self.backend.passthrough(phi_i, theta_i)
+            P = self._backend_at(si).passthrough(phi_i, theta_i)
         return dr.select(inside, 1.0, dr.clip(P, 0.0, 1.0))
 
     def _value(self, ctx, si, frame, wo):
@@ -389,21 +407,26 @@ class FiberBundleBSDF(CurveBSDF):
         w_light, w_camera, radiance = light_and_camera(ctx, si, wo)
         phi_l, theta_l = angles(si.to_world(w_light), frame)
         phi_c, theta_c = angles(si.to_world(w_camera), frame)
-        if self.backend.near is not None:   # the near field: the camera ray's own offset
+        backend = self._backend_at(si)
+        if backend.near is not None:   # the near field: the camera ray's own offset
             h = line_offset(si, frame, phi_c)
-            value = self._spectrum(self.backend.eval_near(phi_l, theta_l, phi_c, theta_c, h), si)
+            value = self._spectrum(backend.eval_near(phi_l, theta_l, phi_c, theta_c, h), si)
         elif self.dye is None:
-            value = self._spectrum(self.backend.eval(phi_l, theta_l, phi_c, theta_c), si)
+            value = self._spectrum(backend.eval(phi_l, theta_l, phi_c, theta_c), si)
         else:
-            value = self._dyed(si, phi_l, theta_l, phi_c, theta_c)
+            value = self._dyed(backend, si, phi_l, theta_l, phi_c, theta_c)
         return value * adjoint_factor(theta_l, theta_c) if radiance else value
 
-    def _dyed(self, si, phi_l, theta_l, phi_c, theta_c):
+    def _backend_at(self, si):
+        """The backend at this hit: a family's model read at the packing texture's value here."""
+        return self.backend if self.packing is None else self.backend.at_packing(self.packing.eval_1(si))
+
+    def _dyed(self, backend, si, phi_l, theta_l, phi_c, theta_c):
         """``sum_{k<K} a^k S_k + a^K T (1 - rho) / (1 - a rho)`` with the texture's albedo ``a``
         at this hit and this path's wavelengths (``BundleTable.recolour``, per hit): each
         order is mapped to the render's spectrum first (in RGB variants the dye then acts
         per channel, an approximation of the spectral product)."""
-        orders, rho = self.backend.eval_orders(phi_l, theta_l, phi_c, theta_c)
+        orders, rho = backend.eval_orders(phi_l, theta_l, phi_c, theta_c)
         a = dr.clip(mi.UnpolarizedSpectrum(self.dye.eval(si)), 0.0, 1.0)
         r = dr.minimum(self._spectrum(rho, si), 1.0 - 1e-6)   # < 1 as baked; kept so in float32: 1 - a rho > 0
         return dyed([self._spectrum(S_k, si) for S_k in orders], a, r)

@@ -127,3 +127,15 @@ def spectrum_at(plugin: str, name: str, value, wavelength) -> np.ndarray:
         return np.asarray(value.eval(si), np.float64).reshape(-1, len(wl))[0]  # channel 0: each lane one lambda
     out = np.asarray(value.eval(dr.zeros(mi.SurfaceInteraction3f, 1)), np.float64).reshape(-1)
     return srgb_upsampled(out, wl) if mi.is_rgb and len(out) == 3 else np.full(len(wl), out[0])
+
+
+def texture_values(texture, n: int = 256) -> np.ndarray:
+    """A scalar texture's values over its UV square, at the centres of ``n x n`` cells: what
+    a texture on the curve's UV gives its hits, for checking its range at load (a
+    ``bitmap``'s filtered values lie within its texels' range; finer features than
+    ``1 / n`` may escape)."""
+    u = (np.arange(n) + 0.5) / n
+    U, V = np.meshgrid(u, u, indexing="ij")
+    si = dr.zeros(mi.SurfaceInteraction3f, n * n)
+    si.uv = mi.Point2f(mi.Float(U.ravel()), mi.Float(V.ravel()))
+    return np.asarray(texture.eval_1(si), np.float64)

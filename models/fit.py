@@ -174,8 +174,9 @@ def prepare_family(members, c, config_hash: str) -> Problem:
     ``packing`` differs: ``members`` ``[(packing, expanded table)]`` on one grid (several
     members per packing: arrangement seeds; the fit learns their mean). Each member is folded
     with its packing as a constant input and the samples concatenated; the split is random
-    over all of them; the folds are those the first member obeys; the passthrough is kept per
-    packing (the mean over its seeds), the range trained on in ``input_range``."""
+    over all of them; the folds are those the first member obeys; the passthrough (and, with
+    ``c.orders``, the tail's ratio) is kept per packing (the mean over its seeds), the range
+    trained on in ``input_range``."""
     tables = [t for _, t in members]
     first = tables[0]
     if any(t.values.shape != first.values.shape or not np.allclose(t.wavelength, first.wavelength) for t in tables):
@@ -183,13 +184,19 @@ def prepare_family(members, c, config_hash: str) -> Problem:
     relative = first.meta["reductions"]["phi_o"] == "relative"
     packing = np.array([p for p, _ in members], float)
     nodes = np.unique(packing)
+    orders = len(first.orders) if getattr(c, "orders", False) and first.orders is not None else 0
+    if getattr(c, "orders", False) and any(t.orders is None or len(t.orders) != orders for t in tables):
+        raise ValueError("train.orders learns the orders of scattering: bake every member of the family with the "
+                         "same `bake.orders: K` (e.g. 8)")
+    # the mean over the seeds at each trained packing: the passthrough and the tail's ratio
+    at_node = lambda name: [np.mean([getattr(t, name) for p, t in members if p == k], 0).tolist()  # noqa: E731
+                            for k in nodes]
     positive = np.concatenate([t.values[t.values > 0] for t in tables])
     s0 = float(np.mean(positive)) if positive.size else 1.0
     y_top = float(np.log1p(max(t.values.max() for t in tables) / s0))
     digest = hashlib.sha256()
     for t in tables:
         digest.update(np.ascontiguousarray(t.values).tobytes())
-    passthrough = [np.mean([t.passthrough for p, t in members if p == k], 0).tolist() for k in nodes]
     base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
                       wavelength=first.wavelength.tolist(), table_hash="family:" + digest.hexdigest()[:16],
                       config_hash=config_hash, reductions=first.meta["reductions"], folds=choose_folds(first, relative),
@@ -198,7 +205,9 @@ def prepare_family(members, c, config_hash: str) -> Problem:
                       single_share=[] if first.single is None else
                       np.mean([t.single_share() for t in tables], 0).tolist(),
                       inputs=["packing"], input_range={"packing": [float(nodes[0]), float(nodes[-1])]},
-                      passthrough_packing=passthrough, packings=nodes.tolist())
+                      passthrough_packing=at_node("passthrough"), packings=nodes.tolist(), orders=orders,
+                      tail_ratio=at_node("tail_ratio") if orders else [],
+                      tail_ratio_theta_i=first.theta_i.tolist() if orders else [])
     data = concatenate([fold_table(t, base, {"packing": p}) for p, t in members])
     return split_and_weigh(base, data, c)
 

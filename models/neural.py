@@ -135,7 +135,7 @@ class NeuralSpec:
     packings: list = field(default_factory=list)
     encoding: str = "cone"   # ENCODINGS: the directions' features (above)
     # the orders of scattering (above): K channels of the spectrum, 0: none; the tail's ratio
-    # rho [passthrough_phi_i node][tail_ratio_theta_i node][wavelength]
+    # rho [passthrough_phi_i node][tail_ratio_theta_i node][wavelength] (a family's: per packing node first)
     orders: int = 0
     tail_ratio: list = field(default_factory=list)
     tail_ratio_theta_i: list = field(default_factory=list)
@@ -197,12 +197,13 @@ class NeuralSpec:
                                  "(passthrough_offset_theta_i node, offset cell), the nodes increasing")
         if self.orders or self.tail_ratio:
             r, t = np.asarray(self.tail_ratio, float), np.asarray(self.tail_ratio_theta_i, float)
-            if not (isinstance(self.orders, int) and self.orders >= 2) or self.inputs or \
-                    r.shape != (len(p), len(t), len(wl)) or not np.all(np.isfinite(r)) or \
+            family = (len(self.packings),) if self.inputs == ["packing"] else ()
+            if not (isinstance(self.orders, int) and self.orders >= 2) or (self.inputs and not family) or \
+                    r.shape != family + (len(p), len(t), len(wl)) or not np.all(np.isfinite(r)) or \
                     np.any((r < 0) | (r >= 1)) or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-                raise ValueError("model metadata: orders K >= 2 need tail_ratio in [0, 1) per (passthrough_phi_i "
-                                 "node, tail_ratio_theta_i node, wavelength), the nodes increasing; not with extra "
-                                 "inputs")
+                raise ValueError("model metadata: orders K >= 2 need tail_ratio in [0, 1) per ([packing node,] "
+                                 "passthrough_phi_i node, tail_ratio_theta_i node, wavelength), the nodes "
+                                 "increasing; of extra inputs only with 'packing'")
         if self.encoding not in ENCODINGS or (self.encoding != "cone" and (self.folds or self.lines or self.inputs)):
             raise ValueError(f"model metadata: encoding {self.encoding!r} (known: {ENCODINGS}; the baselines "
                              "take no folds, feature lines or extra inputs)")
@@ -587,13 +588,13 @@ def energy_gain(lib, spec: NeuralSpec, theta_i, *extra):
     per_packing = _piecewise_linear(lib, clip, t, spec.gain_theta_i, rows)   # the gain of every packing node
     L = g.shape[-1]
     if isinstance(per_packing, list):   # Dr.Jit, bounded arithmetic: a value per wavelength
-        return [_between(clip, p, spec.packings, [per_packing[k * L + l] for k in range(len(g))], False)
+        return [between(clip, p, spec.packings, [per_packing[k * L + l] for k in range(len(g))], False)
                 for l in range(L)]
     stacked = per_packing.reshape(per_packing.shape[:-1] + (len(g), L))
-    return _between(clip, p, spec.packings, [stacked[..., k, :] for k in range(len(g))], True)
+    return between(clip, p, spec.packings, [stacked[..., k, :] for k in range(len(g))], True)
 
 
-def _between(clip, x, nodes, at_nodes, spectra: bool):
+def between(clip, x, nodes, at_nodes, spectra: bool):
     """Linear between the values ``at_nodes`` (arrays, one per node; ``spectra``: ``[..., m]``
     against ``x [...]``) at ``nodes``, constant beyond, as clipped segments."""
     out = at_nodes[0]

@@ -685,8 +685,8 @@ class Config(Strict):
             raise ValueError("train.orders learns the orders of scattering: bake them with bake.orders: K (e.g. 8), "
                              "or drop train.orders")
         if self.train.orders and (self.train.inputs or self.train.encoding != "cone"):
-            raise ValueError("train.orders: with the cone encoding and without train.inputs (a dyed near field or "
-                             "family is not supported)")
+            raise ValueError("train.orders: with the cone encoding and without train.inputs (a dyed near field is not "
+                             "supported; a family's packing and orders train together in pipeline.bench.packing)")
         if "offset" in self.train.inputs and not b.offsets:
             raise ValueError("train.inputs [offset] learns the near field: bake it with bake.offsets: N (e.g. 8), "
                              "or drop the offset input")

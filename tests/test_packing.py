@@ -136,3 +136,128 @@ def test_the_energy_gain_holds_each_trained_packings_albedo(family):
             # exported float32 graph (its own expm1 form): a few float32 roundings per value, so
             # ~1e-6 relative; 2e-5 leaves ten times that, far below a pooled gain's miss (~1e-2)
             np.testing.assert_allclose(albedo[rows].sum(0), data.albedo[rows].sum(0), rtol=2e-5)
+
+
+# ----------------------------------------------------------------------------------
+# A family of orders: packing and dye from one model
+# ----------------------------------------------------------------------------------
+
+DYE = np.array([0.9, 0.5, 0.3])   # a per-event albedo at the synthetic table's three wavelengths
+
+
+def with_orders(table, p):
+    """A member with its orders of scattering (K = 3) whose multiple scattering grows with the
+    packing, as a denser ply's does: shares ``0.7 - p``, ``0.2 + p / 2``, ``0.1 + p / 2`` of
+    ``S``, the tail's ratio ``0.3 + p``."""
+    shares = np.array([0.7 - p, 0.2 + p / 2, 0.1 + p / 2])[:, None, None, None, None, None]
+    return table._replace(orders=(table.values[None] * shares).astype(np.float32),
+                          orders_stderr=(table.stderr[None] * shares).astype(np.float32),
+                          tail_ratio=np.full(table.values.shape[:2] + table.values.shape[-1:], 0.3 + p))
+
+
+@pytest.fixture(scope="module")
+def order_family(family):
+    """The family above with its orders (:func:`with_orders`), a tiny model of them."""
+    members, _, _, _, tmp = family
+    members = [(p, with_orders(t, p)) for p, t in members]
+    cfg = make_config(tmp, name="orders")
+    c = cfg.train.model_copy(update={"inputs": ["packing"], "orders": True, "epochs": 40, "patience": 40})
+    problem = prepare_family(members, c, "")
+    spec = dataclasses.replace(problem.base, hidden=[16, 16])
+    model, *_ = fit(spec, problem, c, "family of orders")
+    save_weights(tmp / "orders.npz", spec, model)
+    return members, problem, spec, model, tmp
+
+
+def test_a_family_of_orders_is_dyed_at_every_trained_packing(order_family):
+    """Each order's albedo is held per trained packing by its gain, so the dyed model's albedo,
+    ``dyed(order albedos, a, rho)`` with the tail's ratio the model keeps at that packing, is
+    the seeds' recoloured tables' to float32 rounding, at every packing and incident longitude;
+    the tail's ratio is kept per trained packing (the seeds' mean)."""
+    from models.bundle_table import dyed
+    from models.fit import model_bin_averages
+
+    members, problem, spec, model, _ = order_family
+    data = problem.data
+    assert spec.orders == 3 and np.asarray(spec.tail_ratio).shape == (len(PACKINGS), 1, 13, 3)
+    np.testing.assert_allclose(np.asarray(spec.tail_ratio)[:, 0, 0, 0], [0.3 + p for p in PACKINGS])
+    S = model_bin_averages(spec, model, data.cell, k=8, extra_cell=data.extra_cell, orders=True)
+    albedo = np.zeros_like(data.albedo)           # [groups, K x lambda]: each order's
+    np.add.at(albedo, data.group, S * data.omega[:, None])
+    key, theta = np.zeros(len(albedo), int), np.zeros(len(albedo))
+    key[data.group] = np.searchsorted(PACKINGS, data.extra_cell[:, 0, 0])
+    theta[data.group] = np.abs(data.cell[:, 1])
+    split = lambda a: [a[..., k * 3:(k + 1) * 3] for k in range(3)]  # noqa: E731
+    for k, p in enumerate(PACKINGS):
+        rho = np.asarray(spec.tail_ratio[k])[0, 0]
+        want = np.mean([t.recolour(DYE).scattered for q, t in members if q == p], 0)[0]   # [theta_i, lambda]
+        for j, t in enumerate(members[0][1].theta_i):
+            rows = (key == k) & np.isclose(theta, abs(t))
+            model_dyed = dyed(split(albedo[rows].sum(0)), DYE, rho)
+            table_dyed = dyed(split(data.albedo[rows].sum(0)), DYE, rho)
+            np.testing.assert_allclose(model_dyed, table_dyed, rtol=2e-5)
+            np.testing.assert_allclose(table_dyed / rows.sum(), want[j], rtol=1e-5)
+
+
+def test_a_family_backend_reads_each_lane_at_its_own_packing(order_family, mi_llvm):
+    """``at_packing`` with one packing per lane (a texture's, per hit): each lane's value, its
+    passthrough and its tail's ratio are those of the backend set to that packing alone,
+    linear between the trained packings (the synthetic family's passthrough is ``0.5 - p``,
+    its tail's ratio ``0.3 + p``)."""
+    import drjit as dr
+
+    from mitsuba_ext.backends import MLPBackend
+
+    *_, tmp = order_family
+    lanes = np.array([0.1, 0.17, 0.25, 0.4])
+    backend = MLPBackend(tmp / "orders.npz", mi_llvm.Float, packing=0.2)
+    view = backend.at_packing(mi_llvm.Float(lanes))
+    angles = [mi_llvm.Float(np.full(4, v)) for v in (0.0, 0.5, 2.0, -0.5)]
+    S = np.array([np.asarray(s) for s in view.eval(*angles)])
+    _, rho = view.eval_orders(*angles)
+    np.testing.assert_allclose(np.asarray(view.passthrough(angles[0], angles[1])), 0.5 - lanes, atol=1e-6)
+    np.testing.assert_allclose(np.array([np.asarray(r) for r in rho]), np.tile(0.3 + lanes, (3, 1)), atol=1e-6)
+    for i, p in enumerate(lanes):
+        backend.set_packing(p)
+        one = np.array([np.asarray(s)[0] for s in backend.eval(*(a[i] for a in angles))])
+        np.testing.assert_allclose(S[:, i], one, rtol=1e-5)
+    assert np.ptp(S[0]) > 0 and dr.width(view.constants[0]) == 4
+
+
+def test_a_packing_texture_sets_the_packing_per_hit(order_family, mi_plugins):
+    """``packing`` a bitmap on the UV (two columns, 0.15 and 0.35): a hit on either half
+    is what the BSDF with that packing everywhere returns, scattering and passthrough; a
+    texture reaching outside the trained range is refused at load, naming its span; the
+    dye applies on top."""
+    import drjit as dr
+
+    mi = mi_plugins
+    *_, tmp = order_family
+    model = str(tmp / "orders.npz")
+
+    def bitmap(columns):   # raw: the values as they are (no sRGB decoding)
+        return {"type": "bitmap", "raw": True, "filter_type": "nearest",
+                "data": mi.TensorXf(np.tile(np.asarray(columns, np.float32)[None, :, None], (2, 1, 1)))}
+
+    def at(bsdf, u):
+        si = dr.zeros(mi.SurfaceInteraction3f, len(u))
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+        si.wi = mi.Vector3f(0.6, 0.0, 0.8)
+        si.dp_du, si.n = mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1)
+        si.uv = mi.Point2f(mi.Float(u), mi.Float(0.5))
+        value = np.asarray(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(-0.6, 0.0, 0.8))).reshape(3, -1).T
+        return value, np.asarray(bsdf.eval_attribute_1("passthrough", si))
+
+    u = np.array([0.1, 0.3, 0.7, 0.9])
+    for extra in ({}, {"albedo": {"type": "srgb", "color": [0.8, 0.3, 0.2]}}):
+        textured = mi.load_dict({"type": "fiber_bundle", "backend": "mlp", "model": model,
+                                 "packing": bitmap([0.15, 0.35]), **extra})
+        value, P = at(textured, u)
+        for lanes, p in ((slice(0, 2), 0.15), (slice(2, 4), 0.35)):
+            uniform = mi.load_dict({"type": "fiber_bundle", "backend": "mlp", "model": model, "packing": p, **extra})
+            want, want_P = at(uniform, u[lanes])
+            np.testing.assert_allclose(value[lanes], want, rtol=1e-5)
+            np.testing.assert_allclose(P[lanes], want_P, atol=1e-6)
+        assert value[3].sum() > value[0].sum() and P[3] < P[0]
+    with pytest.raises(Exception, match=r"'packing' texture: its values span 0.2 .. 0.6"):
+        mi.load_dict({"type": "fiber_bundle", "backend": "mlp", "model": model, "packing": bitmap([0.2, 0.6])})
