@@ -225,7 +225,8 @@ class _NeuralBackend:
 
     def set_packing(self, packing: float) -> None:
         """Evaluate a family's model at ``packing`` everywhere (:meth:`check_packing`)."""
-        self.constants = (self.Float(self.check_packing(packing)),)
+        # opaque: an evaluated input of the kernel, not a literal compiled into it (an edit recompiles nothing)
+        self.constants = (dr.opaque(self.Float, self.check_packing(packing)),)
 
     def at_packing(self, packing):
         """This backend read at ``packing``, a Dr.Jit array with one value per lane (a

@@ -33,6 +33,7 @@ The functions take the config's ``train`` section as ``c`` (any object with its 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import time
 from pathlib import Path
@@ -115,13 +116,15 @@ def held_out_bins(table, spec: NeuralSpec, c) -> np.ndarray:
 
 class Problem(NamedTuple):
     """What every model size of one config is fitted to: the spec they share but for
-    their widths, the folded table, its split and the loss weights."""
+    their widths, the folded table, its split, the loss weights and, for a model of the
+    orders, each output's scale (:func:`order_scales`)."""
 
     base: NeuralSpec
     data: object  # models.neural.FoldedTable
     train_idx: np.ndarray
     val_idx: np.ndarray
     w: np.ndarray
+    scale: np.ndarray | None = None
 
 
 def prepare(table, table_path, c, config_hash: str) -> Problem:
@@ -160,13 +163,35 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
     return split_and_weigh(base, data, c)
 
 
+def order_scales(spec: NeuralSpec, data) -> np.ndarray:
+    """Each output's scale for a model of the orders (``spec.orders``): the mean positive
+    value of its order over ``s0``, so that each order is fitted in a log space of its own,
+    ``y = log(1 + S_k / (s0 c_k))``. The orders fall by decades, and with the one ``s0`` of the
+    sum the high ones would sit in the linear part of the log where their errors weigh
+    nothing: the network leaves them near zero and their energy gain grows without bound
+    (10^5 was seen), so that a query off the bins returns fireflies. The scale is folded into
+    the exported energy gain, so no backend knows of it."""
+    K, L = spec.orders, len(spec.wavelength)
+    S = data.S.reshape(len(data.S), K, L)
+    mean = np.array([S[:, k][S[:, k] > 0].mean() if np.any(S[:, k] > 0) else spec.s0 for k in range(K)])
+    return np.repeat(mean / spec.s0, L)
+
+
 def split_and_weigh(base: NeuralSpec, data, c) -> Problem:
     """The random split of ``data``'s samples (``c.val_fraction``, ``c.seed``) and the loss
-    weights ``1 / (sigma_y^2 + sigma_floor^2)``, normalized to a mean of 1 over the training set."""
+    weights ``1 / (sigma_y^2 + sigma_floor^2)``, normalized to a mean of 1 over the training set;
+    for a model of the orders, its targets in each order's log space (:func:`order_scales`)."""
+    scale = None
+    if base.orders:
+        scale = order_scales(base, data)
+        s = base.s0 * scale
+        data = dataclasses.replace(data, y=np.log1p(data.S / s).astype(np.float32),
+                                   sigma_y=(data.E / (s + data.S)).astype(np.float32))
+        base = dataclasses.replace(base, y_max=1.5 * float(data.y.max()) + 1.0)
     train_idx, val_idx = split_bins(len(data.x), c.val_fraction, c.seed)
     w = 1.0 / (data.sigma_y.astype(np.float64) ** 2 + c.sigma_floor**2)
     w = (w / w[train_idx].mean()).astype(np.float32)
-    return Problem(base, data, train_idx, val_idx, w)
+    return Problem(base, data, train_idx, val_idx, w, scale)
 
 
 def prepare_family(members, c, config_hash: str) -> Problem:
@@ -274,6 +299,8 @@ class BinFit:
     def __init__(self, spec: NeuralSpec, problem: Problem):
         data = problem.data
         self.spec, self.data = spec, data
+        # each output's scale (a model of the orders: order_scales), 1 without
+        self.scale = 1.0 if problem.scale is None else torch.from_numpy(problem.scale.astype(np.float32))
         self.Y, self.W = torch.from_numpy(data.y), torch.from_numpy(problem.w)
         self.cell = torch.from_numpy(data.cell.astype(np.float32))
         self.extra = None if data.extra_cell is None else torch.from_numpy(data.extra_cell.astype(np.float32))
@@ -311,7 +338,7 @@ class BinFit:
         y = torch.nn.functional.leaky_relu(y, 0.01).clamp(max=self.spec.y_max)
         e = torch.expm1(y.reshape(len(b), -1, self.spec.n_outputs))  # < 0 exactly where the output is negative,
         # so relu(e) is the clamped expm1; e's bin mean is the leaky S / s0
-        return torch.log1p(torch.clamp(e.mean(1), min=-0.5)), self.spec.s0 * torch.relu(e).mean(1)
+        return torch.log1p(torch.clamp(e.mean(1), min=-0.5)), self.spec.s0 * self.scale * torch.relu(e).mean(1)
 
     def model_albedo(self, S) -> np.ndarray:
         """The model's albedo per (incident direction, wavelength) row, ``[groups, lambda]``,
@@ -349,6 +376,11 @@ def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
     calibration = energy_gain(model, spec, p) if c.energy_gain else {}
     if calibration:
         calibration["calibration_seconds"] = time.perf_counter() - t1
+    elif problem.scale is not None:   # no gain computed: the outputs' scales alone, at one node
+        per_node = problem.scale[None]
+        spec.gain = (np.broadcast_to(per_node, (len(spec.packings),) + per_node.shape)
+                     if "packing" in spec.inputs else per_node).tolist()
+        spec.gain_theta_i = [0.0]
     return model, history, best, time.perf_counter() - t0, calibration
 
 
@@ -456,7 +488,8 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     np.add.at(num, (k, at), table_albedo)
     np.add.at(den, (k, at), model_albedo)
     gain = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), 1.0)
-    spec.gain = (gain if "packing" in spec.inputs else gain[0]).tolist()
+    exported = gain * (1.0 if isinstance(p.scale, float) else p.scale.double().numpy())   # the scales folded in
+    spec.gain = (exported if "packing" in spec.inputs else exported[0]).tolist()
     spec.gain_theta_i = np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)
     # after: integrated on another grid (strata + 1 midpoints a side, none shared), so that the
     # figure holds the gain's own quadrature error, not zero by construction

@@ -443,12 +443,13 @@ def points_in_bins(lib, cell, u):
 def bin_average(predict, cell, k: int = 4, extra_cell=None) -> np.ndarray:
     """Mean of ``predict(phi_i, theta_i, phi_o, theta_o, *extra) -> [n, ...]`` over k x k
     midpoints of each bin of ``cell`` (and, with ``extra_cell [n, m, 2]``, ``max(2, k // 2)``
-    midpoints of each extra input's range): what a bin of the table (a bin average) is
-    compared with."""
+    midpoints of each extra input's range, one where every range is a point: a family's
+    packing): what a bin of the table (a bin average) is compared with."""
     total, count = 0.0, 0
+    n_extra = 1 if extra_cell is None or np.all(extra_cell[..., 0] == extra_cell[..., 1]) else max(2, k // 2)
     extras = [[]] if extra_cell is None else \
         [[lo + t * (hi - lo) for lo, hi in np.moveaxis(extra_cell, (1, 2), (0, 1))]
-         for t in (np.arange(max(2, k // 2)) + 0.5) / max(2, k // 2)]
+         for t in (np.arange(n_extra) + 0.5) / n_extra]
     for a in (np.arange(k) + 0.5) / k:
         for b in (np.arange(k) + 0.5) / k:
             angles = points_in_bins(np, cell, np.broadcast_to([a, b], (len(cell), 2)))
