@@ -439,6 +439,11 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
 
 
 GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the gain (`bench.train --calibration` compares k)
+# The gain corrects the albedo bias of a log-space fit, a few per cent to tens of per cent. A
+# ratio beyond this factor is no bias but an output the network did not learn (near zero where
+# the table is not): multiplied up it would return its noise as fireflies wherever the model is
+# read between the nodes, so it is held at the limit and the albedo error is left to show.
+GAIN_LIMIT = 4.0
 
 
 def _midpoint_means(model, p: BinFit, k: int) -> np.ndarray:
@@ -459,7 +464,9 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     outgoing bins, is the table's scattered fraction: at each of the table's ``theta_i``
     the ratio of the two (over the ``phi_i`` that share it), piecewise linear between them.
     The rows include the held-out bins: their values are never fitted, but the row's total
-    is the target. A family's model (``packing`` input) gets one gain per trained packing.
+    is the target. A family's model (``packing`` input) gets one gain per trained packing. A
+    ratio beyond :data:`GAIN_LIMIT` either way is held there; a model of the orders has each
+    output's scale (:func:`order_scales`) folded in.
     The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
     every bin: the ridge along the specular cone is narrower than a bin, and random points
     (the fit's) would put their own noise into the gain.
@@ -487,7 +494,7 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     num, den = np.zeros(shape), np.zeros(shape)
     np.add.at(num, (k, at), table_albedo)
     np.add.at(den, (k, at), model_albedo)
-    gain = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), 1.0)
+    gain = np.where((num > 0) & (den > 0), np.clip(num / np.maximum(den, 1e-300), 1 / GAIN_LIMIT, GAIN_LIMIT), 1.0)
     exported = gain * (1.0 if isinstance(p.scale, float) else p.scale.double().numpy())   # the scales folded in
     spec.gain = (exported if "packing" in spec.inputs else exported[0]).tolist()
     spec.gain_theta_i = np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)

@@ -146,13 +146,22 @@ DYE = np.array([0.9, 0.5, 0.3])   # a per-event albedo at the synthetic table's 
 
 
 def with_orders(table, p):
-    """A member with its orders of scattering (K = 3) whose multiple scattering grows with the
-    packing, as a denser ply's does: shares ``0.7 - p``, ``0.2 + p / 2``, ``0.1 + p / 2`` of
-    ``S``, the tail's ratio ``0.3 + p``."""
-    shares = np.array([0.7 - p, 0.2 + p / 2, 0.1 + p / 2])[:, None, None, None, None, None]
+    """A member with its orders of scattering (K = 3) falling by decades, as a ply's do, and
+    growing with the packing, as a denser ply's do: shares ``1 - 0.011 (1 + p)``, ``0.01 (1 +
+    p)`` and ``0.001 (1 + p)`` of ``S``, the tail's ratio ``0.3 + p``."""
+    shares = np.array([1 - 0.011 * (1 + p), 0.01 * (1 + p), 0.001 * (1 + p)])[:, None, None, None, None, None]
     return table._replace(orders=(table.values[None] * shares).astype(np.float32),
                           orders_stderr=(table.stderr[None] * shares).astype(np.float32),
                           tail_ratio=np.full(table.values.shape[:2] + table.values.shape[-1:], 0.3 + p))
+
+
+def fit_orders(members, tmp):
+    c = make_config(tmp, name="orders").train.model_copy(update={"inputs": ["packing"], "orders": True, "epochs": 40,
+                                                                  "patience": 40})
+    problem = prepare_family(members, c, "")
+    spec = dataclasses.replace(problem.base, hidden=[16, 16])
+    model, *_ = fit(spec, problem, c, "family of orders")
+    return problem, spec, model
 
 
 @pytest.fixture(scope="module")
@@ -160,13 +169,27 @@ def order_family(family):
     """The family above with its orders (:func:`with_orders`), a tiny model of them."""
     members, _, _, _, tmp = family
     members = [(p, with_orders(t, p)) for p, t in members]
-    cfg = make_config(tmp, name="orders")
-    c = cfg.train.model_copy(update={"inputs": ["packing"], "orders": True, "epochs": 40, "patience": 40})
-    problem = prepare_family(members, c, "")
-    spec = dataclasses.replace(problem.base, hidden=[16, 16])
-    model, *_ = fit(spec, problem, c, "family of orders")
+    problem, spec, model = fit_orders(members, tmp)
     save_weights(tmp / "orders.npz", spec, model)
     return members, problem, spec, model, tmp
+
+
+def test_each_order_is_fitted_in_a_log_space_of_its_own(order_family, monkeypatch):
+    """Each order is fitted relative to its own scale (``models.fit.order_scales``: the mean of
+    its positive values), folded into the exported gain, so the gain beside the scale is the
+    fit's own correction: within a factor 2 of 1 for every packing, longitude and output.
+    With one scale for all (its converse, tried here) the network leaves the small orders near
+    zero and their gains would grow tenfold and more (fireflies wherever the model is read off
+    the bins it was fitted on): they are held at ``GAIN_LIMIT``."""
+    from models import fit as fitting
+
+    members, problem, spec, _, tmp = order_family
+    scale = fitting.order_scales(problem.base, problem.data)
+    assert scale[0] / scale[-1] > 100   # order 1 against the tail
+    assert np.all((np.asarray(spec.gain) / scale > 0.5) & (np.asarray(spec.gain) / scale < 2))
+    monkeypatch.setattr(fitting, "order_scales", lambda spec, data: np.ones(spec.n_outputs))
+    _, one_scale, _ = fit_orders(members, tmp)
+    assert np.isclose(np.asarray(one_scale.gain).max(), fitting.GAIN_LIMIT)
 
 
 def test_a_family_of_orders_is_dyed_at_every_trained_packing(order_family):

@@ -47,10 +47,11 @@ import numpy as np
 import yaml
 
 import mitsuba_ext
+from mitsuba_ext.neural import OnnxMLP
 from models import errors
 from models.bundle_table import BundleTable, dyed
 from models.fit import fit, model_bin_averages, prepare, prepare_family
-from models.neural import order_channels, order_sum, save_onnx, save_weights, table_cells
+from models.neural import bin_average, order_channels, order_sum, save_onnx, save_weights, table_cells
 from pipeline import scenes
 from pipeline.artifacts import stage_dir
 from pipeline.config import TRAIN_SECTIONS
@@ -132,8 +133,11 @@ def measure(model, spec, members, packing: float) -> dict:
     scattered = np.mean([t.scattered for t in tables], 0)
     rho = np.stack([np.interp(packing, spec.packings, column) for column in
                     np.asarray(spec.tail_ratio, float).reshape(len(spec.packings), -1).T]).reshape(t0.tail_ratio.shape)
+    # a recoloured table's scattered fraction is the dye applied to its orders' integrals (linear)
+    order_albedos = [np.einsum("kabpql,pq->kabl", t.orders.astype(np.float64), t.solid_angle) for t in tables]
     dyed_errors = [errors.albedo_error(flat(integral(dyed(orders, a, rho[:, :, None, None, :]))),
-                                       flat(np.mean([t.recolour(a).scattered for t in tables], 0)))
+                                       flat(np.mean([dyed(list(o), a, t.tail_ratio)
+                                                     for o, t in zip(order_albedos, tables)], 0)))
                    for a in dyes(t0.wavelength).values()]
     seeds_l1 = np.mean([errors.core_l1(rows(t.values), rows(mean), omega) for t in tables])
     return {"packing": packing, "seeds": len(tables),
@@ -142,6 +146,51 @@ def measure(model, spec, members, packing: float) -> dict:
             "core bins within the spread": float(within[core].mean()),
             "core L1 vs seed mean": errors.core_l1(rows(S), rows(mean), omega),
             "one seed's core L1 vs the mean": float(seeds_l1)}
+
+
+FAMILY = "docs/images/packing_family.png"
+THETA_FIGURE = (10.0, 40.0, 70.0)   # incident longitudes of the family figure, degrees
+
+
+def family_figure(onnx_path: Path, members: list, path: Path) -> None:
+    """The family against packing: the scattered fraction (at :data:`THETA_FIGURE`, mean over
+    wavelengths) and the passthrough, the seed-averaged direct tables with the arrangement spread
+    (the seeds' standard deviation) as error bars, trained and held-out packings, and the model
+    read from its file (onnxruntime) across its whole range."""
+    model = OnnxMLP(onnx_path)
+    spec, t0 = model.spec, members[0][1]
+    packings = sorted({p for p, _ in members})
+    lo, hi = spec.input_range["packing"]
+    grid = np.linspace(lo, hi, 25)
+    rows = [int(np.argmin(np.abs(np.rad2deg(t0.theta_i) - t))) for t in THETA_FIGURE]
+    cells = table_cells(t0).reshape(len(t0.phi_i), len(t0.theta_i), -1, 6)[0]
+    fig, (ax_a, ax_p) = plt.subplots(1, 2, figsize=(10, 3.8))
+    for j, colour_ in zip(rows, ("C0", "C1", "C2")):
+        at = lambda p: bin_average(  # noqa: E731
+            lambda *q: model.eval(*(np.asarray(a, np.float32) for a in q)).astype(np.float64),
+            cells[j], 4, np.full((len(cells[j]), 1, 2), p))
+        albedo = [float((at(p) * t0.solid_angle.ravel()[:, None]).sum(0).mean()) for p in grid]
+        ax_a.plot(grid, albedo, color=colour_, label=f"model, theta_i {np.rad2deg(t0.theta_i[j]):.0f} deg")
+        per_seed = {p: [t.scattered[0, j].mean() for q, t in members if q == p] for p in packings}
+        ax_a.errorbar(packings, [np.mean(v) for v in per_seed.values()],
+                      [np.std(v, ddof=1) for v in per_seed.values()], fmt="o", color=colour_, capsize=3)
+    passthrough = {p: [t.passthrough.mean() for q, t in members if q == p] for p in packings}
+    ax_p.errorbar(packings, [np.mean(v) for v in passthrough.values()],
+                  [np.std(v, ddof=1) for v in passthrough.values()], fmt="o", color="k", capsize=3,
+                  label="direct bakes (seed mean +- spread)")
+    ax_p.plot(grid, [np.interp(p, spec.packings, np.asarray(spec.passthrough_packing).mean(1)) for p in grid], "k-",
+              label="model (linear between trained packings)")
+    for ax, what in ((ax_a, "scattered fraction (mean over wavelengths)"), (ax_p, "passthrough probability")):
+        ax.set_xlabel("packing fraction")
+        ax.set_ylabel(what)
+        for p in HELD_OUT:
+            ax.axvline(p, color="0.85", zorder=0)
+    ax_a.legend(fontsize=8)
+    ax_p.legend(fontsize=8)
+    fig.suptitle("a family of plies: direct bakes (points, arrangement spread as bars; grey lines: held-out packings) "
+                 "and one model", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
 
 
 def render_checks(cfg, out: Path, model_path: Path, plain_path: Path, strip_path: Path) -> list[dict]:
@@ -196,12 +245,18 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--artifacts", default="artifacts")
     ap.add_argument("--quick", action="store_true", help="fewer paths and epochs (a smoke run, not recorded)")
+    ap.add_argument("--figure", action="store_true", help="only redraw the family figure from the baked members and "
+                                                           "the model file of an earlier run")
     args = ap.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
     artifacts = Path(args.artifacts)
     paths = 200_000 if args.quick else 1_000_000
     out = artifacts / "packing_family_train" / "model"
     out.mkdir(parents=True, exist_ok=True)
+    if args.figure:
+        family_figure(out / "model.onnx", family("train", TRAINED, artifacts, paths) +
+                      family("held", HELD_OUT, artifacts, paths), Path(FAMILY))
+        return
     with results.recorded("packing", smoke=args.quick):
         trained = family("train", TRAINED, artifacts, paths)   # the sweeps' progress goes to stderr, off the record
         held = family("held", HELD_OUT, artifacts, paths)
@@ -223,22 +278,26 @@ def main(argv=None):
         print(results.rows_table(rows))
 
         # the direct tables at the held-out packings, and the default model: one ply (the middle
-        # trained packing's seed average), the default network, no orders
+        # trained packing's first seed), the default network, no orders
         for p in HELD_OUT:
             seed_mean(held, p).save(out / f"direct_{p:g}.npz")
-        seed_mean(trained, 0.2).save(out / "direct_0.2.npz")
         one = cfg.train.model_copy(update={"epochs": epochs})
-        single = prepare(BundleTable.load(out / "direct_0.2.npz", expand=True), out / "direct_0.2.npz", one, "")
+        ply = next(stage_dir(cfg, "sweep", artifacts) / m.name / "bake" / "bundle_table.npz"
+                   for point, m in sweep_members(cfg) if point["bundle.packing"] == 0.2)
+        single = prepare(BundleTable.load(ply, expand=True), ply, one, "")
         plain_spec = dataclasses.replace(single.base, hidden=list(hidden))
         plain, *_ = fit(plain_spec, single, one, "default")
         plain_bytes = save_weights(out / "default.npz", plain_spec, plain)
         strip = (artifacts / "packing_strip.png") if args.quick else Path(STRIP)
+        figure = (artifacts / "packing_family.png") if args.quick else Path(FAMILY)
+        family_figure(out / "model.onnx", trained + held, figure)
         renders = render_checks(cfg, out, out / "weights.npz", out / "default.npz", strip)
         print(f"renders: the yarn of the render stage ({cfg.render.variant}, {cfg.render.width} x "
               f"{cfg.render.height}, {cfg.render.spp} spp); parameters {nbytes} bytes against the default "
               f"model's {plain_bytes} ({nbytes / plain_bytes:.1f}x)")
         print(results.rows_table(renders))
-        print(f"wrote {out / 'weights.npz'}, {out / 'model.onnx'}, {strip} ({time.perf_counter() - t0:.0f} s)")
+        print(f"wrote {out / 'weights.npz'}, {out / 'model.onnx'}, {strip}, {figure} "
+              f"({time.perf_counter() - t0:.0f} s)")
 
 
 if __name__ == "__main__":
