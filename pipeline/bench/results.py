@@ -92,15 +92,21 @@ def recorded(name: str, smoke: bool = False, folder: Path | None = None):
     printed = io.StringIO()
     real = sys.stdout
     sys.stdout = _Tee(real, printed)
+    done = None
     try:
         yield
+    except SystemExit as e:   # a bench's `raise SystemExit(main())`: it finished, record it
+        if e.code not in (None, 0):
+            raise
+        done = e
     finally:
         sys.stdout = real
     if smoke:
         print(f"not recorded: a smoke run (run without --quick to update benchmarks/{name}.json)")
-        return
-    text = printed.getvalue().strip()
-    save(name, f"```text\n{text}\n```", folder=folder)
+    else:
+        save(name, f"```text\n{printed.getvalue().strip()}\n```", folder=folder)
+    if done is not None:
+        raise done
 
 
 def rows_table(rows: list[dict], columns: list[str] | None = None) -> str:
