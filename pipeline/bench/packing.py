@@ -51,7 +51,7 @@ from mitsuba_ext.neural import OnnxMLP
 from models import errors
 from models.bundle_table import BundleTable, dyed
 from models.fit import fit, model_bin_averages, prepare, prepare_family
-from models.neural import bin_average, order_channels, order_sum, save_onnx, save_weights, table_cells
+from models.neural import between, bin_average, order_channels, order_sum, save_onnx, save_weights, table_cells
 from pipeline import scenes
 from pipeline.artifacts import stage_dir
 from pipeline.config import TRAIN_SECTIONS
@@ -105,7 +105,7 @@ def seed_mean(members, packing: float) -> BundleTable:
     mean = lambda name: np.mean([getattr(t, name).astype(np.float64) for t in tables], 0)  # noqa: E731
     n = len(tables)
     return tables[0]._replace(
-        values=mean("values").astype(np.float32), stderr=(np.sqrt(mean("stderr") ** 2 / n)).astype(np.float32),
+        values=mean("values").astype(np.float32), stderr=(mean("stderr") / np.sqrt(n)).astype(np.float32),
         orders=mean("orders").astype(np.float32), orders_stderr=(mean("orders_stderr") / np.sqrt(n)).astype(np.float32),
         tail_ratio=mean("tail_ratio"), passthrough=mean("passthrough"), passthrough_stderr=mean("passthrough_stderr"),
         absorbed=mean("absorbed"), lost=mean("lost"), single=None if tables[0].single is None else mean("single"))
@@ -131,8 +131,7 @@ def measure(model, spec, members, packing: float) -> dict:
     integral = lambda a: (a * t0.solid_angle[None, None, :, :, None]).sum((2, 3))  # noqa: E731
     flat = lambda a: a.reshape(-1, a.shape[-1])  # noqa: E731
     scattered = np.mean([t.scattered for t in tables], 0)
-    rho = np.stack([np.interp(packing, spec.packings, column) for column in
-                    np.asarray(spec.tail_ratio, float).reshape(len(spec.packings), -1).T]).reshape(t0.tail_ratio.shape)
+    rho = between(np.clip, packing, spec.packings, [np.asarray(r) for r in spec.tail_ratio], False)   # the plugin's
     # a recoloured table's scattered fraction is the dye applied to its orders' integrals (linear)
     order_albedos = [np.einsum("kabpql,pq->kabl", t.orders.astype(np.float64), t.solid_angle) for t in tables]
     dyed_errors = [errors.albedo_error(flat(integral(dyed(orders, a, rho[:, :, None, None, :]))),
@@ -178,7 +177,8 @@ def family_figure(onnx_path: Path, members: list, path: Path) -> None:
     ax_p.errorbar(packings, [np.mean(v) for v in passthrough.values()],
                   [np.std(v, ddof=1) for v in passthrough.values()], fmt="o", color="k", capsize=3,
                   label="direct bakes (seed mean +- spread)")
-    ax_p.plot(grid, [np.interp(p, spec.packings, np.asarray(spec.passthrough_packing).mean(1)) for p in grid], "k-",
+    at_nodes = [float(np.mean(q)) for q in spec.passthrough_packing]
+    ax_p.plot(grid, [between(np.clip, p, spec.packings, at_nodes, False) for p in grid], "k-",
               label="model (linear between trained packings)")
     for ax, what in ((ax_a, "scattered fraction (mean over wavelengths)"), (ax_p, "passthrough probability")):
         ax.set_xlabel("packing fraction")
