@@ -31,7 +31,7 @@ from models.bake.tally import cell_of_offset
 from models.bundle_table import BundleTable, dyed
 from models.grid import bin_solid_angle, linear
 from models.jit import to_drjit
-from models.neural import between, far_field, order_channels
+from models.neural import between, bracketed, far_field, order_channels
 
 BACKENDS = ("table", "mlp", "onnx")
 
@@ -225,7 +225,7 @@ class _NeuralBackend:
 
     def set_packing(self, packing: float) -> None:
         """Evaluate a family's model at ``packing`` everywhere (:meth:`check_packing`)."""
-        # opaque: an evaluated input of the kernel, not a literal compiled into it (an edit recompiles nothing)
+        # opaque: an evaluated input of the kernel, not a literal compiled into it
         self.constants = (dr.opaque(self.Float, self.check_packing(packing)),)
 
     def at_packing(self, packing):
@@ -328,11 +328,24 @@ class MLPBackend(_NeuralBackend):
 
     def __init__(self, weights_path, Float, near_field: bool = True, packing: float | None = None):
         self.mlp = DrJitMLP(weights_path)
+        self.here = self.mlp   # the network as evaluated: a family's at its uniform packing (set_packing)
         self._init_spec(self.mlp.spec, Float, near_field, packing)
         self.nbytes = self.mlp.nbytes
 
+    def set_packing(self, packing: float) -> None:
+        """As :meth:`_NeuralBackend.set_packing`; the traced kernel holds the gain of the two
+        trained packings around it alone (:func:`models.neural.bracketed`): an edit within them
+        recompiles nothing, one across a trained packing compiles that pair's kernel."""
+        super().set_packing(packing)
+        self.here = self.mlp.with_spec(bracketed(self.mlp.spec, self.check_packing(packing)))
+
+    def at_packing(self, packing):
+        view = super().at_packing(packing)
+        view.here = self.mlp   # a packing per lane: every trained packing's gain
+        return view
+
     def _eval(self, *queries, orders: bool = False):
-        return self.mlp.eval(*queries, *self.constants, orders=orders)
+        return self.here.eval(*queries, *self.constants, orders=orders)
 
 
 class OnnxBackend(_NeuralBackend):

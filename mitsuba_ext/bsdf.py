@@ -212,7 +212,9 @@ class FiberBundleBSDF(CurveBSDF):
          - The ply's packing fraction, for a model trained on a family of bakes
            (``train.inputs: [packing]``, ``python -m pipeline.bench.packing``): within
            the range it was trained on (refused outside: it does not extrapolate). A
-           number is editable at render time through ``mi.traverse``; a texture on the
+           number is editable at render time through ``mi.traverse`` (the ``mlp``
+           backend traces the two trained packings around it: an edit between them
+           compiles nothing, one past a trained packing compiles once); a texture on the
            shape's UV (a ``bitmap`` with ``raw: true``, say) sets it per hit, its values
            checked at load on a 256 x 256 grid of the UV square. Refused by the table
            backend and by models of one ply.

@@ -15,6 +15,7 @@ Example::
 
 from __future__ import annotations
 
+import copy
 import json
 import zipfile
 
@@ -171,6 +172,13 @@ class DrJitMLP:
         # Python floats become literals in the traced kernel
         self._layers = [(W.astype(float).tolist(), b.astype(float).tolist()) for W, b in self.layers]
         self._packed = {}  # tensor type -> the packed matrix and bias views of every layer
+
+    def with_spec(self, spec: NeuralSpec) -> "DrJitMLP":
+        """This network read with other metadata of the same model (a family's at two of
+        its trained packings: :func:`models.neural.bracketed`); the weights are shared."""
+        view = copy.copy(self)
+        view.spec = spec
+        return view
 
     def cooperative(self, Float) -> bool:
         """Whether inputs of type ``Float`` are evaluated with cooperative vectors here

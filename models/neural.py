@@ -73,7 +73,7 @@ fold queries beyond the features above.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -603,6 +603,24 @@ def between(clip, x, nodes, at_nodes, spectra: bool):
         w = (clip(x, float(a), float(b)) - float(a)) * float(1.0 / (b - a))
         out = out + (w[..., None] if spectra else w) * (at_nodes[k + 1] - at_nodes[k])
     return out
+
+
+def bracketed(spec: NeuralSpec, packing: float) -> NeuralSpec:
+    """A family's spec (a ``packing`` input) whose per-packing data (the energy gain, the
+    passthrough, the tail's ratio) keep only the two trained packings around ``packing``.
+
+    Anywhere between those two it evaluates as ``spec`` does (:func:`between` is linear
+    between neighbouring nodes and the segments below them sum to the lower node's value),
+    to float rounding; the range trained on (``input_range``) is kept. A uniform packing
+    is read through it: the gain of every trained packing is most of what a family's
+    evaluation costs beyond its network, and all but two of them have weight 0 there."""
+    nodes = np.asarray(spec.packings, float)
+    if "packing" not in spec.inputs or len(nodes) <= 2:
+        return spec
+    k = int(np.clip(np.searchsorted(nodes, packing, side="right") - 1, 0, len(nodes) - 2))
+    pair = lambda values: list(values[k:k + 2]) if values else values  # noqa: E731
+    return replace(spec, packings=pair(spec.packings), gain=pair(spec.gain),
+                   passthrough_packing=pair(spec.passthrough_packing), tail_ratio=pair(spec.tail_ratio))
 
 
 def _piecewise_linear(lib, clip, x, nodes, values):

@@ -247,6 +247,33 @@ def test_a_family_backend_reads_each_lane_at_its_own_packing(order_family, mi_ll
     assert np.ptp(S[0]) > 0 and dr.width(view.constants[0]) == 4
 
 
+def test_a_uniform_packing_is_read_between_its_two_trained_packings(order_family, mi_llvm):
+    """A uniform packing keeps only the two trained packings around it (``bracketed``): the
+    gain and the passthrough there are the full family's, at the nodes and between them; the
+    backend set to a packing traces that pair. A pair read outside its own interval (clamped
+    at its ends) is not the family: the comparison can fail."""
+    from mitsuba_ext.backends import MLPBackend
+    from models.neural import between, bracketed, energy_gain
+
+    *_, spec, _, tmp = order_family
+    theta = np.linspace(-1.5, 1.5, 7)
+    for p in (0.1, 0.15, 0.2, 0.27, 0.3, 0.4):
+        pair = bracketed(spec, p)
+        assert len(pair.packings) == 2 and pair.packings[0] <= p <= pair.packings[1]
+        assert pair.input_range == spec.input_range
+        np.testing.assert_allclose(energy_gain(np, pair, theta, np.full(7, p)),
+                                   energy_gain(np, spec, theta, np.full(7, p)), rtol=1e-12)
+        np.testing.assert_allclose(between(np.clip, np.float64(p), pair.packings, np.asarray(pair.passthrough_packing),
+                                           False),
+                                   between(np.clip, np.float64(p), spec.packings, np.asarray(spec.passthrough_packing),
+                                           False))
+    backend = MLPBackend(tmp / "orders.npz", mi_llvm.Float, packing=0.27)
+    assert backend.here.spec.packings == [0.2, 0.3] and backend.mlp.spec.packings == PACKINGS
+    far = bracketed(spec, 0.35)
+    at = np.full(7, 0.15)
+    assert not np.allclose(energy_gain(np, far, theta, at), energy_gain(np, spec, theta, at))
+
+
 def test_a_packing_texture_sets_the_packing_per_hit(order_family, mi_plugins):
     """``packing`` a bitmap on the UV (two columns, 0.15 and 0.35): a hit on either half
     is what the BSDF with that packing everywhere returns, scattering and passthrough; a
