@@ -156,8 +156,19 @@ def test_stages_read_only_artifacts():
     assert not bad, f"stages reading docs/: {bad}"
 
 
+def runs_main(source: str) -> bool:
+    """Whether a module's top level has ``if __name__ == "__main__":`` calling ``main``."""
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.If) and "__main__" in ast.unparse(node.test) and "__name__" in ast.unparse(node.test):
+            return any(isinstance(n, ast.Call) and ast.unparse(n.func) == "main" for n in ast.walk(node))
+    return False
+
+
 def test_every_bench_imports_and_has_a_main():
-    """A bench whose imports broke when code moved fails here, not on the day someone runs it."""
+    """A bench whose imports broke when code moved fails here, not on the day someone runs it;
+    and ``python -m pipeline.bench.NAME`` runs its ``main`` (a module that only defines it
+    exits silently, having measured nothing). The check of the guard can fail: a module
+    without one, or whose guard calls something else, is told apart."""
     import importlib
 
     names = [p.stem for p in (ROOT / "pipeline" / "bench").glob("*.py") if p.stem not in ("__init__", "results")]
@@ -165,3 +176,8 @@ def test_every_bench_imports_and_has_a_main():
     for name in names:
         module = importlib.import_module(f"pipeline.bench.{name}")
         assert callable(getattr(module, "main", None)), f"pipeline.bench.{name} has no main()"
+        assert runs_main((ROOT / "pipeline" / "bench" / f"{name}.py").read_text()), \
+            f"python -m pipeline.bench.{name} does not call main(): end it with `if __name__ == \"__main__\":`"
+    assert not runs_main("def main():\n    pass\n")
+    assert not runs_main('def main():\n    pass\n\n\nif __name__ == "__main__":\n    print()\n')
+    assert runs_main('def main():\n    pass\n\n\nif __name__ == "__main__":\n    raise SystemExit(main())\n')

@@ -24,6 +24,13 @@ bin averages over *every* bin (12 x 12 midpoints: the ridge is narrower than a b
 is a point of the energy gain's 8 x 8) against it, :func:`models.errors.core_l1` (the bins
 holding 90% of each incident direction and wavelength's energy), and its albedo against the
 reference's scattered fraction; the training table itself is the first row (its noise).
+Where the error lies: the same core L1 of the spectra's means over wavelength (``grey``), and
+of each bin's spectrum given the reference's shape with its own mean kept (``true spectra``):
+a model that smooths the spectra's ripples (the fiber's Mie resonances, which move from one
+azimuth bin and wavelength to the next) loses there what it keeps in the grey. Two rows say
+how many numbers those shapes take: the reference's grey times the training table's spectral
+shape averaged over each (``|theta_i|``, azimuth bin), at the table's azimuth bins and at 9
+(:func:`shared_spectra`).
 
 Prints one table, recorded as ``benchmarks/encoding.json``; ``--quick`` trains a tenth of
 the epochs (a smoke run, not recorded).
@@ -63,12 +70,46 @@ LINES = [("plain", [], 0, None, "cone"),
 
 
 def against(reference, S) -> dict:
-    """``S`` (the expanded table's shape) against the reference table: core L1, worst albedo."""
+    """``S`` (the expanded table's shape) against the reference table: core L1, worst albedo;
+    and where the error lies: the core L1 of the spectra's means over wavelength (``grey``),
+    and of ``S`` with each bin's spectrum given the reference's shape, its mean kept
+    (``true_spectra``: what is left when the spectra's shapes are right)."""
     n_l = S.shape[-1]
     omega = reference.solid_angle.ravel()
+    true = reference.values.astype(np.float64)
     albedo = (S * reference.solid_angle[None, None, :, :, None]).sum((2, 3))
-    return {"truth_core_l1": errors.core_l1(errors.by_rows(S), errors.by_rows(reference.values), omega),
-            "truth_albedo": errors.albedo_error(albedo.reshape(-1, n_l), reference.scattered.reshape(-1, n_l))}
+    grey = lambda a: a.mean(-1, keepdims=True)  # noqa: E731
+    shape = true / np.maximum(grey(true), np.finfo(float).tiny)
+    core = lambda a, b: errors.core_l1(errors.by_rows(a), errors.by_rows(b), omega)  # noqa: E731
+    return {"truth_core_l1": core(S, true),
+            "truth_albedo": errors.albedo_error(albedo.reshape(-1, n_l), reference.scattered.reshape(-1, n_l)),
+            "truth_grey_l1": core(grey(S), grey(true)), "truth_l1_true_spectra": core(grey(S) * shape, true)}
+
+
+def shared_spectra(table, reference, n_azimuth: int) -> dict:
+    """How many numbers the spectra's shapes take: the reference's grey (its mean over
+    wavelength, as if a model had it exactly) times the training table's spectral shape
+    averaged over each class of (``|theta_i|``, ``n_azimuth`` bins of ``|phi_o - phi_i|``),
+    against the reference; ``bytes``: the classes' shapes in float32."""
+    grey = lambda a: a.mean(-1, keepdims=True)  # noqa: E731
+    S = table.values.astype(np.float64)
+    weight = grey(S) * table.solid_angle[None, None, :, :, None]
+    dphi = np.abs(np.angle(np.exp(1j * (table.phi_o[None, :] - table.phi_i[:, None]))))   # [phi_i, phi_o]
+    azimuth = np.minimum((dphi / np.pi * n_azimuth).astype(int), n_azimuth - 1)
+    _, incidence = np.unique(np.round(np.abs(table.theta_i), 9), return_inverse=True)
+    classes = (incidence[None, :, None] * n_azimuth + azimuth[:, None, :])[..., None]   # [phi_i, theta_i, phi_o, 1]
+    classes = np.broadcast_to(classes, S.shape[:3] + (S.shape[3],)).ravel()
+    shape = S / np.maximum(grey(S), np.finfo(float).tiny)
+    n_l = S.shape[-1]
+    num, den = np.zeros((classes.max() + 1, n_l)), np.zeros(classes.max() + 1)
+    np.add.at(num, classes, (shape * weight).reshape(-1, n_l))
+    np.add.at(den, classes, weight.reshape(-1))
+    mean_shape = (num / np.maximum(den, np.finfo(float).tiny)[:, None])[classes].reshape(S.shape)
+    true = reference.values.astype(np.float64)
+    return {"encoding": f"the truth's grey x the table's spectra per (|theta_i|, {n_azimuth} azimuth bins)",
+            "bytes": int(4 * n_l * len(np.unique(classes))),
+            "truth_core_l1": errors.core_l1(errors.by_rows(grey(true) * mean_shape), errors.by_rows(true),
+                                            reference.solid_angle.ravel())}
 
 
 def measure(cfg, table, table_path, label, nodes, channels, hidden, encoding="cone", quick=False,
@@ -133,6 +174,8 @@ def main(argv=None):
                              f"{cfg.name}'s {table.values.shape}; bake it from the same config")
     rows = [{"encoding": "the training table", "bytes": int(table.values.size * 4),
              **against(reference, table.values.astype(np.float64))}] if reference is not None else []
+    if reference is not None:
+        rows += [shared_spectra(table, reference, n) for n in (len(table.phi_o) // 2, 9)]
     variants = [LINES[0], *args.lines] if args.lines else LINES
     rows += [measure(cfg, table, table_path, *variant, quick=args.quick, reference=reference) for variant in variants]
     table_md = results.rows_table(rows)
@@ -157,3 +200,7 @@ def pareto_plot(rows, path, key: str):
            "relative L1 of the core against " + ("the truth" if key.startswith("truth") else "the held-out bins"),
            "Encodings of the table: error against size and training time (one run)",
            None if table is None or key not in table else (table[key], "the training table itself (its noise)"))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
