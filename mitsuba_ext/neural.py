@@ -27,20 +27,24 @@ import numpy as np
 
 from models import lines as fl
 from models.jit import to_drjit
-from models.neural import NeuralSpec, check_inputs, energy_gain, features, order_sum, stable_expm1
+from models.neural import NeuralSpec, azimuth_gain, check_inputs, energy_gain, features, order_sum, stable_expm1
 from models.queries import directions
 
 
 def load_weights(path):
     """``(spec, [(W, b), ...], lines)`` from a ``weights.npz`` written by ``bcsdf export``;
-    ``lines`` the feature lines' nodes ``[n_k, C]`` (``L0, L1, L2``; none for a plain MLP)."""
+    ``lines`` the feature lines' nodes ``[n_k, C]`` (``L0, L1, L2``; none for a plain MLP); the
+    azimuthal gain, where the model has one, is an array of its own put back into ``spec``."""
     if str(path).endswith(".onnx"):  # np.load would advise unpickling it
         raise ValueError(f"{path}: an ONNX graph, not the plain weights the Dr.Jit evaluator reads; give its "
                          "weights.npz (beside it), or evaluate the graph with OnnxMLP (backend 'onnx')")
     try:
         with np.load(path, allow_pickle=False) as z:
             text = z["spec"]  # UTF-8 bytes; an older export's numpy str
-            spec = NeuralSpec.from_dict(json.loads(text.item().decode("utf-8") if text.dtype.kind == "S" else str(text)))
+            meta = json.loads(text.item().decode("utf-8") if text.dtype.kind == "S" else str(text))
+            if "azimuth_gain" in z:   # an array beside the metadata (models.neural.save_weights)
+                meta["azimuth_gain"] = z["azimuth_gain"].astype(np.float64).tolist()
+            spec = NeuralSpec.from_dict(meta)
             layers = []
             while f"W{len(layers)}" in z:
                 k = len(layers)
@@ -216,6 +220,8 @@ class DrJitMLP:
         S = [s0 * stable_expm1(dr, dr.clip(v, 0.0, y_max)) for v in y]
         gain = energy_gain(dr, self.spec, theta_i, *extra)
         S = S if gain is None else [s * g for s, g in zip(S, gain)]
+        azimuthal = azimuth_gain(dr, self.spec, theta_i, phi_i, phi_o)
+        S = S if azimuthal is None else [s * g for s, g in zip(S, azimuthal)]
         return S if orders else order_sum(self.spec, S)
 
     def _line_products(self, Float, coords):
@@ -261,4 +267,5 @@ class DrJitMLP:
 
     @property
     def nbytes(self) -> int:
-        return sum(W.nbytes + b.nbytes for W, b in self.layers) + sum(L.nbytes for L in self.lines)
+        return sum(W.nbytes + b.nbytes for W, b in self.layers) + sum(L.nbytes for L in self.lines) + \
+            4 * int(np.size(self.spec.azimuth_gain))

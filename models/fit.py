@@ -146,6 +146,12 @@ def prepare(table, table_path, c, config_hash: str) -> Problem:
         raise ValueError(f"{table_path}: train.orders learns the orders of scattering, and this table has none; "
                          "bake it with `bake.orders: K` (e.g. 8)")
     orders = len(table.orders) if learns_orders else 0
+    bins = getattr(c, "gain_azimuth_bins", 0)
+    half = len(table.phi_o) // 2
+    if bins and (not relative or len(table.phi_o) % 2 or half % bins):
+        raise ValueError(f"{table_path}: train.gain_azimuth_bins {bins} must divide the table's {half} bins of "
+                         f"|phi_o - phi_i| (a circular ply's table; e.g. {half} or {half // 2 if half % 2 == 0 else 1})"
+                         if relative else f"{table_path}: train.gain_azimuth_bins needs a circular ply's table")
     base = NeuralSpec(relative_phi=relative, hidden=[], s0=s0, y_max=1.5 * y_top + 1.0,
                       wavelength=table.wavelength.tolist(), table_hash=file_hash(table_path),
                       config_hash=config_hash, reductions=table.meta["reductions"],
@@ -373,7 +379,8 @@ def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
     t0 = time.perf_counter()
     history, best = fit_bins(model, p, c, name, on_epoch, t0)
     t1 = time.perf_counter()
-    calibration = energy_gain(model, spec, p) if c.energy_gain else {}
+    bins = getattr(c, "gain_azimuth_bins", 0)
+    calibration = energy_gain(model, spec, p, azimuth_bins=bins) if c.energy_gain else {}
     if calibration:
         calibration["calibration_seconds"] = time.perf_counter() - t1
     elif problem.scale is not None:   # no gain computed: the outputs' scales alone, at one node
@@ -455,7 +462,29 @@ def _midpoint_means(model, p: BinFit, k: int) -> np.ndarray:
     return bin_average(predict, p.data.cell, k, p.data.extra_cell)
 
 
-def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -> dict:
+def azimuth_bin(cell: np.ndarray, bins: int) -> np.ndarray:
+    """Each sample's bin of ``|phi_o - phi_i|`` (``bins`` equal bins over [0, pi];
+    :func:`models.neural.azimuth_gain`) from its directions ``cell [n, 6]``
+    (:func:`models.neural.table_cells`), at its azimuth's centre."""
+    d = 0.5 * (cell[:, 2] + cell[:, 3]) - cell[:, 0]
+    return np.clip(np.floor(np.abs(np.angle(np.exp(1j * d))) * (bins / np.pi)), 0, bins - 1).astype(int)
+
+
+def azimuth_ratio(p: BinFit, S_model: np.ndarray, at: np.ndarray, n_nodes: int, bins: int) -> np.ndarray:
+    """``[bins, node, lambda]``: the table's energy over the model's in each class of (azimuth
+    bin, gain node), summed over the *training* samples (a held-out bin's value is never a
+    target), held within :data:`GAIN_LIMIT` either way; 1 where a class holds no energy."""
+    tr = p.tr.numpy()
+    cls = azimuth_bin(p.data.cell[tr], bins) * n_nodes + at[p.data.group[tr]]
+    w = p.data.omega[tr, None]
+    num, den = np.zeros((bins * n_nodes, S_model.shape[1])), np.zeros((bins * n_nodes, S_model.shape[1]))
+    np.add.at(num, cls, p.data.S[tr] * w)
+    np.add.at(den, cls, S_model[tr] * w)
+    ratio = np.where((num > 0) & (den > 0), np.clip(num / np.maximum(den, 1e-300), 1 / GAIN_LIMIT, GAIN_LIMIT), 1.0)
+    return ratio.reshape(bins, n_nodes, -1)
+
+
+def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, azimuth_bins: int = 0) -> dict:
     """Phase 2: the energy gain, in closed form.
 
     Log-space errors alone bias the albedo (worst at grazing incidence). The gain
@@ -471,13 +500,19 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     every bin: the ridge along the specular cone is narrower than a bin, and random points
     (the fit's) would put their own noise into the gain.
 
+    With ``azimuth_bins``, first each class of (bin of ``|phi_o - phi_i|``, gain node) gets the
+    ratio of the table's energy to the model's over its training samples
+    (:func:`azimuth_ratio`, ``spec.azimuth_gain``: the spectra's ripple from one azimuth bin to
+    the next, which a small network smooths), then the gain above holds each row's albedo.
+    The bins should be the table's own (or unions of them): a bin of the table split between
+    two of the gain's would be read with each half's factor, though its ratio is of the whole.
+
     Sets ``spec.gain`` and ``spec.gain_theta_i``; returns the worst albedo error over the
     scattering rows before and after (after: integrated at ``strata + 1`` x ``strata + 1``
     midpoints; empty if no row scatters).
     """
     if not p.seen.any():  # no row scatters
         return {}
-    model_albedo = p.model_albedo(_midpoint_means(model, p, strata))
     table_albedo = p.data.albedo
     # each group's incident longitude (|theta_i| under the theta fold: the features cannot tell the sign)
     theta = np.zeros(len(table_albedo))
@@ -485,6 +520,14 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     theta = np.abs(theta) if "theta" in spec.folds else theta
     nodes = np.unique(np.round(theta, 12))
     at = np.searchsorted(nodes, np.round(theta, 12))
+    S_model = _midpoint_means(model, p, strata)
+    azimuthal = 1.0   # each sample's factor of its class ([samples, lambda] where resolved)
+    if azimuth_bins:   # each class's energy first, the row's below
+        ratio = azimuth_ratio(p, S_model, at, len(nodes), azimuth_bins)
+        spec.azimuth_gain = ratio.tolist()
+        azimuthal = ratio[azimuth_bin(p.data.cell, azimuth_bins), at[p.data.group]]
+        S_model = S_model * azimuthal
+    model_albedo = p.model_albedo(S_model)
     # a family's model: one gain per trained packing (each group is one member's direction)
     packing = np.zeros(len(table_albedo))
     if "packing" in spec.inputs:
@@ -500,6 +543,6 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA) -
     spec.gain_theta_i = np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)
     # after: integrated on another grid (strata + 1 midpoints a side, none shared), so that the
     # figure holds the gain's own quadrature error, not zero by construction
-    after = p.model_albedo(_midpoint_means(model, p, strata + 1)) * gain[k, at]
+    after = p.model_albedo(_midpoint_means(model, p, strata + 1) * azimuthal) * gain[k, at]
     return {"worst_albedo_error_before": p.worst_albedo_error(model_albedo),
             "worst_albedo_error_after": p.worst_albedo_error(after)}

@@ -121,6 +121,9 @@ class NeuralSpec:
     # none
     gain: list = field(default_factory=list)
     gain_theta_i: list = field(default_factory=list)
+    # its azimuthal part (:func:`azimuth_gain`): [azimuth bin][gain_theta_i node][output], the bins
+    # equal over |phi_o - phi_i| in [0, pi]; empty: none
+    azimuth_gain: list = field(default_factory=list)
     # extra scalar inputs after the four angles (INPUTS, above); with ``offset``: the near
     # field's cells (the ``h`` midpoints of the far field's mean) and the passthrough of a
     # ray by its entry cell, [passthrough_theta_i node][cell] at one phi_i (a circle)
@@ -175,6 +178,14 @@ class NeuralSpec:
                     not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0) or np.any(np.abs(t) > np.pi / 2):
                 raise ValueError("model metadata: gain must hold a positive finite value per ([packing node,] "
                                  "gain_theta_i node, output), the nodes increasing longitudes within +-pi/2")
+        if self.azimuth_gain:
+            a = np.asarray(self.azimuth_gain, float)
+            if a.ndim != 3 or a.shape[1:] != (len(self.gain_theta_i), self.n_outputs) or not self.gain or \
+                    not (np.all(np.isfinite(a)) and np.all(a > 0)) or not self.relative_phi or self.inputs or \
+                    self.orders:
+                raise ValueError("model metadata: azimuth_gain must hold a positive finite value per (azimuth bin, "
+                                 "gain_theta_i node, output), beside a gain, for a circular ply's model without "
+                                 "extra inputs or orders")
         if [i for i in self.inputs if i not in INPUTS] or len(set(self.inputs)) != len(self.inputs):
             raise ValueError(f"model metadata: inputs {self.inputs}; known extra inputs: {INPUTS}, each once")
         if "offset" in self.inputs and not (self.relative_phi and isinstance(self.offset_cells, int)
@@ -623,6 +634,94 @@ def bracketed(spec: NeuralSpec, packing: float) -> NeuralSpec:
                    passthrough_packing=pair(spec.passthrough_packing), tail_ratio=pair(spec.tail_ratio))
 
 
+def azimuth_gain(lib, spec: NeuralSpec, theta_i, phi_i, phi_o):
+    """The energy gain's azimuthal part (``spec.azimuth_gain``; ``None`` without): one factor
+    per output in each of ``A`` equal bins of ``|phi_o - phi_i|`` over [0, pi], piecewise
+    linear in ``theta_i`` (``|theta_i|`` under the theta fold) through the gain's nodes
+    ``spec.gain_theta_i`` and constant beyond them, as :func:`energy_gain` is.
+
+    It holds what a small network smooths away: the spectra's ripple (the fiber's Mie
+    resonances) from one azimuth bin to the next (:func:`models.fit.energy_gain` gives each bin
+    the table's energy on the training bins). It is read as ``G[b, j] + f (G[b, j + 1] - G[b,
+    j])``: the bin ``b`` by a floor, the node ``j`` below ``theta_i`` by comparisons, then two
+    rows of the table (Dr.Jit: two gathers per output; PyTorch and the ONNX graph: ``Gather``).
+    ``lib`` as :func:`features`; returns ``[..., n_outputs]`` for numpy and PyTorch, a list over
+    outputs for Dr.Jit and bounded arithmetic."""
+    if not spec.azimuth_gain:
+        return None
+    G = np.asarray(spec.azimuth_gain, np.float64)   # [A, T, L]
+    A, T, L = G.shape
+    nodes = np.asarray(spec.gain_theta_i, np.float64)
+    inv = 1.0 / np.diff(nodes) if T > 1 else np.ones(1)
+    clip = getattr(lib, "clip", None) or getattr(lib, "clamp")
+    t = clip(theta_i, float(-np.pi / 2), float(np.pi / 2))
+    t = lib.abs(t) if "theta" in spec.folds else t
+    d = phi_o - phi_i
+    w = d - float(2 * np.pi) * lib.floor((d + float(np.pi)) * float(1 / (2 * np.pi)))  # d wrapped to [-pi, pi)
+    a = lib.abs(w) * float(A / np.pi)   # the bin's coordinate: bin b holds a in [b, b + 1)
+    if lib is rd.BOUNDED:
+        return _bounded_azimuth_gain(G, nodes, inv, t, a)
+    if getattr(lib, "__name__", "") == "drjit":
+        Float = type(t)
+        UInt = lib.uint32_array_t(Float)
+        j, lo, step = UInt(0), t * 0.0 + float(nodes[0]), t * 0.0 + float(inv[0])
+        for k in range(1, T - 1):   # the node below t, its longitude and 1 / the segment's width: literals
+            above = t >= float(nodes[k])
+            j, lo, step = (lib.select(above, j + 1, j), lib.select(above, float(nodes[k]), lo),
+                           lib.select(above, float(inv[k]), step))
+        f = clip((t - lo) * step, 0.0, 1.0) if T > 1 else t * 0.0
+        b = UInt(clip(lib.floor(a), 0.0, float(A - 1)))
+        first = (b * T + j) * L
+        table = Float(G.astype(np.float32).ravel())
+        out = []
+        for k in range(L):
+            g0 = lib.gather(Float, table, first + k)
+            g1 = lib.gather(Float, table, first + min(T - 1, 1) * L + k)
+            out.append(g0 + f * (g1 - g0))
+        return out
+    dtype = t.dtype
+    at = lambda v: lib.asarray(np.ascontiguousarray(v), dtype=dtype)   # noqa: E731  (constants of t's precision)
+    j = (t[..., None] >= at(nodes[1:-1])).sum(-1)   # the node below t (an integer array; 0 without interior nodes)
+    f = clip((t - at(nodes[:-1])[j]) * at(inv)[j], 0.0, 1.0) if T > 1 else t * 0.0
+    b = clip(lib.floor(a), 0.0, float(A - 1))
+    b = b.long() if hasattr(b, "long") else b.astype(np.int64)
+    rows = at(G.reshape(A * T, L))
+    g0, g1 = rows[b * T + j], rows[b * T + j + min(T - 1, 1)]
+    return g0 + f[..., None] * (g1 - g0)
+
+
+def _bounded_azimuth_gain(G, nodes, inv, t, a) -> list:
+    """:func:`azimuth_gain` in bounded arithmetic: the lerp of float32 constants carried by
+    :class:`models.rounding.Bounded`; where the bin's coordinate lies within its error of a
+    bin's edge, the other bin may be read: the difference of the two is added; where the
+    longitude lies within its error of a node, the segment on the node's other side may be
+    read, whose value there is the same: the steepest neighbouring slope times the
+    longitude's error is added."""
+    A, T, L = G.shape
+    u = t.u
+    f32 = lambda v: np.asarray(v, np.float32).astype(np.float64)   # noqa: E731
+    const = lambda v: rd.Bounded(v, np.abs(v - f32(v)), u)   # noqa: E731  (a float64 value as its float32 constant)
+    j = np.clip(np.searchsorted(nodes, t.value, side="right") - 1, 0, max(T - 2, 0))
+    step = min(T - 1, 1)
+    f = rd.clip((t - const(nodes[:-1][j])) * const(inv[j]), 0.0, 1.0) if T > 1 else \
+        rd.Bounded(np.zeros_like(t.value), 0.0, u)
+    b = np.clip(np.floor(a.value), 0, A - 1).astype(int)
+    frac = a.value - np.floor(a.value)
+    other = np.where(frac < 0.5, b - 1, b + 1)   # the neighbour across the nearer edge
+    flips = (np.minimum(frac, 1 - frac) <= a.err) & (other >= 0) & (other <= A - 1)
+    other = np.clip(other, 0, A - 1)
+    slopes = np.abs(np.diff(G, axis=1)) * inv[None, :, None] if T > 1 else np.zeros((A, 1, L))
+    last = slopes.shape[1] - 1
+    near = np.maximum(slopes[b, j], np.maximum(slopes[b, np.maximum(j - 1, 0)], slopes[b, np.minimum(j + 1, last)]))
+    out = []
+    for k in range(L):
+        v = const(G[b, j, k]) + f * (const(G[b, j + step, k]) - const(G[b, j, k]))
+        o0, o1 = G[other, j, k], G[other, j + step, k]
+        flip = np.where(flips, np.abs(o0 + f.value * (o1 - o0) - v.value), 0.0)
+        out.append(rd.Bounded(v.value, v.err + flip + near[:, k] * t.err, u))
+    return out
+
+
 def _piecewise_linear(lib, clip, x, nodes, values):
     """The function through the constants ``values [node, m]`` at ``nodes``, linear between
     them, constant beyond: ``v_0 + sum_k m_k (clip(x, x_k, x_k+1) - x_k)``."""
@@ -674,6 +773,9 @@ def rounding_bound(spec: NeuralSpec, layers, angles, u: float = None, chunk: int
         gain = energy_gain(rd.BOUNDED, spec, a[1], *a[4:])
         if gain is not None:
             out = out * rd.stack(gain, u)
+        azimuthal = azimuth_gain(rd.BOUNDED, spec, a[1], a[0], a[2])
+        if azimuthal is not None:
+            out = out * rd.stack(azimuthal, u)
         out = order_sum(spec, out)
         S.append(out.value)
         err.append(out.err)
@@ -705,7 +807,8 @@ def make_torch_model(spec: NeuralSpec):
 
 def save_weights(path, spec: NeuralSpec, mlp) -> int:
     """Write the PyTorch model ``mlp`` of ``spec`` as ``weights.npz`` (``W0, b0, ...``, the
-    feature lines ``L0, L1, L2``, the metadata), atomically; returns its float32 parameter bytes."""
+    feature lines ``L0, L1, L2``, the azimuthal gain ``azimuth_gain``, the metadata),
+    atomically; returns the bytes of its float32 arrays."""
     import torch
 
     arrays = {f"L{k}": line.detach().numpy().astype(np.float32)
@@ -713,11 +816,14 @@ def save_weights(path, spec: NeuralSpec, mlp) -> int:
     for k, lin in enumerate(m for m in mlp if isinstance(m, torch.nn.Linear)):
         arrays[f"W{k}"] = lin.weight.detach().numpy().astype(np.float32)
         arrays[f"b{k}"] = lin.bias.detach().numpy().astype(np.float32)
+    meta = spec.to_dict()
+    if spec.azimuth_gain:   # thousands of numbers: an array, not text in the metadata
+        arrays["azimuth_gain"] = np.asarray(meta.pop("azimuth_gain"), np.float32)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             # the metadata as UTF-8 bytes (a numpy str array is UTF-32: 4 bytes a character),
             # the archive deflated (the metadata's text shrinks; the float32 weights hardly)
-            np.savez_compressed(fh, spec=np.array(json.dumps(spec.to_dict()).encode("utf-8")), **arrays)
+            np.savez_compressed(fh, spec=np.array(json.dumps(meta).encode("utf-8")), **arrays)
     return sum(a.nbytes for a in arrays.values())
 
 
@@ -762,6 +868,8 @@ def make_export_module(spec: NeuralSpec, mlp, orders: bool = False):
             S = spec.s0 * stable_expm1(torch, torch.clamp(y, 0.0, spec.y_max))
             gain = energy_gain(torch, spec, angles[..., 1], *angles[..., 4:].unbind(-1))
             S = S if gain is None else S * gain
+            azimuthal = azimuth_gain(torch, spec, angles[..., 1], angles[..., 0], angles[..., 2])
+            S = S if azimuthal is None else S * azimuthal
             return (order_sum(spec, S), S) if orders else order_sum(spec, S)
 
     return Exported()

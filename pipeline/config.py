@@ -430,6 +430,10 @@ class TrainCfg(Strict):
                             description="k: the model's mean over k x k stratified points of a bin is fitted")
     energy_gain: bool = Field(True, description="scale the model per incident longitude and wavelength so that "
                               "each incidence's albedo is the table's (models.fit.energy_gain)")
+    gain_azimuth_bins: int = Field(
+        0, ge=0, le=720, description="resolve the energy gain by azimuth too: this many equal bins of |phi_o - phi_i| "
+                                     "over [0, pi] (dividing the table's; 0: none; models.neural.azimuth_gain), so "
+                                     "the model keeps the spectra's ripple from one azimuth bin to the next")
     seed: int = Field(0, ge=0, le=2**32 - 1)
     threads: int = Field(2, ge=1, le=256)
     line_nodes: list[Annotated[int, Field(ge=2, le=4096)]] = Field(
@@ -690,6 +694,12 @@ class Config(Strict):
         if "offset" in self.train.inputs and not b.offsets:
             raise ValueError("train.inputs [offset] learns the near field: bake it with bake.offsets: N (e.g. 8), "
                              "or drop the offset input")
+        t = self.train
+        if t.gain_azimuth_bins and (not t.energy_gain or t.inputs or t.orders or t.encoding != "cone" or
+                                    (self.bundle is not None and self.bundle.shape != "circle")):
+            raise ValueError("train.gain_azimuth_bins resolves the energy gain of a circular ply's model by azimuth: "
+                             "with train.energy_gain, the cone encoding, and without train.inputs or train.orders; "
+                             "set it to 0")
         if b.offsets and self.bundle is not None and self.bundle.shape != "circle":
             raise ValueError("bake.offsets: the near field is baked for circular plies (an ellipse's offset goes "
                              "with its orientation: not tallied yet)")

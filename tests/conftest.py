@@ -92,6 +92,24 @@ def trained_lines(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def trained_azimuth(tmp_path_factory):
+    """The same two sizes on the synthetic table with a spectral ripple by azimuth bin
+    (``tests.synthetic.with_ripple``), the energy gain resolved in its 18 bins of
+    ``|phi_o - phi_i|`` (``train.gain_azimuth_bins``), trained and exported."""
+    from pipeline.stages import export as export_stage
+    from pipeline.stages import train as train_stage
+    from tests.synthetic import make_config, synthetic_table, with_ripple
+
+    tmp = tmp_path_factory.mktemp("azimuth")
+    cfg = make_config(tmp, gain_azimuth_bins=18)
+    path = tmp / "n" / "bake" / "bundle_table.npz"
+    with_ripple(synthetic_table(cfg, path, passthrough=0.3), 18).save(path)
+    train_stage.run(cfg, tmp)
+    export_stage.run(cfg, tmp)
+    return cfg, tmp
+
+
+@pytest.fixture(scope="session")
 def trained_near(tmp_path_factory):
     """The same two sizes with the offset as an input (a near field of 4 cells), trained and
     exported."""

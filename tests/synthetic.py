@@ -66,6 +66,18 @@ def synthetic_table(cfg, path, relative=True, dynamic_range=1e5, passthrough=0.0
     return table
 
 
+def with_ripple(table, bins: int, depth: float = 0.3):
+    """``table`` times a spectral ripple that changes from one bin of ``|phi_o - phi_i|`` to
+    the next (``bins`` over [0, pi]; ``1 + depth sin(7 b + 2 l)`` in bin ``b`` at wavelength
+    ``l``), as a fiber's Mie resonances make it: what a small network smooths and
+    ``train.gain_azimuth_bins`` keeps. Mirror-symmetric in the azimuth, as a circle's is."""
+    d = np.abs(np.angle(np.exp(1j * (table.phi_o[None, :] - table.phi_i[:, None]))))   # [phi_i, phi_o]
+    b = np.minimum((d / np.pi * bins).astype(int), bins - 1)
+    ripple = 1 + depth * np.sin(7.0 * b[..., None] + 2.0 * np.arange(len(table.wavelength)))   # [phi_i, phi_o, l]
+    r = ripple[:, None, :, None, :]
+    return table._replace(values=(table.values * r).astype(np.float32), stderr=(table.stderr * r).astype(np.float32))
+
+
 def make_config(tmp_path, name="n", bake=None, **train):
     cfg = {"name": name, "wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
            **({"bake": bake} if bake else {}),

@@ -194,11 +194,11 @@ def test_a_spectral_render_records_the_lookups_luminance(spectral, tables, tmp_p
         assert np.median(np.abs(spectrum @ wrong / y_film - 1)) > 0.03
 
 
-@pytest.mark.parametrize("models", ["trained", "trained_lines"])
+@pytest.mark.parametrize("models", ["trained", "trained_lines", "trained_azimuth"])
 @pytest.mark.parametrize("backend", ["mlp", "onnx"])
 def test_bundle_neural_backends_render_their_model(request, mono, backend, models):
-    """The plugin renders what its model evaluates (plain MLP, and with feature lines:
-    gathers traced into the render's kernel)."""
+    """The plugin renders what its model evaluates (plain MLP; with feature lines, and with
+    the gain resolved by azimuth: gathers traced into the render's kernel)."""
     mi = mono
     cfg, root = request.getfixturevalue(models)
     size = sorted(cfg.train.models)[0]

@@ -56,11 +56,12 @@ def onnx_graph(path, A):
 
 @pytest.mark.parametrize("form", ["literal", "cooperative"])
 @pytest.mark.parametrize("name", ["tiny", "wide"])
-@pytest.mark.parametrize("models", ["trained", "trained_lines", "trained_near"])
+@pytest.mark.parametrize("models", ["trained", "trained_lines", "trained_near", "trained_azimuth"])
 def test_backends_agree_with_pytorch(request, mi_llvm, models, name, form):
     """onnxruntime and both Dr.Jit formulations (literal weights, cooperative vectors), for
-    the plain MLP, the MLP with feature lines and the MLP with the offset as an input (queried
-    across, at and beyond its range [-1, 1])."""
+    the plain MLP, the MLP with feature lines, the MLP with the offset as an input (queried
+    across, at and beyond its range [-1, 1]) and the MLP with its gain resolved by azimuth
+    (gathered by bin; the query set holds azimuths on the bins' edges)."""
     import drjit as dr
 
     from mitsuba_ext.neural import DrJitMLP, OnnxMLP
@@ -70,6 +71,11 @@ def test_backends_agree_with_pytorch(request, mi_llvm, models, name, form):
     spec, torch_eval = reference(tmp, name)
     assert spec.inputs == (["offset"] if models == "trained_near" else [])
     A = query_set(beyond=True)
+    if spec.azimuth_gain:   # azimuths on the bins' edges, where rounding may read either bin
+        k = np.arange(1, len(spec.azimuth_gain))
+        edges = np.c_[np.full(len(k), 0.3), np.linspace(-1.2, 1.2, len(k)), 0.3 + k * np.pi / len(spec.azimuth_gain),
+                      np.linspace(1.0, -1.0, len(k))]
+        A = np.concatenate([edges.astype(np.float32), A])
     if spec.inputs:
         h = np.random.default_rng(2).uniform(-1.5, 1.5, len(A))
         h[:3] = [-1.0, 0.0, 1.0]

@@ -4,10 +4,11 @@ and two published architectures as baselines.
 On the config's baked table (``bcsdf bake`` first), with its ``train:`` schedule, split and
 seed, in one run: the plain MLP of the config's first model size, the same network with
 feature lines (models/lines.py) of the node counts and channels in :data:`LINES` (and one
-with a narrower network behind the lines), and the baselines: a neural yarn model's MLP
-(the Cartesian ``w_i, w_o``, three hidden layers of 21) and NBRDF's (Rusinkiewicz's half
-and difference vectors, two of 21), both without the symmetry folds, as their papers have
-them. Each is trained by :func:`models.fit.fit`, the code ``bcsdf train`` runs (so all
+with a narrower network behind the lines), the energy gain resolved by azimuth
+(``train.gain_azimuth_bins``: the table's 36 bins and 18, plain and with lines; its bytes
+counted with the weights), and the baselines: a neural yarn model's MLP (the Cartesian
+``w_i, w_o``, three hidden layers of 21) and NBRDF's (Rusinkiewicz's half and difference
+vectors, two of 21), both without the symmetry folds, as their papers have them. Each is trained by :func:`models.fit.fit`, the code ``bcsdf train`` runs (so all
 share the loss, the bin averages and the energy gain: what differs is the encoding and the
 network), under the torch kernels of this process (``ATEN_CPU_CAPABILITY=avx2`` for a
 machine without AVX-512).
@@ -58,11 +59,15 @@ from pipeline.plots import pareto
 from . import results
 
 # (label, line nodes [theta_i, cone distance, azimuth], channels, hidden widths or None: the config's,
-# encoding of the directions)
+# encoding of the directions[, bins of the azimuthal gain])
 LINES = [("plain", [], 0, None, "cone"),
          ("lines 12/32/24 x 8", [12, 32, 24], 8, None, "cone"),
          ("lines 12/64/72 x 16", [12, 64, 72], 16, None, "cone"),
          ("lines 12/32/24 x 8, [16, 16]", [12, 32, 24], 8, [16, 16], "cone"),
+         # the energy gain resolved by azimuth (train.gain_azimuth_bins): the table's 36 bins and 18
+         ("plain, gain in 36 azimuth bins", [], 0, None, "cone", 36),
+         ("plain, gain in 18 azimuth bins", [], 0, None, "cone", 18),
+         ("lines 12/32/24 x 8, gain in 36 azimuth bins", [12, 32, 24], 8, None, "cone", 36),
          # the baselines: a neural yarn model's MLP (Cartesian w_i, w_o; 6-21-21-21) and NBRDF's
          # (Rusinkiewicz half and difference vectors; 6-21-21), trained as ours are
          ("neuralyarn-style: w_i, w_o, no folds", [], 0, [21, 21, 21], "cartesian"),
@@ -112,9 +117,10 @@ def shared_spectra(table, reference, n_azimuth: int) -> dict:
                                             reference.solid_angle.ravel())}
 
 
-def measure(cfg, table, table_path, label, nodes, channels, hidden, encoding="cone", quick=False,
+def measure(cfg, table, table_path, label, nodes, channels, hidden, encoding="cone", azimuth_bins=0, quick=False,
             reference=None) -> dict:
-    update = {"line_nodes": nodes, "line_channels": max(channels, 1), "encoding": encoding}
+    update = {"line_nodes": nodes, "line_channels": max(channels, 1), "encoding": encoding,
+              "gain_azimuth_bins": azimuth_bins}
     if quick:
         update.update(epochs=max(2, cfg.train.epochs // 10))
     c = cfg.train.model_copy(update=update)
@@ -126,7 +132,8 @@ def measure(cfg, table, table_path, label, nodes, channels, hidden, encoding="co
     parameters = int(sum(p.numel() for p in model.parameters()))
     truth = ({} if reference is None else
              against(reference, model_bin_averages(spec, model, table_cells(table), k=12).reshape(table.values.shape)))
-    return {**{"encoding": label, "hidden": str(list(hidden)), "parameters": parameters, "bytes": 4 * parameters,
+    nbytes = 4 * (parameters + int(np.size(spec.azimuth_gain)))   # float32 weights and the azimuthal gain
+    return {**{"encoding": label, "hidden": str(list(hidden)), "parameters": parameters, "bytes": nbytes,
             "epochs": len(history), "train_s": seconds, "relative_l1": m["relative_l1"],
             "error_over_noise": m["noise_ratio"], "table_noise_l1": m["table_noise_l1"],
             "worst_albedo": calibration.get("worst_albedo_error_after")}, **truth}
