@@ -130,7 +130,7 @@ def pareto(models: list[dict], path: Path, ylabel: str, title: str, line: tuple[
         for ax, x in zip(axes, ("bytes", "train_s")):
             ax.scatter(m[x], m["error"], s=60, color=plt.get_cmap("tab10")(k % 10),
                        label=m["label"] if ax is axes[0] else None)
-    for ax, xlabel in zip(axes, ("float32 parameter bytes", "training seconds")):
+    for ax, xlabel in zip(axes, ("float32 bytes of the model (weights and gain tables)", "training seconds")):
         ax.set_xscale("log")
         ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3, which="both")

@@ -107,6 +107,7 @@ class TrainSummary(Summary):
     epochs: int
     train_seconds: float
     parameters: int
+    gain_values: int = 0      # the azimuthal gain's values (train.gain_azimuth_bins), stored beside the weights
     # the energy gain (absent without one)
     worst_albedo_error_before: Optional[float] = None
     worst_albedo_error_after: Optional[float] = None

@@ -99,7 +99,7 @@ def run(cfg, out_root="artifacts") -> Path:
             p = train / name / "summary.json"
             if p.exists():
                 m = TrainSummary.read(p)
-                points.append({"label": f"{name} {cfg.train.models[name]}", "bytes": 4 * m.parameters,
+                points.append({"label": f"{name} {cfg.train.models[name]}", "bytes": 4 * (m.parameters + m.gain_values),
                                "train_s": m.train_seconds, "error": m.relative_l1, "noise": m.table_noise_l1})
                 calibration = (f"{m.worst_albedo_error_before:.2%} &rarr; {m.worst_albedo_error_after:.2%}"
                                if m.worst_albedo_error_after is not None else "-")
