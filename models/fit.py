@@ -445,6 +445,11 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
     return history, best
 
 
+# Between two trained packings a family's network has no data, and its albedo there is its own
+# interpolation (it dipped below both neighbours and below what the passthrough, linear, leaves);
+# the gain at this many steps per interval makes each output's albedo linear between the trained
+# packings' instead (packing_gains), as the passthrough and the tail's ratio are.
+GAIN_PACKING_STEPS = 4
 GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the gain (`bench.train --calibration` compares k)
 # The gain corrects the albedo bias of a log-space fit, a few per cent to tens of per cent. A
 # ratio beyond this factor is no bias but an output the network did not learn (near zero where
@@ -453,13 +458,19 @@ GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the gain (`
 GAIN_LIMIT = 4.0
 
 
-def _midpoint_means(model, p: BinFit, k: int) -> np.ndarray:
-    """The network's bin averages ``S [samples, lambda]`` (no gain) over k x k midpoints."""
+def _midpoint_means(model, p: BinFit, k: int, samples=None, extra_cell=None) -> np.ndarray:
+    """The network's bin averages ``S [samples, lambda]`` (no gain) over k x k midpoints, of
+    every sample or of ``samples``; ``extra_cell``: their ranges of the extra inputs instead
+    of their own."""
+    cell = p.data.cell if samples is None else p.data.cell[samples]
+    if extra_cell is None:
+        extra_cell = p.data.extra_cell if samples is None or p.data.extra_cell is None else p.data.extra_cell[samples]
+
     def predict(*queries):
         x = torch.stack(features(torch, p.spec, *(torch.from_numpy(np.asarray(a, np.float32)) for a in queries)), -1)
         with torch.no_grad():
-            return p.bin_means(p.every, model(x))[1].double().numpy()
-    return bin_average(predict, p.data.cell, k, p.data.extra_cell)
+            return p.bin_means(torch.arange(len(x)), model(x))[1].double().numpy()
+    return bin_average(predict, cell, k, extra_cell)
 
 
 def azimuth_bin(cell: np.ndarray, bins: int) -> np.ndarray:
@@ -484,6 +495,39 @@ def azimuth_ratio(p: BinFit, S_model: np.ndarray, at: np.ndarray, n_nodes: int, 
     return ratio.reshape(bins, n_nodes, -1)
 
 
+def packing_gains(model, p: BinFit, spec: NeuralSpec, albedo: np.ndarray, at: np.ndarray, strata: int):
+    """A family's gain between its trained packings: ``(packings, gains [node, theta node,
+    output])`` at ``GAIN_PACKING_STEPS - 1`` packings inside each interval, each the ratio of the
+    albedo linear between the interval's ends (``albedo [trained packing, theta node, output]``,
+    the seeds' mean per node) to the network's there (its bin averages over ``strata`` x
+    ``strata`` midpoints, on the first trained packing's samples with the packing replaced),
+    held within :data:`GAIN_LIMIT` either way; the outputs' scales not folded in."""
+    P = np.asarray(spec.packings, float)
+    column = spec.inputs.index("packing")
+    first = np.flatnonzero(p.data.extra_cell[:, column, 0] == P[0])   # one packing's samples (its seeds')
+    groups, where = np.unique(p.data.group[first], return_inverse=True)
+    count = np.zeros(albedo.shape[1])
+    np.add.at(count, at[groups], 1.0)
+    nodes, gains = [], []
+    for k in range(len(P) - 1):
+        for step in range(1, GAIN_PACKING_STEPS):
+            w = step / GAIN_PACKING_STEPS
+            q = (1 - w) * P[k] + w * P[k + 1]
+            extra = p.data.extra_cell[first].copy()
+            extra[:, column] = q
+            S = _midpoint_means(model, p, strata, first, extra)
+            model_albedo = np.zeros((len(groups), S.shape[1]))
+            np.add.at(model_albedo, where, S * p.data.omega[first, None])
+            mean = np.zeros_like(albedo[0])
+            np.add.at(mean, at[groups], model_albedo)
+            mean /= np.maximum(count, 1)[:, None]
+            target = (1 - w) * albedo[k] + w * albedo[k + 1]
+            nodes.append(q)
+            gains.append(np.where((target > 0) & (mean > 0),
+                                  np.clip(target / np.maximum(mean, 1e-300), 1 / GAIN_LIMIT, GAIN_LIMIT), 1.0))
+    return nodes, np.array(gains)
+
+
 def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, azimuth_bins: int = 0) -> dict:
     """Phase 2: the energy gain, in closed form.
 
@@ -495,7 +539,9 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, a
     The rows include the held-out bins: their values are never fitted, but the row's total
     is the target. A family's model (``packing`` input) gets one gain per trained packing. A
     ratio beyond :data:`GAIN_LIMIT` either way is held there; a model of the orders has each
-    output's scale (:func:`order_scales`) folded in.
+    output's scale (:func:`order_scales`) folded in. Between the trained packings a family's gain
+    has nodes of its own (:func:`packing_gains`, ``spec.gain_packings``), where it makes each
+    output's albedo linear between its trained neighbours'.
     The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
     every bin: the ridge along the specular cone is narrower than a bin, and random points
     (the fit's) would put their own noise into the gain.
@@ -538,7 +584,15 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, a
     np.add.at(num, (k, at), table_albedo)
     np.add.at(den, (k, at), model_albedo)
     gain = np.where((num > 0) & (den > 0), np.clip(num / np.maximum(den, 1e-300), 1 / GAIN_LIMIT, GAIN_LIMIT), 1.0)
-    exported = gain * (1.0 if isinstance(p.scale, float) else p.scale.double().numpy())   # the scales folded in
+    scale = 1.0 if isinstance(p.scale, float) else p.scale.double().numpy()
+    exported = gain * scale   # the scales folded in
+    if "packing" in spec.inputs and len(spec.packings) > 1:   # and between the trained packings
+        count = np.zeros(shape[:2])
+        np.add.at(count, (k, at), 1.0)
+        inside, inside_gain = packing_gains(model, p, spec, num / np.maximum(count, 1)[..., None], at, strata)
+        order = np.argsort(np.r_[spec.packings, inside])
+        exported = np.concatenate([exported, inside_gain * scale])[order]
+        spec.gain_packings = np.r_[spec.packings, inside][order].tolist()
     spec.gain = (exported if "packing" in spec.inputs else exported[0]).tolist()
     spec.gain_theta_i = np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)
     # after: integrated on another grid (strata + 1 midpoints a side, none shared), so that the

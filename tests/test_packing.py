@@ -121,7 +121,8 @@ def test_the_energy_gain_holds_each_trained_packings_albedo(family):
 
     _, problem, spec, model, _ = family
     data = problem.data
-    assert np.asarray(spec.gain).shape == (len(PACKINGS), len(spec.gain_theta_i), 3)
+    assert np.asarray(spec.gain).shape == (len(spec.gain_packings), len(spec.gain_theta_i), 3)
+    assert set(PACKINGS) <= set(spec.gain_packings)
     S = model_bin_averages(spec, model, data.cell, k=8, extra_cell=data.extra_cell)
     albedo = np.zeros_like(data.albedo)
     np.add.at(albedo, data.group, S * data.omega[:, None])
@@ -136,6 +137,43 @@ def test_the_energy_gain_holds_each_trained_packings_albedo(family):
             # exported float32 graph (its own expm1 form): a few float32 roundings per value, so
             # ~1e-6 relative; 2e-5 leaves ten times that, far below a pooled gain's miss (~1e-2)
             np.testing.assert_allclose(albedo[rows].sum(0), data.albedo[rows].sum(0), rtol=2e-5)
+
+
+def test_between_trained_packings_the_albedo_is_linear(family):
+    """The synthetic family's light grows linearly with the packing, so its albedo between two
+    trained packings is the straight line between theirs. The gain's nodes between them
+    (``models.fit.packing_gains``) put the model's albedo on that line at each node, to float32
+    rounding. Without them (the converse: the gain of the trained packings alone, linear between
+    them) the network's own interpolation misses the line by more."""
+    from models.fit import model_bin_averages
+
+    _, problem, spec, model, _ = family
+    data = problem.data
+    inside = [q for q in spec.gain_packings if q not in PACKINGS]
+    assert len(inside) == 3 * (len(PACKINGS) - 1)
+    G = len(data.albedo) // (2 * len(PACKINGS))   # the groups of one member (two seeds per packing)
+    first = data.group < G   # the first member's samples, read at another packing
+    trained_only = dataclasses.replace(spec, gain_packings=[], gain=[g for q, g in zip(spec.gain_packings, spec.gain)
+                                                                     if q in PACKINGS])
+
+    def albedo(s, q):
+        S = model_bin_averages(s, model, data.cell[first], k=8, extra_cell=np.full((first.sum(), 1, 2), q))
+        out = np.zeros((G, 3))
+        np.add.at(out, data.group[first], S * data.omega[first, None])
+        return out
+
+    def line(q):   # the seeds' albedo, linear between the trained packings around q
+        k = int(np.searchsorted(PACKINGS, q)) - 1
+        w = (q - PACKINGS[k]) / (PACKINGS[k + 1] - PACKINGS[k])
+        mean = [(data.albedo[2 * j * G:(2 * j + 1) * G] + data.albedo[(2 * j + 1) * G:(2 * j + 2) * G]) / 2
+                for j in (k, k + 1)]
+        return (1 - w) * mean[0] + w * mean[1]
+
+    misses = []
+    for q in inside:
+        np.testing.assert_allclose(albedo(spec, q), line(q), rtol=2e-5)
+        misses.append(np.max(np.abs(albedo(trained_only, q) / line(q) - 1)))
+    assert max(misses) > 1e-3, misses
 
 
 # ----------------------------------------------------------------------------------
