@@ -458,6 +458,12 @@ GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the gain (`
 GAIN_LIMIT = 4.0
 
 
+def held_ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """``num / den`` held within :data:`GAIN_LIMIT` either way; 1 where either holds no energy:
+    every gain's factor (the rows', the azimuth classes', the packings' between)."""
+    return np.where((num > 0) & (den > 0), np.clip(num / np.maximum(den, 1e-300), 1 / GAIN_LIMIT, GAIN_LIMIT), 1.0)
+
+
 def _midpoint_means(model, p: BinFit, k: int, samples=None, extra_cell=None) -> np.ndarray:
     """The network's bin averages ``S [samples, lambda]`` (no gain) over k x k midpoints, of
     every sample or of ``samples``; ``extra_cell``: their ranges of the extra inputs instead
@@ -491,8 +497,7 @@ def azimuth_ratio(p: BinFit, S_model: np.ndarray, at: np.ndarray, n_nodes: int, 
     num, den = np.zeros((bins * n_nodes, S_model.shape[1])), np.zeros((bins * n_nodes, S_model.shape[1]))
     np.add.at(num, cls, p.data.S[tr] * w)
     np.add.at(den, cls, S_model[tr] * w)
-    ratio = np.where((num > 0) & (den > 0), np.clip(num / np.maximum(den, 1e-300), 1 / GAIN_LIMIT, GAIN_LIMIT), 1.0)
-    return ratio.reshape(bins, n_nodes, -1)
+    return held_ratio(num, den).reshape(bins, n_nodes, -1)
 
 
 def packing_gains(model, p: BinFit, spec: NeuralSpec, albedo: np.ndarray, at: np.ndarray, strata: int):
@@ -508,12 +513,12 @@ def packing_gains(model, p: BinFit, spec: NeuralSpec, albedo: np.ndarray, at: np
     groups, where = np.unique(p.data.group[first], return_inverse=True)
     count = np.zeros(albedo.shape[1])
     np.add.at(count, at[groups], 1.0)
+    extra = p.data.extra_cell[first].copy()
     nodes, gains = [], []
     for k in range(len(P) - 1):
         for step in range(1, GAIN_PACKING_STEPS):
             w = step / GAIN_PACKING_STEPS
             q = (1 - w) * P[k] + w * P[k + 1]
-            extra = p.data.extra_cell[first].copy()
             extra[:, column] = q
             S = _midpoint_means(model, p, strata, first, extra)
             model_albedo = np.zeros((len(groups), S.shape[1]))
@@ -523,8 +528,7 @@ def packing_gains(model, p: BinFit, spec: NeuralSpec, albedo: np.ndarray, at: np
             mean /= np.maximum(count, 1)[:, None]
             target = (1 - w) * albedo[k] + w * albedo[k + 1]
             nodes.append(q)
-            gains.append(np.where((target > 0) & (mean > 0),
-                                  np.clip(target / np.maximum(mean, 1e-300), 1 / GAIN_LIMIT, GAIN_LIMIT), 1.0))
+            gains.append(held_ratio(target, mean))
     return nodes, np.array(gains)
 
 
@@ -583,7 +587,7 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, a
     num, den = np.zeros(shape), np.zeros(shape)
     np.add.at(num, (k, at), table_albedo)
     np.add.at(den, (k, at), model_albedo)
-    gain = np.where((num > 0) & (den > 0), np.clip(num / np.maximum(den, 1e-300), 1 / GAIN_LIMIT, GAIN_LIMIT), 1.0)
+    gain = held_ratio(num, den)
     scale = 1.0 if isinstance(p.scale, float) else p.scale.double().numpy()
     exported = gain * scale   # the scales folded in
     if "packing" in spec.inputs and len(spec.packings) > 1:   # and between the trained packings

@@ -49,7 +49,7 @@ import torch
 
 from models import errors
 from models.bundle_table import BundleTable
-from models.fit import fit, held_out_metrics, model_bin_averages, prepare
+from models.fit import azimuth_bin, fit, held_out_metrics, model_bin_averages, prepare
 from models.neural import table_cells
 from pipeline.artifacts import bundle_table_path, load_bundle_table
 from pipeline.config import TRAIN_SECTIONS
@@ -99,11 +99,9 @@ def shared_spectra(table, reference, n_azimuth: int) -> dict:
     grey = lambda a: a.mean(-1, keepdims=True)  # noqa: E731
     S = table.values.astype(np.float64)
     weight = grey(S) * table.solid_angle[None, None, :, :, None]
-    dphi = np.abs(np.angle(np.exp(1j * (table.phi_o[None, :] - table.phi_i[:, None]))))   # [phi_i, phi_o]
-    azimuth = np.minimum((dphi / np.pi * n_azimuth).astype(int), n_azimuth - 1)
+    azimuth = azimuth_bin(table_cells(table), n_azimuth).reshape(S.shape[:4])   # the gain's bins of a bin
     _, incidence = np.unique(np.round(np.abs(table.theta_i), 9), return_inverse=True)
-    classes = (incidence[None, :, None] * n_azimuth + azimuth[:, None, :])[..., None]   # [phi_i, theta_i, phi_o, 1]
-    classes = np.broadcast_to(classes, S.shape[:3] + (S.shape[3],)).ravel()
+    classes = (incidence[None, :, None, None] * n_azimuth + azimuth).ravel()
     shape = S / np.maximum(grey(S), np.finfo(float).tiny)
     n_l = S.shape[-1]
     num, den = np.zeros((classes.max() + 1, n_l)), np.zeros(classes.max() + 1)
