@@ -210,7 +210,7 @@ def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50
     full = BakeSpec(theta_nodes(c.theta_i_nodes_deg(), negative=True),
                     np.deg2rad(np.arange(0, 360 - 1e-9, c.phi_i_step_deg)), c.n_theta_o, c.n_phi_o,
                     relative_phi=False, estimator=c.estimator, max_bounces=c.max_bounces, rr_start=c.rr_start,
-                    theta_o_edges=spec.theta_o_edges)
+                    exit=spec.exit, theta_o_edges=spec.theta_o_edges)
 
     def seconds(b, k):
         t0 = time.perf_counter()

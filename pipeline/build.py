@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from models import bundle as bundles
-from models.bake import Baker, BakeSpec
+from models.bake import Baker, BakeSpec, CameraBaker
 from models.bake import twisted
 from models.bake.twisted import TwistedBaker
 from models.fiber.base import FiberTable
@@ -136,11 +136,12 @@ def describe(ply) -> str:
 
 
 def tracer(ply, fiber: FiberTable, spec: BakeSpec):
-    """The bake's tracer for this ply: the 2D one for parallel fibers, the 3D one for a twist."""
+    """The bake's tracer for this ply: the 2D one for parallel fibers (from the camera with
+    ``bake.estimator: camera``), the 3D one for a twist."""
     if isinstance(ply, bundles.TwistedBundle):
         check_scene_fits(ply)
         return TwistedBaker(ply, fiber, spec)
-    return Baker(ply, fiber, spec)
+    return (CameraBaker if spec.estimator == "camera" else Baker)(ply, fiber, spec)
 
 
 def check_scene_fits(ply) -> None:
@@ -164,9 +165,9 @@ def exit_model(name: str, fiber: FiberTable, estimator: str = "fast") -> str:
     the fiber knows its paths (``lobe`` for ray fibers with the fast estimator, parallel or
     twisted), else ``uniform`` (measured on the ray model's smooth limit: docs/BENCHMARKS.md,
     "Exit models"); a ray fiber of camera transport (what Mitsuba renders of its ``hair``)
-    leaves as from Mitsuba's curves (``curve``)."""
+    leaves as from Mitsuba's curves (``curve``), whichever side it is traced from."""
     if name == "auto":
-        if fiber.meta.get("model") != "ray" or estimator != "fast":
+        if fiber.meta.get("model") != "ray" or estimator == "thesis":
             return "uniform"
         return "curve" if fiber.meta.get("transport") == "camera" else "lobe"
     return name  # an impossible choice is refused by the config (and by BakeSpec and the ray sampler)

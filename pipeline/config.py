@@ -287,7 +287,10 @@ RENDER_VARIANTS = ("llvm_ad_rgb", "llvm_ad_spectral", "cuda_ad_rgb", "cuda_ad_sp
 class BakeCfg(Strict):
     """The ground-truth path tracer (see models/bake/baker.py)."""
 
-    estimator: Literal["fast", "thesis"] = "fast"
+    estimator: Literal["fast", "thesis", "camera"] = Field(
+        "fast", description="fast: paths of light carrying every theta_i; thesis: the thesis's baseline; camera: a "
+                            "ray fiber of camera transport traced from the camera, as Mitsuba's path tracer renders "
+                            "explicit hair fibers (the curve exit's table with far less noise; parallel plies)")
     paths_per_phi_i: int = Field(1_000_000, ge=1, le=10_000_000_000)
     batch_paths: int = Field(65536, ge=64, le=1 << 22)
     theta_i_step_deg: Optional[float] = Field(None, gt=0.0, le=90.0,
@@ -703,8 +706,13 @@ class Config(Strict):
         if b.offsets and self.bundle is not None and self.bundle.shape != "circle":
             raise ValueError("bake.offsets: the near field is baked for circular plies (an ellipse's offset goes "
                              "with its orientation: not tallied yet)")
-        if b.exit in ("entry", "lobe", "curve") and b.estimator != "fast":
+        if b.exit in ("entry", "lobe", "curve") and b.estimator == "thesis":
             raise ValueError(f"bake.exit: {b.exit} needs bake.estimator: fast (the thesis baseline leaves uniformly)")
+        if b.estimator == "camera" and (self.fiber.model != "ray" or self.fiber.ray.transport != "camera"
+                                        or b.exit not in ("auto", "curve")):
+            raise ValueError("bake.estimator: camera traces what Mitsuba renders of explicit hair fibers: it needs "
+                             "fiber.model: ray with fiber.ray.transport: camera and bake.exit: auto (or curve); "
+                             "use bake.estimator: fast otherwise")
         if self.bundle is not None and self.bundle.twist is not None and b.estimator != "fast":
             raise ValueError(f"bundle.twist: a twisted ply is baked with bake.estimator: fast (got {b.estimator!r})")
         return self

@@ -28,6 +28,8 @@ Estimators
             with compaction of the unfinished paths; the first bounce and the final
             weights ``A B`` use the same Dr.Jit fiber code; the sums over paths are
             numpy (float64, in a fixed order).
+``camera``  the ``curve`` exit's table traced from the camera, as Mitsuba's path tracer
+            renders explicit ``hair`` fibers (``models.bake.camera``: another tracer).
 
 Tallies (per incident azimuth phi_i, normalized by the paths entering the bounding
 width ``2 R_b``): the summed weights and squared weights per output bin, the
@@ -114,7 +116,7 @@ class Paths(LoopState):
 
 
 @dataclass
-class _LoopScene:
+class LoopScene:
     """What every bounce reads: the Mitsuba scene, the fibers uploaded, the batch's seed."""
 
     scene: Any
@@ -341,7 +343,7 @@ class Baker:
         """
         Float, UInt = mi.Float, mi.UInt32
         n, L = len(theta), self.n_lambda
-        scene = _LoopScene(
+        scene = LoopScene(
             scene=self.geometry.scene,
             centers_x=Float(self.bundle.centers[:, 0].astype(np.float32)),
             centers_z=Float(self.bundle.centers[:, 1].astype(np.float32)),
@@ -363,14 +365,14 @@ class Baker:
         return out
 
     @dr.syntax
-    def _bounce_round(self, paths: "Paths", scene: "_LoopScene", limit) -> "Paths":
+    def _bounce_round(self, paths: "Paths", scene: "LoopScene", limit) -> "Paths":
         """Bounce every active path until it ends or has made ``limit`` bounces this round."""
 
         while dr.hint(paths.active & (paths.steps < limit), label="bake_bounces"):
             paths = self._bounce(paths, scene)
         return paths
 
-    def _bounce(self, paths: "Paths", scene: "_LoopScene") -> "Paths":
+    def _bounce(self, paths: "Paths", scene: "LoopScene") -> "Paths":
         """One bounce of every active path: ray cast, tally or scatter, roulette, exit point."""
         spec = self.spec
         exit_model = spec.exit

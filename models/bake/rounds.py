@@ -18,8 +18,8 @@ import numpy as np
 
 class LoopState:
     """Mixin of a loop's per-path state (a dataclass of Dr.Jit arrays, one lane a path) with
-    the fields ``B``, ``R`` (lists over wavelengths), ``depth``, ``status``, ``bin``,
-    ``active``, ``pid`` (the path's output row) and ``steps`` (iterations this round)."""
+    the fields ``active``, ``pid`` (the path's output row), ``steps`` (iterations this round)
+    and those named in ``RESULTS``, the per-path results (Dr.Jit arrays or lists of them)."""
 
     RESULTS = ("B", "R", "depth", "status", "bin")
 
@@ -37,16 +37,18 @@ def in_rounds(paths: LoopState, run_round, round_steps: int, last_steps: int, ta
     lane; ``limit`` is an opaque kernel input, so one kernel serves every round) until every
     path has ended; ``last_steps`` bounds the round that runs with ``tail_lanes`` or fewer.
 
-    Returns the per-path ``status``, ``bin`` and ``depth`` (numpy) and ``B``, ``R`` (lists of
-    Dr.Jit arrays), in the order of the path ids.
+    Returns the state's ``RESULTS`` in the order of the path ids: a list field as a list of
+    Dr.Jit arrays (``B``, ``R``), any other as numpy (``status``, ``depth``; ``bin`` int64).
     """
-    n, L = dr.width(paths.pid), len(paths.B)
-    out = {"B": [dr.zeros(mi.Float, n) for _ in range(L)], "R": [dr.zeros(mi.Float, n) for _ in range(L)],
-           **{k: dr.zeros(mi.UInt32, n) for k in ("depth", "status", "bin")}}
+    n = dr.width(paths.pid)
+    out = {}
+    for name in paths.RESULTS:
+        v = getattr(paths, name)
+        out[name] = [dr.zeros(type(x), n) for x in v] if isinstance(v, list) else dr.zeros(type(v), n)
     while True:
         last = dr.width(paths.pid) <= tail_lanes
         paths = run_round(paths, dr.opaque(mi.UInt32, last_steps if last else round_steps))
-        for name in LoopState.RESULTS:
+        for name in paths.RESULTS:
             targets, values = out[name], getattr(paths, name)
             for o, v in zip(targets, values) if isinstance(values, list) else [(targets, values)]:
                 dr.scatter(o, v, paths.pid)
@@ -58,5 +60,5 @@ def in_rounds(paths: LoopState, run_round, round_steps: int, last_steps: int, ta
         if dr.width(keep) == 0:
             break
         paths = paths.gather(keep)
-    return {"status": out["status"].numpy(), "bin": out["bin"].numpy().astype(np.int64),
-            "depth": out["depth"].numpy(), "B": out["B"], "R": out["R"]}
+    return {k: v if isinstance(v, list) else v.numpy().astype(np.int64) if k == "bin" else v.numpy()
+            for k, v in out.items()}

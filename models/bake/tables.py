@@ -12,13 +12,14 @@ import numpy as np
 from ..bundle_table import BundleTable
 from ..fiber.base import FiberTable
 from .baker import Baker
+from .camera import CameraBaker
 from .tally import BakeSpec, Tally
 
 
 def bake_unreduced(bundle, fiber: FiberTable, spec: BakeSpec, paths: int, seed: int = 1) -> BundleTable:
     """``paths`` per incident azimuth of ``spec`` in one go (no checkpoints, no symmetry
     reductions): the small bakes of tests and benchmarks."""
-    baker = Baker(bundle, fiber, spec)
+    baker = (CameraBaker if spec.estimator == "camera" else Baker)(bundle, fiber, spec)
     tally = None
     for a in range(len(spec.phi_i)):
         t = baker.trace(a, paths, np.random.SeedSequence([seed, a]))
@@ -31,7 +32,9 @@ def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: 
     """The table of a bake's sums: bin means over paths per solid angle (1/sr), their
     standard errors, and the energy balance's parts as fractions of the paths.
     ``reductions`` records the symmetries the bake used (``BundleTable.meta``)."""
-    n = tally.paths[:, None, None, None, None]
+    # paths per bin: every path of an azimuth, or the camera estimator's own per bin
+    n = tally.paths[:, None, None, None, None] if tally.bin_paths is None else \
+        np.maximum(tally.bin_paths[:, None, :, :, None], 1)
     omega = spec.bin_solid_angle()[None, None, :, :, None]
     mean = tally.sum / n
     var = np.maximum(tally.sum_sq / n - mean**2, 0.0) / n

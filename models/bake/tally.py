@@ -15,6 +15,8 @@ from ..grid import Cells, bin_solid_angle, cell
 
 # exit models: where scattered light leaves a fiber (models.bake.baker)
 EXITS = ("uniform", "entry", "lobe", "curve")
+# estimators (models.bake.baker; camera: models.bake.camera)
+ESTIMATORS = ("fast", "thesis", "camera")
 MAX_ORDERS = 64
 MAX_OFFSETS = 64
 
@@ -45,11 +47,14 @@ class BakeSpec:
     def __post_init__(self):
         self.theta_i = np.atleast_1d(np.asarray(self.theta_i, dtype=np.float64))
         self.phi_i = np.atleast_1d(np.asarray(self.phi_i, dtype=np.float64))
-        if self.estimator not in ("fast", "thesis"):
-            raise ValueError(f"estimator {self.estimator!r}: use 'fast' or 'thesis'")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"estimator {self.estimator!r}: use one of {', '.join(ESTIMATORS)}")
+        if self.estimator == "camera" and (self.exit != "curve" or self.orders or self.offsets):
+            raise ValueError("the camera estimator traces the curve exit's table from the camera (exit 'curve'), "
+                             "without orders or offsets")
         if self.exit not in EXITS:
             raise ValueError(f"exit {self.exit!r}: use one of {', '.join(EXITS)}")
-        if self.exit != "uniform" and self.estimator != "fast":
+        if self.exit != "uniform" and self.estimator == "thesis":
             raise ValueError(f"exit {self.exit!r} needs the fast estimator (the thesis baseline leaves uniformly)")
         if self.orders and not 2 <= self.orders <= MAX_ORDERS:
             raise ValueError(f"orders: 0 (none) or 2 .. {MAX_ORDERS} (got {self.orders})")
@@ -101,6 +106,10 @@ class Tally:
     offset ``h_o`` (``near``, ``near_sq``; ``sum``'s layout after a leading cell axis), and
     the paths and passthrough by the cell of their entry offset (``paths_h``,
     ``passthrough_h``, [phi_i, theta_i, N]).
+
+    The camera estimator (``models.bake.camera``) traces paths from the camera, each in one
+    output bin: ``sum`` then holds each bin's estimates of ``S`` times the bin's solid angle,
+    ``bin_paths`` [phi_i, phi_o, theta_o] the paths each bin's sums are over.
     """
 
     sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
@@ -121,11 +130,13 @@ class Tally:
     near_sq: np.ndarray | None = None
     paths_h: np.ndarray | None = None      # [phi_i, theta_i, N]
     passthrough_h: np.ndarray | None = None
+    bin_paths: np.ndarray | None = None    # [phi_i, phi_o, theta_o]: the camera estimator's paths per bin
 
     SUMS = ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough", "paths_theta", "passthrough_theta",
             "single")
     ORDER_SUMS = ("orders", "orders_sq", "tail_excess")
     NEAR_SUMS = ("near", "near_sq", "paths_h", "passthrough_h")
+    CAMERA_SUMS = ("bin_paths",)
 
     @classmethod
     def zeros(cls, spec: BakeSpec, n_lambda: int):
@@ -139,6 +150,8 @@ class Tally:
             N = spec.offsets
             orders |= {"near": np.zeros((N,) + bins), "near_sq": np.zeros((N,) + bins),
                        "paths_h": np.zeros(shape + (N,)), "passthrough_h": np.zeros(shape + (N,))}
+        if spec.estimator == "camera":
+            orders["bin_paths"] = np.zeros((len(spec.phi_i), spec.n_phi_o, spec.n_theta_o))
         return cls(np.zeros(bins), np.zeros(bins),
                    np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
                    np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)), np.zeros(shape), np.zeros(shape),
@@ -146,7 +159,8 @@ class Tally:
 
     def _present(self) -> tuple:
         return (self.SUMS + (self.ORDER_SUMS if self.orders is not None else ())
-                + (self.NEAR_SUMS if self.near is not None else ()))
+                + (self.NEAR_SUMS if self.near is not None else ())
+                + (self.CAMERA_SUMS if self.bin_paths is not None else ()))
 
     def count(self, phi_index: int, n_paths: int, passed: int) -> None:
         """Paths launched and passed through at azimuth ``phi_index``, each carrying every theta_i."""
@@ -156,8 +170,9 @@ class Tally:
         self.passthrough_theta[phi_index] += passed
 
     def add(self, other: "Tally") -> None:
-        if (self.orders is None) != (other.orders is None) or (self.near is None) != (other.near is None):
-            raise ValueError("tallies of other resolutions (orders, offsets) do not add")
+        if ((self.orders is None) != (other.orders is None) or (self.near is None) != (other.near is None)
+                or (self.bin_paths is None) != (other.bin_paths is None)):
+            raise ValueError("tallies of other resolutions (orders, offsets) or estimators do not add")
         for name in self._present():
             getattr(self, name).__iadd__(getattr(other, name))
         self.vertices += other.vertices
@@ -169,7 +184,7 @@ class Tally:
     def from_arrays(cls, a) -> "Tally":
         names = a.files if hasattr(a, "files") else a.keys()
         return cls(*(np.array(a[k]) for k in cls.SUMS), int(a["vertices"]),
-                   **{k: np.array(a[k]) for k in cls.ORDER_SUMS + cls.NEAR_SUMS if k in names})
+                   **{k: np.array(a[k]) for k in cls.ORDER_SUMS + cls.NEAR_SUMS + cls.CAMERA_SUMS if k in names})
 
     def add_orders(self, phi_index: int, order, flat_bin, theta_index, W) -> None:
         """Tally escaped paths by order: ``order`` their fiber events ``k`` (>= 1), ``flat_bin``

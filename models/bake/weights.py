@@ -12,14 +12,16 @@ from __future__ import annotations
 import drjit as dr
 
 
-def scatter(B: list, R: list, f: list, albedo: list, theta_out, pdf, go, depth, rr_start: int, u_rr):
+def scatter(B: list, R: list | None, f: list, albedo: list | None, theta_out, pdf, go, depth, rr_start: int, u_rr):
     """The weights after one event of the lanes ``go``: ``(B, R, kept, roulette)``; ``kept``
     is false where the sample was invalid or the roulette stopped the path, ``roulette``
-    where it played (its uniform ``u_rr`` is spent there)."""
+    where it played (its uniform ``u_rr`` is spent there). ``R`` None: no absorption kept
+    (a camera path's throughput, ``models.bake.camera``)."""
     L = len(B)
     scale = dr.cos(theta_out) / dr.maximum(pdf, 1e-30)
     valid = go & (pdf > 0)
-    R = [dr.select(go, R[l] + B[l] * (1 - albedo[l]), R[l]) for l in range(L)]
+    if R is not None:
+        R = [dr.select(go, R[l] + B[l] * (1 - albedo[l]), R[l]) for l in range(L)]
     B = [dr.select(go, B[l] * f[l] * scale, B[l]) for l in range(L)]
     roulette = depth > rr_start
     q = B[0]

@@ -276,24 +276,34 @@ class LobeSampler:
             kept.append(sum((A[q][l] for q in range(1, self.p_max + 1)), A[0][l]))
         return f, kept
 
+    def eval_all(self, theta_in, h, thetas_out, dphi):
+        """``f = sum_p M_p A_p N_p`` at offset ``h`` for light of longitude ``theta_in``, summed
+        over every path, at each longitude of ``thetas_out`` (a list: the attenuations and
+        azimuthal lobes, which do not depend on it, are computed once): a list over
+        ``thetas_out`` of lists over the wavelengths (no cosine)."""
+        dr = self.dr
+        UInt = dr.uint32_array_t(self.Float)
+        cos_in = self.cos_in(theta_in)
+        A = self.attenuations(cos_in, h)
+        AN = []
+        for p in range(self.p_max + 1):
+            pv = dr.zeros(UInt, dr.width(h)) + p
+            AN.append([A[p][l] * self._azimuthal(pv, h, cos_in, dphi, l) for l in range(self.L)])
+        out = []
+        for theta_out in thetas_out:
+            M = [m(theta_in, theta_out, xp=dr) for m in self.M]
+            out.append([sum((M[p] * AN[p][l] for p in range(1, self.p_max + 1)), M[0] * AN[0][l])
+                        for l in range(self.L)])
+        return out
+
     def adjoint(self, theta_in, h_out, theta_out, dphi):
         """What Mitsuba's path tracer makes of its ``hair`` at one offset: the adjoint
         ``f(w_o -> w_i) cos(theta_o) / cos(theta_i)`` summed over every path, the model
         evaluated with the outgoing (camera) side as incident at ``h_out``, the offset of
         the camera's ray (``dphi = phi_o - phi_i``; every wavelength; no cosine of
         ``theta_out`` beyond the adjoint's own)."""
-        dr = self.dr
-        UInt = dr.uint32_array_t(self.Float)
-        cos_cam = self.cos_in(theta_out)
-        A = self.attenuations(cos_cam, h_out)
-        scale = dr.cos(theta_out) / self.cos_in(theta_in)
-        f = [dr.zeros(self.Float, dr.width(h_out)) for _ in range(self.L)]
-        for p in range(self.p_max + 1):
-            M = self.M[p](theta_out, theta_in, xp=dr) * scale
-            pv = dr.zeros(UInt, dr.width(h_out)) + p
-            for l in range(self.L):
-                f[l] = f[l] + M * A[p][l] * self._azimuthal(pv, h_out, cos_cam, -dphi, l)
-        return f
+        scale = self.dr.cos(theta_out) / self.cos_in(theta_in)
+        return [v * scale for v in self.eval_all(theta_out, h_out, [theta_in], -dphi)[0]]
 
     def exit_normal(self, nx, nz, p, h, theta, xp):
         """The outward normal where path ``p`` leaves, from the entry normal ``(nx, nz)``,
