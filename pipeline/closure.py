@@ -618,7 +618,13 @@ def peak_and_width(x, y, smooth: int = 0) -> tuple[float, float]:
     """Where ``y(x)`` peaks and its full width at half its height above its floor (the
     half-height crossings interpolated between samples; the whole range where it never
     falls to half). ``smooth``: a moving average over ``2 smooth + 1`` samples first
-    (Monte Carlo noise)."""
+    (Monte Carlo noise).
+
+    The position is the centroid of ``y - half`` over the samples above half height round
+    the largest, not the largest sample: a broad highlight read from a table is flat within
+    its bins and noisy from one bin to the next, so its largest sample wanders by bins (a
+    twisted ply's highlight, 34 deg wide in 5-deg bins of 6% noise: by up to 10 deg) while
+    the centroid of its upper half moves by the noise's share of the width."""
     x, y = np.asarray(x, float), np.asarray(y, float)
     if smooth:
         y = np.convolve(np.pad(y, smooth, mode="edge"), np.ones(2 * smooth + 1) / (2 * smooth + 1), mode="valid")
@@ -636,7 +642,9 @@ def peak_and_width(x, y, smooth: int = 0) -> tuple[float, float]:
         w = (y[inside] - half) / (y[inside] - y[outside])
         return x[inside] + w * (x[outside] - x[inside])
 
-    return float(x[peak]), float(abs(crossing(hi, hi + 1) - crossing(lo, lo - 1)))
+    above = (y[lo:hi + 1] - half) * np.gradient(x)[lo:hi + 1]   # each sample weighed by its share of x
+    centre = float(np.sum(x[lo:hi + 1] * above) / np.sum(above)) if np.sum(above) > 0 else float(x[peak])
+    return centre, float(abs(crossing(hi, hi + 1) - crossing(lo, lo - 1)))
 
 
 def cone_cases(table, phi_bins, beside: bool = True) -> list:

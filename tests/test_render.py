@@ -166,5 +166,28 @@ def test_highlight_position_and_width_of_a_known_profile():
         for mu, sigma in ((7.0, 6.0), (-12.0, 9.0)):
             y = 0.2 + np.exp(-0.5 * ((x - mu) / sigma) ** 2)
             pos, width = peak_and_width(x, y, smooth)
-            assert abs(pos - mu) <= step / 2 + 1e-9
+            assert abs(pos - mu) <= step / 10, (pos, mu)
             assert abs(width - 2 * np.sqrt(2 * np.log(2)) * sigma) <= tol * step + 0.02 * sigma, (width, sigma)
+
+
+def test_highlight_position_of_a_broad_noisy_binned_highlight():
+    """A twisted ply's sideways highlight read from its table: 34 deg wide (FWHM), held
+    within 5-deg bins, 6% noise a bin, read every 4 deg as the render stage reads it. The
+    position ``peak_and_width`` gives lies within 2 deg of the true one in 95% of 400 draws;
+    the largest sample (what it gave before) does not."""
+    from pipeline.closure import peak_and_width
+
+    rng = np.random.default_rng(5)
+    x = np.arange(-80.0, 80.1, 4.0)
+    edges = np.arange(-90.0, 90.1, 5.0)
+    centres = (edges[:-1] + edges[1:]) / 2
+    sigma = 34.0 / (2 * np.sqrt(2 * np.log(2)))
+    err_centroid, err_max = [], []
+    for _ in range(400):
+        mu = rng.uniform(-40.0, -30.0)
+        bins = (0.02 + np.exp(-0.5 * ((centres - mu) / sigma) ** 2)) * (1 + 0.06 * rng.standard_normal(len(centres)))
+        y = bins[np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(bins) - 1)]
+        err_centroid.append(abs(peak_and_width(x, y)[0] - mu))
+        err_max.append(abs(x[np.argmax(y)] - mu))
+    assert np.percentile(err_centroid, 95) < 2.0, np.percentile(err_centroid, 95)
+    assert np.percentile(err_max, 95) > 4.0, np.percentile(err_max, 95)

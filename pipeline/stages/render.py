@@ -288,8 +288,9 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
       (the perspective sweeps the view by +-30 deg along it), its relative L1 difference;
     * **the highlight**: the far field along a cut through it (``closure.theta_cut``: light
       at ``theta_i`` = 30 deg, seen sideways, ``theta_o`` from -80 to 80 deg), the explicit
-      helices rendered in the closure scene against both tables' lookups; its peak's
-      position and its full width at half maximum.
+      helices rendered in the closure scene against both tables' lookups; its position (the
+      centroid of its upper half: ``closure.peak_and_width``) and its full width at half
+      maximum.
 
     Writes ``parallel_table.npz`` and ``twisted_vs_parallel.png``."""
 
@@ -343,7 +344,7 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
         result[name] = entry
         print(f"[render] twisted ply, {name}: mean radiance / explicit {entry['mean_vs_explicit']:.3f}, brightness "
               f"along the ply off by {entry['profile_l1_vs_explicit']:.1%}; highlight (theta_i 30 deg, sideways) at "
-              f"theta_o {pos:+.0f} deg, {width:.0f} deg wide, peak {entry['highlight_peak']:.3g} /sr"
+              f"theta_o {pos:+.1f} deg (centroid of its upper half), {width:.0f} deg wide, peak {entry['highlight_peak']:.3g} /sr"
               + (f"; FLIP {entry['flip_vs_explicit']:.3f}" if "flip_vs_explicit" in entry else ""))
     plot_parallel_misses(images, profiles, result, expo, out / "twisted_vs_parallel.png", cfg.name)
     return result

@@ -384,8 +384,8 @@ def render_section(cfg, root: Path, out: Path) -> str:
                                  for k, v in par.items() if isinstance(v, dict) and "flip_vs_explicit" in v)
                      + f". The highlight, a cut through the far field (light at theta_i {cut['theta_i_deg']:.0f} deg, "
                      f"seen at dphi {cut['dphi_deg']:.0f} deg, {cut['wavelength_nm']:.0f} nm; the explicit fibers "
-                     "rendered in the closure scene): "
-                     + "; ".join(f"{k}: peak at theta_o {v['highlight_deg']:+.0f} deg, {v['highlight_peak']:.3g} /sr, "
+                     "rendered in the closure scene; its position the centroid of its upper half): "
+                     + "; ".join(f"{k}: at theta_o {v['highlight_deg']:+.1f} deg, peak {v['highlight_peak']:.3g} /sr, "
                                  f"{v['highlight_fwhm_deg']:.0f} deg wide (FWHM)"
                                  for k, v in par.items() if isinstance(v, dict) and "highlight_deg" in v)
                      + ".</p>")
