@@ -248,7 +248,10 @@ class BundleTable:
         if np.any(self.values > MAX_VALUE):
             raise ValueError(f"values reach {float(self.values.max()):.3g} /sr (at most {MAX_VALUE:.0e}: a "
                              "renderer's weights would overflow float32)")
-        for name in ("passthrough", "absorbed", "lost") + tuple(n for n, _ in optional):
+        # a table of camera transport (the adjoint Mitsuba renders of its hair) scatters more light
+        # than arrives towards grazing incidence: its singly scattered light is no probability
+        adjoint = self.meta.get("transport") == "camera"
+        for name in ("passthrough", "absorbed", "lost") + tuple(n for n, _ in optional if not (adjoint and n == "single")):
             if np.any(getattr(self, name) > 1 + 1e-6):
                 raise ValueError(f"{name} reaches {float(np.max(getattr(self, name))):.4g}; a probability is at most 1")
         if self.single is not None and np.any(self.single > self.scattered * (1 + 1e-4) + 1e-6):

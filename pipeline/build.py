@@ -181,13 +181,17 @@ def make_spec(cfg, bundle, fiber: FiberTable) -> tuple[BakeSpec, dict]:
     whole period), but not the theta mirror (the mirror of a twisted ply is twisted the other
     way); a twisted ellipse keeps its half turns (``half_turns``: models/bundle_table.py);
     its theta_i nodes stop short of +-90 deg, where light runs along the axis and crosses no
-    width (the lookup holds the last node's value beyond it).
+    width (the lookup holds the last node's value beyond it), as those of a ray fiber of camera
+    transport do, whose adjoint grows without bound towards the pole.
     """
     c = cfg.bake
     twisted = isinstance(bundle, bundles.TwistedBundle)
     bundle = cross_section(bundle)
     mirror_theta = bool(fiber.meta.get("mirror_symmetric", True)) and not twisted
-    theta_i = theta_nodes(c.theta_i_nodes_deg(), negative=not mirror_theta, poles=not twisted)
+    # a twisted ply's light along the axis crosses no width; a camera transport's table (the
+    # adjoint, f cos(theta_o) / cos(theta_i)) has no finite value there: neither keeps the poles
+    camera = fiber.meta.get("transport") == "camera"
+    theta_i = theta_nodes(c.theta_i_nodes_deg(), negative=not mirror_theta, poles=not (twisted or camera))
     # an ellipse: its x and z mirrors; twisted, the half turns about y (exact: a shift by half
     # a turn) and about x and z (each a mirror of the cross-section with theta flipped)
     phi_i = c.phi_i(bundle.is_circle)

@@ -114,7 +114,11 @@ def test_the_bake_stage_traces_from_the_camera_and_resumes_to_the_same_table(tmp
     assert np.array_equal(ta.values, tb.values) and np.array_equal(ta.stderr, tb.stderr)
     ta.validate()
     assert np.all(ta.values >= 0) and np.all(ta.stderr > 0)
-    assert np.allclose(ta.energy_balance()["total"], 1.0)
+    # closed where the adjoint keeps energy, beyond 1 where it makes more light than arrives; the
+    # values are stored in half precision (2^-11 relative): their sum within a few of that
+    total = ta.energy_balance()["total"]
+    assert np.all(total > 1.0 - 2.0**-9), total.min()
+    assert not np.any(np.isclose(np.rad2deg(np.abs(ta.theta_i)), 90.0))   # no pole: the adjoint has none
     assert 0.0 < ta.passthrough.min() <= ta.passthrough.max() < 0.5
     full = BundleTable.load(tmp_path / "a" / "cam" / "bake" / "bundle_table.npz", expand=True)
     assert len(full.phi_i) == 8 and np.all(np.isfinite(full.values))

@@ -29,8 +29,8 @@ is the adjoint averaged over the camera's offset, as the ``curve`` exit's.
 
 The passthrough is counted with rays from the light as in the light-side bake. A camera
 path sees no light-side absorption: ``absorbed`` is the balance's remainder ``1 - scattered -
-passthrough`` (negative where the adjoint scatters more than arrives, towards grazing light);
-``lost`` is zero (the light a path would have gathered past the bounce cap is not known).
+passthrough`` where that is positive; where the adjoint scatters more than arrives (towards
+grazing light) it is zero and the balance's total exceeds 1 by the excess; ``lost`` is zero (the light a path would have gathered past the bounce cap is not known).
 ``single`` is the light gathered at the first fiber. Parallel plies of a ray fiber of camera
 transport; orders and offsets are not kept.
 """
@@ -145,11 +145,11 @@ class CameraBaker:
         tally.sum_sq[phi_index] += sums_sq.reshape(shape)
         tally.bin_paths[phi_index] += m
         # per path launched, as the light side keeps them: what the first fiber scattered, and
-        # the balance's remainder as absorbed
+        # the balance's remainder as absorbed (none where the adjoint makes more light than arrives)
         tally.single[phi_index] += n_paths * single
         scattered = sums.sum(axis=1) / m
         passed = tally.passthrough[phi_index] / n_paths
-        tally.absorbed[phi_index] += n_paths * (1 - passed - scattered)
+        tally.absorbed[phi_index] += n_paths * np.maximum(1 - passed - scattered, 0.0)
         return tally
 
     def _light_azimuths(self, phi_index, n, rng):

@@ -71,5 +71,6 @@ def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: 
         single=tally.single / tally.paths[:, None, None],
         phi_i=spec.phi_i, theta_i=spec.theta_i, phi_o_edges=spec.phi_o_edges,
         theta_o_edges=spec.theta_o_edges, wavelength=fiber.wavelength.copy(),
-        meta={"reductions": reductions, "units": {"angles": "rad", "wavelength": "nm", "values": "1/sr"}},
+        meta={"reductions": reductions, "units": {"angles": "rad", "wavelength": "nm", "values": "1/sr"},
+              **({"transport": "camera"} if fiber.meta.get("transport") == "camera" else {})},
         **orders)
