@@ -15,6 +15,7 @@ import numpy as np
 from models import bundle as bundles
 from models.bake import Baker, BakeSpec, Tally, tally_to_table
 from models.bake.twisted import TwistedBaker
+from models.bake.twisted_camera import TwistedCameraBaker
 from models.bundle_table import BundleTable
 from models.io import atomic_path, clear_torn
 
@@ -217,7 +218,7 @@ def reduction_cost(cfg, baker: Baker, bake_seconds: float, probe_paths: int = 50
         b.trace(0, probe_paths, np.random.SeedSequence([c.seed, 999, k]))
         return time.perf_counter() - t0
 
-    if isinstance(baker, TwistedBaker):
+    if isinstance(baker, (TwistedBaker, TwistedCameraBaker)):
         per_azimuth = 1.0  # each path carries one theta_i either way: the cost is per azimuth
     else:
         full_baker = copy.copy(baker)  # the same scene and fiber sampler, only the spec differs

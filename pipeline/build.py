@@ -16,6 +16,7 @@ from models import bundle as bundles
 from models.bake import Baker, BakeSpec, CameraBaker
 from models.bake import twisted
 from models.bake.twisted import TwistedBaker
+from models.bake.twisted_camera import TwistedCameraBaker
 from models.fiber.base import FiberTable
 
 from .config import theta_nodes
@@ -136,11 +137,11 @@ def describe(ply) -> str:
 
 
 def tracer(ply, fiber: FiberTable, spec: BakeSpec):
-    """The bake's tracer for this ply: the 2D one for parallel fibers (from the camera with
-    ``bake.estimator: camera``), the 3D one for a twist."""
+    """The bake's tracer for this ply: the 2D one for parallel fibers, the 3D one for a twist
+    (each from the camera with ``bake.estimator: camera``)."""
     if isinstance(ply, bundles.TwistedBundle):
         check_scene_fits(ply)
-        return TwistedBaker(ply, fiber, spec)
+        return (TwistedCameraBaker if spec.estimator == "camera" else TwistedBaker)(ply, fiber, spec)
     return (CameraBaker if spec.estimator == "camera" else Baker)(ply, fiber, spec)
 
 

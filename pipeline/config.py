@@ -290,7 +290,7 @@ class BakeCfg(Strict):
     estimator: Literal["fast", "thesis", "camera"] = Field(
         "fast", description="fast: paths of light carrying every theta_i; thesis: the thesis's baseline; camera: a "
                             "ray fiber of camera transport traced from the camera, as Mitsuba's path tracer renders "
-                            "explicit hair fibers (the curve exit's table with far less noise; parallel plies)")
+                            "explicit hair fibers (the curve exit's table with far less noise in a ply)")
     paths_per_phi_i: int = Field(1_000_000, ge=1, le=10_000_000_000)
     batch_paths: int = Field(65536, ge=64, le=1 << 22)
     theta_i_step_deg: Optional[float] = Field(None, gt=0.0, le=90.0,
@@ -713,8 +713,9 @@ class Config(Strict):
             raise ValueError("bake.estimator: camera traces what Mitsuba renders of explicit hair fibers: it needs "
                              "fiber.model: ray with fiber.ray.transport: camera and bake.exit: auto (or curve); "
                              "use bake.estimator: fast otherwise")
-        if self.bundle is not None and self.bundle.twist is not None and b.estimator != "fast":
-            raise ValueError(f"bundle.twist: a twisted ply is baked with bake.estimator: fast (got {b.estimator!r})")
+        if self.bundle is not None and self.bundle.twist is not None and b.estimator == "thesis":
+            raise ValueError("bundle.twist: a twisted ply is baked with bake.estimator: fast (or camera, for a ray "
+                             "fiber of camera transport), not thesis")
         return self
 
     @model_validator(mode="after")

@@ -60,8 +60,9 @@ def test_the_camera_estimator_is_asked_for_by_the_config_and_refused_where_it_ca
     for wrong in (["fiber.ray.transport=light"], ["bake.exit=uniform"], ["bake.orders=4"], ["bake.offsets=4"]):
         with pytest.raises(ConfigError):
             load_config("configs/ray_ply.yaml", camera + wrong)
-    with pytest.raises(ConfigError, match="twisted ply is baked with bake.estimator: fast"):
-        load_config("configs/twisted_cotton1.yaml", camera)
+    assert load_config("configs/twisted_cotton1.yaml", camera).bake.estimator == "camera"   # traced in 3D
+    with pytest.raises(ConfigError, match="not thesis"):
+        load_config("configs/twisted_cotton1.yaml", camera[:2] + ["bake.estimator=thesis"])
     with pytest.raises(ValueError, match="exit 'curve'"):
         BakeSpec([0.1], [0.0], estimator="camera", exit="uniform")
     with pytest.raises(ValueError, match="camera transport"):
@@ -122,3 +123,27 @@ def test_the_bake_stage_traces_from_the_camera_and_resumes_to_the_same_table(tmp
     assert 0.0 < ta.passthrough.min() <= ta.passthrough.max() < 0.5
     full = BundleTable.load(tmp_path / "a" / "cam" / "bake" / "bundle_table.npz", expand=True)
     assert len(full.phi_i) == 8 and np.all(np.isfinite(full.values))
+
+
+def test_one_helical_fiber_traced_from_the_camera_is_the_camera_fiber_rotated(mi_llvm):
+    """The twisted ply's camera estimator (``models.bake.twisted_camera``) on one helical fiber
+    (leaning 14 deg, tilted 2 deg) against the camera-transport fiber rotated into the ply frame
+    along its turn (``tests.test_twisted.rotated_fiber``), bin by bin; the light transport
+    outside it in many bins."""
+    from models.bake.twisted_camera import TwistedCameraBaker
+    from models.bake import tally_to_table
+    from models.bundle import Bundle, TwistedBundle
+    from tests.test_twisted import agree, check_rotated_fiber, rotated_fiber
+
+    rho, r, Rb, pitch = 60.0, 20.0, 80.0, 1500.0
+    ply = TwistedBundle(Bundle(np.array([[rho, 0.0]]), r, (Rb, Rb)), pitch)
+    args = ([450.0, 650.0], [1.56, 1.54], [0.6, 0.05], 0.25, 0.35, 2.0)
+    camera = RayFiber(*args, n_h=64, transport="camera")
+    spec = BakeSpec(np.deg2rad([0.0, 30.0, 50.0]), [0.0], 12, 24, exit="curve", estimator="camera")
+    tabulated = camera.tabulate(np.deg2rad(np.arange(0, 91, 5.0)))
+    tally = TwistedCameraBaker(ply, tabulated, spec).trace(0, 4_000_000, 2)
+    table = tally_to_table(tally, spec, tabulated, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
+    check_rotated_fiber(table, ply, camera, spec, 650.0)
+    light = RayFiber(*args, n_h=64)
+    got, err = table.values[0, 1, :, :, 1], table.stderr[0, 1, :, :, 1]
+    assert (~agree(got, rotated_fiber(ply, light, table, spec.theta_i[1], 650.0), err)).sum() >= 10

@@ -5,6 +5,8 @@
 ``scene``      :class:`BundleScene`: the fibers as Mitsuba cylinders, 2D ray casts
 ``baker``      :class:`Baker`: the tracer (the fast estimator, the thesis baseline)
 ``camera``     :class:`CameraBaker`: the curve exit's table traced from the camera
+``twisted``    :class:`~models.bake.twisted.TwistedBaker`: helical plies in 3D (and
+               ``twisted_camera``, traced from the camera)
 ``tables``     :func:`tally_to_table`; :func:`bake_unreduced`, a small bake in one call
 =============  ====================================================================
 """

@@ -34,7 +34,7 @@ def tally_to_table(tally: Tally, spec: BakeSpec, fiber: FiberTable, reductions: 
     ``reductions`` records the symmetries the bake used (``BundleTable.meta``)."""
     # paths per bin: every path of an azimuth, or the camera estimator's own per bin
     n = tally.paths[:, None, None, None, None] if tally.bin_paths is None else \
-        np.maximum(tally.bin_paths[:, None, :, :, None], 1)
+        np.maximum(tally.bin_paths[..., None], 1)
     omega = spec.bin_solid_angle()[None, None, :, :, None]
     mean = tally.sum / n
     var = np.maximum(tally.sum_sq / n - mean**2, 0.0) / n

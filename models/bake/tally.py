@@ -109,7 +109,7 @@ class Tally:
 
     The camera estimator (``models.bake.camera``) traces paths from the camera, each in one
     output bin: ``sum`` then holds each bin's estimates of ``S`` times the bin's solid angle,
-    ``bin_paths`` [phi_i, phi_o, theta_o] the paths each bin's sums are over.
+    ``bin_paths`` [phi_i, theta_i, phi_o, theta_o] the paths each bin's sums are over.
     """
 
     sum: np.ndarray        # [phi_i, theta_i, phi_o, theta_o, lambda]
@@ -130,7 +130,7 @@ class Tally:
     near_sq: np.ndarray | None = None
     paths_h: np.ndarray | None = None      # [phi_i, theta_i, N]
     passthrough_h: np.ndarray | None = None
-    bin_paths: np.ndarray | None = None    # [phi_i, phi_o, theta_o]: the camera estimator's paths per bin
+    bin_paths: np.ndarray | None = None    # [phi_i, theta_i, phi_o, theta_o]: the camera estimator's paths per bin
 
     SUMS = ("sum", "sum_sq", "absorbed", "lost", "paths", "passthrough", "paths_theta", "passthrough_theta",
             "single")
@@ -151,7 +151,7 @@ class Tally:
             orders |= {"near": np.zeros((N,) + bins), "near_sq": np.zeros((N,) + bins),
                        "paths_h": np.zeros(shape + (N,)), "passthrough_h": np.zeros(shape + (N,))}
         if spec.estimator == "camera":
-            orders["bin_paths"] = np.zeros((len(spec.phi_i), spec.n_phi_o, spec.n_theta_o))
+            orders["bin_paths"] = np.zeros(shape + (spec.n_phi_o, spec.n_theta_o))
         return cls(np.zeros(bins), np.zeros(bins),
                    np.zeros(shape + (n_lambda,)), np.zeros(shape + (n_lambda,)),
                    np.zeros(len(spec.phi_i)), np.zeros(len(spec.phi_i)), np.zeros(shape), np.zeros(shape),

@@ -149,6 +149,39 @@ class _Upload:
     seed: Any
 
 
+def segment_limits(o, d, Rb: float, P: float):
+    """How far the ray ``o + t d`` may go within one period of the ply: ``(t_out, t_end)``,
+    to where it leaves the bounding cylinder of radius ``Rb`` and to the period's end
+    (``y`` in [0, P]); ``inf`` where it never does."""
+    a = d.x * d.x + d.z * d.z
+    bq = o.x * d.x + o.z * d.z
+    c = o.x * o.x + o.z * o.z - Rb * Rb
+    t_out = dr.select(a > 1e-12, (-bq + dr.safe_sqrt(bq * bq - a * c)) / dr.maximum(a, 1e-12), dr.inf)
+    t_end = dr.select(d.y > 0, (P - o.y) / d.y, dr.select(d.y < 0, -o.y / d.y, dr.inf))
+    return dr.maximum(t_out, 0.0), t_end
+
+
+def hit_frame(pi, ray, up: _Upload, active):
+    """The fiber's frame where ``ray`` meets it (``pi`` its preliminary intersection): its
+    tangent ``T`` (the segment's axis), ``e1, e2`` spanning the plane normal to it (the fiber
+    frame's x and z: for ``T = +y``, ``x`` and ``z``), the outward normal ``n`` in that plane,
+    the centre line's point ``centre`` at the hit's height, the radius ``r`` and the fiber ``k``."""
+    Float, UInt = mi.Float, mi.UInt32
+    si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+    T = mi.Vector3f(*(dr.gather(Float, ax, pi.shape_index, active) for ax in up.axis))
+    k = dr.gather(UInt, up.fiber_of, pi.shape_index, active)
+    r = dr.gather(Float, up.radii, k, active)
+    n = dr.normalize(si.n - T * dr.dot(si.n, T))
+    e1 = dr.normalize(dr.select(dr.abs(T.z) > 0.999, dr.cross(mi.Vector3f(1.0, 0.0, 0.0), T),
+                                dr.cross(T, mi.Vector3f(0.0, 0.0, 1.0))))
+    return T, e1, dr.cross(e1, T), n, si.p - r * n, r, k
+
+
+def local_angles(w, T, e1, e2):
+    """``(theta, phi)`` of the direction ``w`` in the fiber frame ``(e1, T, e2)`` of :func:`hit_frame`."""
+    return dr.safe_asin(dr.dot(w, T)), dr.atan2(dr.dot(w, e2), dr.dot(w, e1))
+
+
 class TwistedBaker:
     """Traces batches of paths through a twisted ply; ``trace(phi_index, n_paths, seed)``
     returns a :class:`Tally` as :class:`~models.bake.baker.Baker`'s does (each path one
@@ -263,16 +296,9 @@ class TwistedBaker:
         """One segment of every active path: to the next fiber, the period's end, or out."""
         p.steps = p.steps + 1
         spec, Rb, P = self.spec, self.ply.bundle.bounding_radius, self.geometry.period
-        Float, UInt = mi.Float, mi.UInt32
 
         # Phase 1: how far the ray may go: out of the bounding cylinder, or to the period's end
-        dx, dz = p.d.x, p.d.z
-        a = dx * dx + dz * dz
-        bq = p.o.x * dx + p.o.z * dz
-        c = p.o.x * p.o.x + p.o.z * p.o.z - Rb * Rb
-        t_out = dr.select(a > 1e-12, (-bq + dr.safe_sqrt(bq * bq - a * c)) / dr.maximum(a, 1e-12), dr.inf)
-        t_out = dr.maximum(t_out, 0.0)
-        t_end = dr.select(p.d.y > 0, (P - p.o.y) / p.d.y, dr.select(p.d.y < 0, -p.o.y / p.d.y, dr.inf))
+        t_out, t_end = segment_limits(p.o, p.d, Rb, P)
         t_max = dr.minimum(t_out, t_end)
         ray = mi.Ray3f(mi.Ray3f(p.o, p.d), t_max)
         pi = up.scene.ray_intersect_preliminary(ray, coherent=False, active=p.active)
@@ -296,19 +322,9 @@ class TwistedBaker:
         p.status = dr.select(capped, CAPPED, p.status)
         go = hit & ~capped
         p.depth = dr.select(go, p.depth + 1, p.depth)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, go)
-        T = mi.Vector3f(*(dr.gather(Float, ax, pi.shape_index, go) for ax in up.axis))
-        k = dr.gather(UInt, up.fiber_of, pi.shape_index, go)
-        r = dr.gather(Float, up.radii, k, go)
-        n = dr.normalize(si.n - T * dr.dot(si.n, T))
-        centre = si.p - r * n
-        # (e1, e2, T) as the fiber frame's (x, z, y): for T = +y, e1 = x and e2 = z
-        e1 = dr.normalize(dr.select(dr.abs(T.z) > 0.999, dr.cross(mi.Vector3f(1.0, 0.0, 0.0), T),
-                                    dr.cross(T, mi.Vector3f(0.0, 0.0, 1.0))))
-        e2 = dr.cross(e1, T)
+        T, e1, e2, n, centre, r, _ = hit_frame(pi, ray, up, go)
         wi = -p.d
-        theta_in = dr.safe_asin(dr.dot(wi, T))
-        phi_wi = dr.atan2(dr.dot(wi, e2), dr.dot(wi, e1))
+        theta_in, phi_wi = local_angles(wi, T, e1, e2)
 
         # the ray's offset h across the fiber, in the plane normal to T (the 2D bake's, per fiber)
         s_d, c_d = dr.sincos(phi_wi + np.pi)                      # the ray's travel in that plane

@@ -11,9 +11,9 @@ ply with the mapped ray fiber (``models.fiber.ray.mitsuba_hair``):
 ``camera / curve``     what Mitsuba renders: the adjoint (its path tracer takes the camera
                        side as incident), leaving as from curves (invisible from inside),
                        traced from the light (the ``fast`` estimator);
-``camera, from the camera``  the same table traced from the camera (``models.bake.camera``;
-                       parallel plies): what the light side weighs by a heavy-tailed change
-                       of offset, the camera side reads directly.
+``camera, from the camera``  the same table traced from the camera (``models.bake.camera``,
+                       ``models.bake.twisted_camera``): what the light side weighs by a
+                       heavy-tailed change of offset, the camera side reads directly.
 
 Per bin: bake / explicit and its standard error (bake and render). It also tabulates the
 albedo of a lossless fiber in either transport, the reason the two differ. Records
@@ -34,6 +34,7 @@ from tqdm import tqdm
 
 from models.bake import BakeSpec, bake_unreduced, tally_to_table
 from models.bake.twisted import TwistedBaker
+from models.bake.twisted_camera import TwistedCameraBaker
 from models.bundle import Bundle, TwistedBundle, poisson
 from models.fiber.ray import RayFiber, mitsuba_hair
 from pipeline import closure
@@ -96,7 +97,7 @@ def bake_of(ply, fiber, exit_model: str, paths: int, seed: int = 1, estimator: s
     spec = BakeSpec(np.deg2rad(THETA_I), [0.0], 18, 36, relative_phi=True, exit=exit_model, estimator=estimator)
     if not isinstance(ply, TwistedBundle):
         return bake_unreduced(ply, fiber, spec, paths, seed=seed)
-    baker = TwistedBaker(ply, fiber, spec)
+    baker = (TwistedCameraBaker if estimator == "camera" else TwistedBaker)(ply, fiber, spec)
     tally = baker.trace(0, paths // 2, seed)
     tally.add(baker.trace(0, paths // 2, seed + 1))
     return tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
@@ -152,8 +153,7 @@ def measure(plies, paths: int, spp: int) -> list:
     rows = []
     for name, sigma_a in tqdm(plies, desc="hair closure", unit="ply"):
         ply = ply_of(name)
-        # the camera estimator traces parallel plies
-        bakes = {b: v for b, v in BAKES.items() if v[2] == "fast" or not isinstance(ply, TwistedBundle)}
+        bakes = BAKES
         fibers = {b: ray_fiber(transport, sigma_a) for b, (transport, _, _) in bakes.items()}
         tables, t_bake = [], {}
         for b, (_, exit_model, estimator) in bakes.items():
