@@ -50,6 +50,7 @@ def test_explicit_hair_ply_renders_its_bake(ply, sigma_a):
     assert not np.any(outside(res_from_camera)), res_from_camera
 
 
+@pytest.mark.slow   # a minute alone, more beside the other worker: `.ci/run` runs it
 def test_the_default_ply_of_hair_fibers_renders_its_bake_traced_from_the_camera():
     """The default ply (39 fibers of 20 um in 200 um, lossless): explicit ``hair`` fibers
     against its camera-transport table traced from the camera, within 3% + 3 standard errors
