@@ -126,6 +126,16 @@ class LoopScene:
     shape_to_fiber: Any
     seed: Any
 
+    @classmethod
+    def upload(cls, geometry: BundleScene, bundle: Bundle, seed: int) -> "LoopScene":
+        """The scene and the fibers of ``bundle`` as float32 Dr.Jit arrays, ``seed`` opaque."""
+        Float = mi.Float
+        return cls(scene=geometry.scene, centers_x=Float(bundle.centers[:, 0].astype(np.float32)),
+                   centers_z=Float(bundle.centers[:, 1].astype(np.float32)),
+                   radii=Float(bundle.radii.astype(np.float32)),
+                   shape_to_fiber=mi.UInt32(geometry.shape_to_fiber.astype(np.uint32)),
+                   seed=dr.opaque(mi.UInt64, seed % 2**63))
+
 
 # ------------------------------------------------------------------------------
 # The tracer
@@ -343,13 +353,7 @@ class Baker:
         """
         Float, UInt = mi.Float, mi.UInt32
         n, L = len(theta), self.n_lambda
-        scene = LoopScene(
-            scene=self.geometry.scene,
-            centers_x=Float(self.bundle.centers[:, 0].astype(np.float32)),
-            centers_z=Float(self.bundle.centers[:, 1].astype(np.float32)),
-            radii=Float(self.bundle.radii.astype(np.float32)),
-            shape_to_fiber=UInt(self.geometry.shape_to_fiber.astype(np.uint32)),
-            seed=dr.opaque(mi.UInt64, seed % 2**63))
+        scene = LoopScene.upload(self.geometry, self.bundle, seed)
         paths = Paths(
             ox=to_drjit(Float, origin[:, 0]), oz=to_drjit(Float, origin[:, 1]),
             phi=to_drjit(Float, np.mod(phi_t, 2 * np.pi)), theta=to_drjit(Float, theta),

@@ -76,6 +76,25 @@ class CameraPaths(LoopState):
     RESULTS = ("C", "C1", "depth", "status")
 
 
+def check_camera(fiber: FiberTable, spec: BakeSpec) -> None:
+    """Refuse what the camera estimator cannot trace: another estimator's spec, or a fiber
+    other than a ray fiber of camera transport."""
+    if spec.estimator != "camera":
+        raise ValueError(f"the camera tracers trace the camera estimator (spec.estimator is {spec.estimator!r})")
+    if fiber.meta.get("model") != "ray" or fiber.meta.get("transport") != "camera":
+        raise ValueError("the camera estimator traces what Mitsuba's hair renders: it needs a ray fiber of camera "
+                         "transport (fiber.ray.transport: camera)")
+
+
+def light_azimuths(spec: BakeSpec, phi_index: int, n: int, rng) -> np.ndarray:
+    """The light's azimuth per path: the node's, or for a circle (a table of the rotation
+    average) its own per path, stratified over the circle and shuffled."""
+    phi = np.full(n, spec.phi_i[phi_index])
+    if spec.relative_phi:
+        phi = phi + 2 * np.pi * rng.permutation((np.arange(n) + rng.uniform(size=n)) / n)
+    return phi
+
+
 class CameraBaker:
     """Traces the ``curve`` exit's table from the camera; see the module docstring."""
 
@@ -83,11 +102,7 @@ class CameraBaker:
     TAIL_LANES = 4096
 
     def __init__(self, bundle: Bundle, fiber: FiberTable, spec: BakeSpec):
-        if spec.estimator != "camera":
-            raise ValueError(f"CameraBaker traces the camera estimator (spec.estimator is {spec.estimator!r})")
-        if fiber.meta.get("model") != "ray" or fiber.meta.get("transport") != "camera":
-            raise ValueError("the camera estimator traces what Mitsuba's hair renders: it needs a ray fiber of camera "
-                             "transport (fiber.ray.transport: camera)")
+        check_camera(fiber, spec)
         self.bundle, self.fiber, self.spec = bundle, fiber, spec
         self.geometry = BundleScene(bundle)
         self.lob = lobes.LobeSampler(fiber.meta, fiber.wavelength, mi.Float)
@@ -103,7 +118,7 @@ class CameraBaker:
         n = m * n_bins
 
         # Phase 1: the passthrough, with rays from the light as the light side counts it
-        phi_i = self._light_azimuths(phi_index, n_paths, rng)
+        phi_i = light_azimuths(spec, phi_index, n_paths, rng)
         t = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
         hit, _ = self.geometry.cast(*self.geometry.entry(phi_i, t))
         tally.count(phi_index, n_paths, int(np.sum(~hit)))
@@ -113,7 +128,7 @@ class CameraBaker:
         flat = np.arange(n) % n_bins
         stratum = np.arange(n) // n_bins
         a, c = np.divmod(flat, spec.n_theta_o)
-        phi_l = self._light_azimuths(phi_index, n, rng)
+        phi_l = light_azimuths(spec, phi_index, n, rng)
         edges = spec.phi_o_edges
         phi_o = edges[a] + (edges[a + 1] - edges[a]) * rng.uniform(size=n)
         if spec.relative_phi:
@@ -152,26 +167,12 @@ class CameraBaker:
         tally.absorbed[phi_index] += n_paths * np.maximum(1 - passed - scattered, 0.0)
         return tally
 
-    def _light_azimuths(self, phi_index, n, rng):
-        """The light's azimuth per path: the node's, or for a circle (a table of the rotation
-        average) its own per path, stratified over the circle and shuffled."""
-        phi = np.full(n, self.spec.phi_i[phi_index])
-        if self.spec.relative_phi:
-            phi = phi + 2 * np.pi * rng.permutation((np.arange(n) + rng.uniform(size=n)) / n)
-        return phi
-
     def _gather(self, origin, phi_t, theta, phi_l, seed) -> dict:
         """Trace every camera path to its end (one symbolic loop, in rounds): the light each
         gathered, ``C`` and ``C1`` (Dr.Jit, per theta_i and wavelength), and its fibers met."""
         Float, UInt = mi.Float, mi.UInt32
         n, L, n_ti = len(phi_t), self.n_lambda, len(self.spec.theta_i)
-        scene = LoopScene(
-            scene=self.geometry.scene,
-            centers_x=Float(self.bundle.centers[:, 0].astype(np.float32)),
-            centers_z=Float(self.bundle.centers[:, 1].astype(np.float32)),
-            radii=Float(self.bundle.radii.astype(np.float32)),
-            shape_to_fiber=UInt(self.geometry.shape_to_fiber.astype(np.uint32)),
-            seed=dr.opaque(mi.UInt64, seed % 2**63))
+        scene = LoopScene.upload(self.geometry, self.bundle, seed)
         paths = CameraPaths(
             ox=to_drjit(Float, origin[:, 0]), oz=to_drjit(Float, origin[:, 1]),
             phi=to_drjit(Float, np.mod(phi_t, 2 * np.pi)), theta=to_drjit(Float, theta),

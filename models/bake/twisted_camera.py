@@ -30,6 +30,7 @@ from ..fiber import lobes
 from ..fiber.base import FiberTable
 from ..jit import to_drjit
 from . import weights
+from .camera import check_camera, light_azimuths
 from .rounds import LoopState, in_rounds
 from .tally import BakeSpec, Tally
 from .twisted import (CAPPED, ESCAPED, MAX_WRAPS, STOPPED, TwistedScene, _Upload, hit_frame, local_angles,
@@ -70,11 +71,7 @@ class TwistedCameraBaker:
     TAIL_LANES = 4096
 
     def __init__(self, ply: TwistedBundle, fiber: FiberTable, spec: BakeSpec):
-        if spec.estimator != "camera":
-            raise ValueError(f"TwistedCameraBaker traces the camera estimator (spec.estimator is {spec.estimator!r})")
-        if fiber.meta.get("model") != "ray" or fiber.meta.get("transport") != "camera":
-            raise ValueError("the camera estimator traces what Mitsuba's hair renders: it needs a ray fiber of camera "
-                             "transport (fiber.ray.transport: camera)")
+        check_camera(fiber, spec)
         self.ply, self.fiber, self.spec = ply, fiber, spec
         self.geometry = TwistedScene(ply)
         Rb, P = ply.bundle.bounding_radius, self.geometry.period
@@ -99,7 +96,7 @@ class TwistedCameraBaker:
         j, flat = np.divmod(k % (n_ti * n_bins), n_bins)
         stratum = k // (n_ti * n_bins)
         a, c = np.divmod(flat, spec.n_theta_o)
-        phi_l = self._azimuths(phi_index, n, rng)
+        phi_l = light_azimuths(spec, phi_index, n, rng)
         edges = spec.phi_o_edges
         phi_o = edges[a] + (edges[a + 1] - edges[a]) * rng.uniform(size=n)
         if spec.relative_phi:
@@ -111,7 +108,7 @@ class TwistedCameraBaker:
         w_o = _direction(phi_o, theta_o)
         w_l = _direction(phi_l, spec.theta_i[j])
         jp = (rng.integers(n_ti) + np.arange(n_paths)) % n_ti
-        phi_p = self._azimuths(phi_index, n_paths, rng)
+        phi_p = light_azimuths(spec, phi_index, n_paths, rng)
         w_p = _direction(phi_p, spec.theta_i[jp])
         t_p = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
         origin = np.concatenate([_entry(phi_o, t, y0, Rb), _entry(phi_p, t_p, P * rng.uniform(size=n_paths), Rb)])
@@ -147,12 +144,6 @@ class TwistedCameraBaker:
             tally.absorbed[phi_index, :, l] += count * np.maximum(1 - p_theta - scattered, 0.0)
         tally.bin_paths[phi_index] += m
         return tally
-
-    def _azimuths(self, phi_index, n, rng):
-        phi = np.full(n, self.spec.phi_i[phi_index])
-        if self.spec.relative_phi:
-            phi = phi + 2 * np.pi * rng.permutation((np.arange(n) + rng.uniform(size=n)) / n)
-        return phi
 
     def _loop(self, origin, d, wl, probe, seed) -> dict:
         Float, UInt = mi.Float, mi.UInt32

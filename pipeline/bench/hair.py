@@ -19,7 +19,7 @@ Per bin: bake / explicit and its standard error (bake and render). It also tabul
 albedo of a lossless fiber in either transport, the reason the two differ. Records
 ``benchmarks/hair.json`` (``pipeline.bench.results``)::
 
-    .venv/bin/python -m pipeline.bench.hair            # about 10 minutes on 2 cores
+    .venv/bin/python -m pipeline.bench.hair            # about 12 minutes on 2 cores
     .venv/bin/python -m pipeline.bench.hair --quick    # the six-fiber ply, fewer paths
 """
 
