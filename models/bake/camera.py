@@ -30,9 +30,10 @@ is the adjoint averaged over the camera's offset, as the ``curve`` exit's.
 The passthrough is counted with rays from the light as in the light-side bake. A camera
 path sees no light-side absorption: ``absorbed`` is the balance's remainder ``1 - scattered -
 passthrough`` where that is positive; where the adjoint scatters more than arrives (towards
-grazing light) it is zero and the balance's total exceeds 1 by the excess; ``lost`` is zero (the light a path would have gathered past the bounce cap is not known).
-``single`` is the light gathered at the first fiber. Parallel plies of a ray fiber of camera
-transport; orders and offsets are not kept.
+grazing light) it is zero and the balance's total exceeds 1 by the excess. ``lost`` is zero:
+the light a path would have gathered past the bounce cap is not known. ``single`` is the
+light gathered at the first fiber. Parallel plies of a ray fiber of camera transport (twisted
+ones: ``models.bake.twisted_camera``); orders and offsets are not kept.
 """
 
 from __future__ import annotations
