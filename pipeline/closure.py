@@ -382,16 +382,12 @@ def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, 
 
 def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, resolution: int = 48,
                          unit: float = 1e-3, turns: bool = True, curves: bool = False,
-                         integrator: str = "bundle_path", cells: int = 0, groups: int = 2) -> list:
+                         integrator: str = "bundle_path", cells: int = 0) -> list:
     """:func:`explicit_intensity` for many ``(w_i, views)`` at once (every ``views`` as
     long): each turn of the arrangement is loaded once, and the sun and the camera are
     moved between requests (``mi.traverse``), as a fresh scene would place them; the
     scenes' loads and kernels, not their pixels, are what explicit fibers cost here.
-    ``cells``: the :func:`profile` across the ply's bounding width instead (arrays).
-
-    The standard error is that of the mean over ``groups`` interleaved groups of the views
-    (each spread over the turns): 2, the halves, is one degree of freedom, under a third of
-    the true error about one time in four; more groups estimate it more steadily."""
+    ``cells``: the :func:`profile` across the ply's bounding width instead (arrays)."""
 
     twisted = isinstance(bundle, TwistedBundle)
     section = bundle.bundle if twisted else bundle
@@ -428,14 +424,9 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
                 img = render_image(mi, loaded, seed=k)
                 values[r, k] = (profile(img, views[k], hs, section.bounding_radius * unit, cells) if cells
                                 else intensity(img, views[k], hs))
-    if n_views % groups:
-        raise ValueError(f"explicit_intensities: {n_views} views do not split into {groups} groups")
-
-    def stderr(v):  # of the mean, from the interleaved groups' means
-        return np.stack([v[g::groups].mean(axis=0) for g in range(groups)]).std(axis=0, ddof=1) / np.sqrt(groups)
     if cells:
-        return [(v.mean(axis=0), stderr(v)) for v in values]
-    return [(float(v.mean()), float(stderr(v))) for v in values]
+        return [(v.mean(axis=0), abs(v[0::2].mean(axis=0) - v[1::2].mean(axis=0)) / 2) for v in values]
+    return [(float(v.mean()), float(abs(v[0::2].mean() - v[1::2].mean()) / 2)) for v in values]
 
 
 def bundle_profiles(mi, bsdf: dict, R, requests, cells: int, shape=None, spp: int = 32,

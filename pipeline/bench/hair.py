@@ -105,8 +105,7 @@ def bake_of(ply, fiber, exit_model: str, paths: int, seed: int = 1, estimator: s
 
 def explicit_hair(ply, fiber, tables, spp: int = 16) -> list:
     """``[ratio, sigma]`` rows per table: bake / explicit ``hair`` fibers at the bins of
-    :func:`cases_of`, with the standard error of both (the explicit one from four groups of
-    its 16 turns: three degrees of freedom)."""
+    :func:`cases_of`, with the standard error of both."""
 
     mi.set_variant("llvm_ad_mono")
     lam = list(WL).index(LAM)
@@ -115,7 +114,7 @@ def explicit_hair(ply, fiber, tables, spp: int = 16) -> list:
     hair = mitsuba_hair(fiber.meta, fiber.wavelength, LAM)
     measured = closure.explicit_intensities(
         mi, ply, hair, [(closure.direction(0.0, t.theta_i[j]), closure.bin_views(t, 0.0, k, m)) for j, k, m in cases],
-        spp=spp, resolution=32, curves=True, integrator="path", groups=4)
+        spp=spp, resolution=32, curves=True, integrator="path")
     R_b = getattr(ply, "bundle", ply).bounding_radius * 1e-3
     out = []
     for table in tables:
