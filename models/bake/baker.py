@@ -83,7 +83,7 @@ from ..fiber.sampling_drjit import DrJitFiber
 from ..jit import to_drjit
 from . import weights
 from .rounds import LoopState, in_rounds
-from .scene import BundleScene
+from .scene import BundleScene, across_width, incident_azimuths
 from .tally import BakeSpec, Tally, offset_cell, output_bin, split_bins
 
 # how a path of the fast estimator ended
@@ -162,16 +162,9 @@ class Baker:
         self.spec.theta_cells.upload(mi.Float)  # read in the bounce loop: uploaded before it
         rng = np.random.default_rng(seed)
         tally = Tally.zeros(self.spec, self.n_lambda)
-        phi_i = self.spec.phi_i[phi_index]
         Rb = self.bundle.bounding_radius
-        # stratified offsets across the bounding width
-        t = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
-        if self.spec.relative_phi:
-            # a circle: the table is the rotation average, so every path enters from its own
-            # azimuth (stratified, shuffled against the offsets) and is binned relative to it;
-            # a finite arrangement is not exactly rotation invariant
-            phi_i = phi_i + 2 * np.pi * rng.permutation((np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths)
-        phi_i = np.broadcast_to(np.asarray(phi_i, np.float64), t.shape)
+        t = across_width(n_paths, Rb, rng)
+        phi_i = incident_azimuths(self.spec, phi_index, n_paths, rng)   # a circle's binned relative to it
         origin, phi_t = self.geometry.entry(phi_i, t)
         hit, fiber = self.geometry.cast(origin, phi_t)
         tally.count(phi_index, n_paths, int(np.sum(~hit)))

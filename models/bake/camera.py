@@ -52,7 +52,7 @@ from ..jit import to_drjit
 from . import weights
 from .baker import CAPPED, ESCAPED, STOPPED, LoopScene
 from .rounds import LoopState, in_rounds
-from .scene import BundleScene
+from .scene import BundleScene, across_width, incident_azimuths
 from .tally import BakeSpec, Tally
 
 
@@ -87,13 +87,15 @@ def check_camera(fiber: FiberTable, spec: BakeSpec) -> None:
                          "transport (fiber.ray.transport: camera)")
 
 
-def light_azimuths(spec: BakeSpec, phi_index: int, n: int, rng) -> np.ndarray:
-    """The light's azimuth per path: the node's, or for a circle (a table of the rotation
-    average) its own per path, stratified over the circle and shuffled."""
-    phi = np.full(n, spec.phi_i[phi_index])
+def camera_directions(spec: BakeSpec, a, c, phi_l, rng):
+    """``(phi_o, theta_o)`` of camera directions drawn uniformly in solid angle within the output
+    bins ``(a, c)`` (azimuth and longitude bins), for lights at azimuths ``phi_l``."""
+    edges = spec.phi_o_edges
+    phi_o = edges[a] + (edges[a + 1] - edges[a]) * rng.uniform(size=len(a))
     if spec.relative_phi:
-        phi = phi + 2 * np.pi * rng.permutation((np.arange(n) + rng.uniform(size=n)) / n)
-    return phi
+        phi_o = phi_o + phi_l
+    s0, s1 = np.sin(spec.theta_o_edges[c]), np.sin(spec.theta_o_edges[c + 1])
+    return phi_o, np.arcsin(np.clip(s0 + (s1 - s0) * rng.uniform(size=len(c)), -1.0, 1.0))
 
 
 class CameraBaker:
@@ -119,8 +121,8 @@ class CameraBaker:
         n = m * n_bins
 
         # Phase 1: the passthrough, with rays from the light as the light side counts it
-        phi_i = light_azimuths(spec, phi_index, n_paths, rng)
-        t = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
+        phi_i = incident_azimuths(spec, phi_index, n_paths, rng)
+        t = across_width(n_paths, Rb, rng)
         hit, _ = self.geometry.cast(*self.geometry.entry(phi_i, t))
         tally.count(phi_index, n_paths, int(np.sum(~hit)))
 
@@ -129,13 +131,8 @@ class CameraBaker:
         flat = np.arange(n) % n_bins
         stratum = np.arange(n) // n_bins
         a, c = np.divmod(flat, spec.n_theta_o)
-        phi_l = light_azimuths(spec, phi_index, n, rng)
-        edges = spec.phi_o_edges
-        phi_o = edges[a] + (edges[a + 1] - edges[a]) * rng.uniform(size=n)
-        if spec.relative_phi:
-            phi_o = phi_o + phi_l
-        s0, s1 = np.sin(spec.theta_o_edges[c]), np.sin(spec.theta_o_edges[c + 1])
-        theta_o = np.arcsin(np.clip(s0 + (s1 - s0) * rng.uniform(size=n), -1.0, 1.0))
+        phi_l = incident_azimuths(spec, phi_index, n, rng)
+        phi_o, theta_o = camera_directions(spec, a, c, phi_l, rng)
         t = (-1 + 2 * (stratum + rng.uniform(size=n)) / m) * Rb
         origin, phi_t = self.geometry.entry(phi_o, t)
         final = self._gather(origin, phi_t, -theta_o, phi_l, int(rng.integers(2**62)))
@@ -155,7 +152,7 @@ class CameraBaker:
                 sums[j, :, l] = np.bincount(flat, S, n_bins)
                 sums_sq[j, :, l] = np.bincount(flat, S * S, n_bins)
                 S1 = final["C1"][j * L + l].numpy().astype(np.float64) * scale[:, j] * omega
-                single[j, l] = np.bincount(flat, S1, n_bins).sum() / m   # sum over bins of omega S_1
+                single[j, l] = S1.sum() / m   # over the bins, omega S_1
         shape = (n_ti, spec.n_phi_o, spec.n_theta_o, L)
         tally.sum[phi_index] += sums.reshape(shape)
         tally.sum_sq[phi_index] += sums_sq.reshape(shape)

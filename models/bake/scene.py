@@ -15,6 +15,26 @@ from ..fiber import lobes
 from ..jit import to_drjit
 
 
+def across_width(n: int, radius: float, rng) -> np.ndarray:
+    """Offsets of ``n`` rays across the width ``2 radius``, one in each of ``n`` equal strata, in order."""
+    return (-1 + 2 * (np.arange(n) + rng.uniform(size=n)) / n) * radius
+
+
+def shuffled_strata(n: int, rng) -> np.ndarray:
+    """``n`` numbers in [0, 1), one in each of ``n`` equal strata, shuffled (against the offsets)."""
+    return rng.permutation((np.arange(n) + rng.uniform(size=n)) / n)
+
+
+def incident_azimuths(spec, phi_index: int, n: int, rng) -> np.ndarray:
+    """The azimuth each of ``n`` paths arrives from: the spec's node ``phi_index``, or for a
+    circle (whose table is the rotation average: a finite arrangement is not exactly rotation
+    invariant) its own per path, stratified over the circle and shuffled."""
+    phi = np.full(n, spec.phi_i[phi_index])
+    if spec.relative_phi:
+        phi = phi + 2 * np.pi * shuffled_strata(n, rng)
+    return phi
+
+
 class BundleScene:
     """The bundle as a Mitsuba scene of cylinders along y; casts 2D rays."""
 

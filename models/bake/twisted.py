@@ -44,6 +44,7 @@ from ..fiber.sampling_drjit import DrJitFiber
 from ..jit import to_drjit
 from . import weights
 from .rounds import LoopState, in_rounds
+from .scene import across_width, incident_azimuths, shuffled_strata
 from .tally import BakeSpec, Tally, offset_cell, output_bin, split_bins
 
 ESCAPED, CAPPED, STOPPED = 1, 2, 3
@@ -161,6 +162,28 @@ def segment_limits(o, d, Rb: float, P: float):
     return dr.maximum(t_out, 0.0), t_end
 
 
+def through_end(o, d, t_end: float, P: float):
+    """Where the ray ``o + t d`` leaves the period through an end, ``t_end`` along it, moved to
+    the other end: the same point a period away."""
+    out = o + d * t_end
+    out.y = dr.select(d.y > 0, 0.0, P)
+    return out
+
+
+def directions(phi, theta) -> np.ndarray:
+    """Unit directions ``[n, 3]`` of azimuths ``phi`` and longitudes ``theta`` in the ply frame."""
+    return np.stack([np.cos(theta) * np.cos(phi), np.sin(theta), np.cos(theta) * np.sin(phi)], -1)
+
+
+def entry_points(phi, t, y, Rb: float) -> np.ndarray:
+    """Where lines arriving from azimuths ``phi`` (towards them) enter the bounding cylinder of
+    radius ``Rb`` at offsets ``t`` across it, at heights ``y``: ``[n, 3]``."""
+    dh = np.stack([np.cos(phi + np.pi), np.sin(phi + np.pi)], -1)   # horizontal travel
+    side = np.stack([-dh[:, 1], dh[:, 0]], -1)
+    o_h = -np.sqrt(np.maximum(Rb**2 - t**2, 0.0))[:, None] * dh + t[:, None] * side
+    return np.stack([o_h[:, 0], y, o_h[:, 1]], -1)
+
+
 def hit_frame(pi, ray, up: _Upload, active):
     """The fiber's frame where ``ray`` meets it (``pi`` its preliminary intersection): its
     tangent ``T`` (the segment's axis), ``e1, e2`` spanning the plane normal to it (the fiber
@@ -213,19 +236,13 @@ class TwistedBaker:
         Rb, P = self.ply.bundle.bounding_radius, self.geometry.period
         n_ti = len(spec.theta_i)
         # stratified offsets across 2 R_b, heights over a period, theta_i nodes in turn
-        t = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
-        y0 = P * rng.permutation((np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths)
+        t = across_width(n_paths, Rb, rng)
+        y0 = P * shuffled_strata(n_paths, rng)
         j = (rng.integers(n_ti) + np.arange(n_paths)) % n_ti
-        phi_i = np.full(n_paths, spec.phi_i[phi_index])
-        if spec.relative_phi:
-            phi_i = phi_i + 2 * np.pi * rng.permutation((np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths)
-        theta_i = spec.theta_i[j]
+        phi_i = incident_azimuths(spec, phi_index, n_paths, rng)
         # light from w_i travels along d = -w_i; it enters the bounding cylinder at offset t
-        d = -np.stack([np.cos(theta_i) * np.cos(phi_i), np.sin(theta_i), np.cos(theta_i) * np.sin(phi_i)], -1)
-        dh = np.stack([np.cos(phi_i + np.pi), np.sin(phi_i + np.pi)], -1)   # horizontal travel
-        side = np.stack([-dh[:, 1], dh[:, 0]], -1)
-        o_h = -np.sqrt(np.maximum(Rb**2 - t**2, 0.0))[:, None] * dh + t[:, None] * side
-        origin = np.stack([o_h[:, 0], y0, o_h[:, 1]], -1)
+        d = -directions(phi_i, spec.theta_i[j])
+        origin = entry_points(phi_i, t, y0, Rb)
         count = np.bincount(j, minlength=n_ti)
         weight = n_paths / np.maximum(count, 1)   # each node normalized by its own paths
 
@@ -244,6 +261,7 @@ class TwistedBaker:
         cells, bins = split_bins(spec, bins)   # the exit offset's cell rides above the bin
         if spec.offsets:  # the near field: exits by their offset's cell, paths by their entry's
             N = spec.offsets
+            dh = np.stack([np.cos(phi_i + np.pi), np.sin(phi_i + np.pi)], -1)   # horizontal travel
             entry = offset_cell(N, origin[:, 0], origin[:, 2], np.arctan2(dh[:, 1], dh[:, 0]), Rb)
             tally.paths_h[phi_index] = np.bincount(j * N + entry, minlength=n_ti * N).reshape(n_ti, N)
             tally.passthrough_h[phi_index] = np.bincount(j[passed] * N + entry[passed],
@@ -311,11 +329,9 @@ class TwistedBaker:
         phi = dr.atan2(p.d.z, p.d.x)
         theta = dr.safe_asin(p.d.y)
         p.bin = dr.select(escaped, output_bin(spec, phi, theta, p.phi_i, dr, (p.o.x, p.o.z), Rb), p.bin)
-        wrapped = p.o + p.d * t_end
-        wrapped.y = dr.select(p.d.y > 0, 0.0, P)
         p.wraps = dr.select(wrap, p.wraps + 1, p.wraps)
         p.status = dr.select(wrap & (p.wraps > MAX_WRAPS), CAPPED, p.status)
-        p.o = dr.select(wrap, wrapped, p.o)
+        p.o = dr.select(wrap, through_end(p.o, p.d, t_end, P), p.o)
 
         # Phase 3: a fiber event, in the fiber's frame (T its axis)
         capped = hit & (p.depth >= spec.max_bounces)

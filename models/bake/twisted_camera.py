@@ -30,11 +30,12 @@ from ..fiber import lobes
 from ..fiber.base import FiberTable
 from ..jit import to_drjit
 from . import weights
-from .camera import check_camera, light_azimuths
+from .camera import camera_directions, check_camera
 from .rounds import LoopState, in_rounds
 from .tally import BakeSpec, Tally
-from .twisted import (CAPPED, ESCAPED, MAX_WRAPS, STOPPED, TwistedScene, _Upload, hit_frame, local_angles,
-                      segment_limits)
+from .scene import across_width, incident_azimuths
+from .twisted import (CAPPED, ESCAPED, MAX_WRAPS, STOPPED, TwistedScene, _Upload, directions, entry_points,
+                      hit_frame, local_angles, segment_limits, through_end)
 
 # segments of a shadow line: enough to cross every period end it can meet before leaving the
 # bounding cylinder is checked at construction (longitude of the steepest theta_i node)
@@ -96,22 +97,18 @@ class TwistedCameraBaker:
         j, flat = np.divmod(k % (n_ti * n_bins), n_bins)
         stratum = k // (n_ti * n_bins)
         a, c = np.divmod(flat, spec.n_theta_o)
-        phi_l = light_azimuths(spec, phi_index, n, rng)
-        edges = spec.phi_o_edges
-        phi_o = edges[a] + (edges[a + 1] - edges[a]) * rng.uniform(size=n)
-        if spec.relative_phi:
-            phi_o = phi_o + phi_l
-        s0, s1 = np.sin(spec.theta_o_edges[c]), np.sin(spec.theta_o_edges[c + 1])
-        theta_o = np.arcsin(np.clip(s0 + (s1 - s0) * rng.uniform(size=n), -1.0, 1.0))
+        phi_l = incident_azimuths(spec, phi_index, n, rng)
+        phi_o, theta_o = camera_directions(spec, a, c, phi_l, rng)
         t = (-1 + 2 * (stratum + rng.uniform(size=n)) / m) * Rb
         y0 = P * rng.uniform(size=n)
-        w_o = _direction(phi_o, theta_o)
-        w_l = _direction(phi_l, spec.theta_i[j])
+        w_o = directions(phi_o, theta_o)
+        w_l = directions(phi_l, spec.theta_i[j])
         jp = (rng.integers(n_ti) + np.arange(n_paths)) % n_ti
-        phi_p = light_azimuths(spec, phi_index, n_paths, rng)
-        w_p = _direction(phi_p, spec.theta_i[jp])
-        t_p = (-1 + 2 * (np.arange(n_paths) + rng.uniform(size=n_paths)) / n_paths) * Rb
-        origin = np.concatenate([_entry(phi_o, t, y0, Rb), _entry(phi_p, t_p, P * rng.uniform(size=n_paths), Rb)])
+        phi_p = incident_azimuths(spec, phi_index, n_paths, rng)
+        w_p = directions(phi_p, spec.theta_i[jp])
+        t_p = across_width(n_paths, Rb, rng)
+        origin = np.concatenate([entry_points(phi_o, t, y0, Rb),
+                                 entry_points(phi_p, t_p, P * rng.uniform(size=n_paths), Rb)])
         out = self._loop(origin, -np.concatenate([w_o, w_p]), np.concatenate([w_l, w_p]),
                          np.arange(n + n_paths) >= n, int(rng.integers(2**62)))
 
@@ -137,7 +134,7 @@ class TwistedCameraBaker:
             S1 = out["C1"][l].numpy()[:n].astype(np.float64) * scale
             tally.sum[phi_index, ..., l] += np.bincount(row, S, n_ti * n_bins).reshape(shape)
             tally.sum_sq[phi_index, ..., l] += np.bincount(row, S * S, n_ti * n_bins).reshape(shape)
-            single = np.bincount(row, S1, n_ti * n_bins).reshape(n_ti, -1).sum(-1) / m
+            single = np.bincount(j, S1, n_ti) / m
             scattered = tally.sum[phi_index, ..., l].reshape(n_ti, -1).sum(-1) / m
             # per path of each theta_i, as the light side keeps them (models.bake.camera)
             tally.single[phi_index, :, l] += count * single
@@ -199,9 +196,7 @@ class TwistedCameraBaker:
             blocked = going & up.scene.ray_test(ray, going)
             wrap = going & ~blocked & (t_end < t_out)
             open_ = open_ | (going & ~blocked & ~wrap)
-            moved = o + w * t_end
-            moved.y = dr.select(w.y > 0, 0.0, P)
-            o = dr.select(wrap, moved, o)
+            o = dr.select(wrap, through_end(o, w, t_end, P), o)
             going = wrap
         return open_
 
@@ -217,11 +212,9 @@ class TwistedCameraBaker:
         hit = p.active & pi.is_valid()
         wrap = p.active & ~hit & (t_end < t_out)
         p.status = dr.select(p.active & ~hit & ~wrap, ESCAPED, p.status)
-        wrapped = p.o + p.d * t_end
-        wrapped.y = dr.select(p.d.y > 0, 0.0, P)
         p.wraps = dr.select(wrap, p.wraps + 1, p.wraps)
         p.status = dr.select(wrap & (p.wraps > MAX_WRAPS), CAPPED, p.status)
-        p.o = dr.select(wrap, wrapped, p.o)
+        p.o = dr.select(wrap, through_end(p.o, p.d, t_end, P), p.o)
         # a probe (a line from the light) ends at its first fiber
         capped = hit & (p.probe | (p.depth >= spec.max_bounces))
         p.status = dr.select(capped, CAPPED, p.status)
@@ -262,16 +255,3 @@ class TwistedCameraBaker:
         p.active = p.active & (p.status == 0)
         return p
 
-
-def _direction(phi, theta) -> np.ndarray:
-    """Unit directions ``[n, 3]`` of azimuths ``phi`` and longitudes ``theta`` in the ply frame."""
-    return np.stack([np.cos(theta) * np.cos(phi), np.sin(theta), np.cos(theta) * np.sin(phi)], -1)
-
-
-def _entry(phi, t, y, Rb) -> np.ndarray:
-    """Where lines arriving from azimuths ``phi`` (towards them) enter the bounding cylinder at
-    offsets ``t`` across it, at heights ``y``: ``[n, 3]``."""
-    dh = np.stack([np.cos(phi + np.pi), np.sin(phi + np.pi)], -1)   # horizontal travel
-    side = np.stack([-dh[:, 1], dh[:, 0]], -1)
-    o_h = -np.sqrt(np.maximum(Rb**2 - t**2, 0.0))[:, None] * dh + t[:, None] * side
-    return np.stack([o_h[:, 0], y, o_h[:, 1]], -1)
