@@ -344,7 +344,8 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
         result[name] = entry
         print(f"[render] twisted ply, {name}: mean radiance / explicit {entry['mean_vs_explicit']:.3f}, brightness "
               f"along the ply off by {entry['profile_l1_vs_explicit']:.1%}; highlight (theta_i 30 deg, sideways) at "
-              f"theta_o {pos:+.1f} deg (centroid of its upper half), {width:.0f} deg wide, peak {entry['highlight_peak']:.3g} /sr"
+              f"theta_o {pos:+.1f} deg (centroid of its upper half), {width:.0f} deg wide, "
+              f"peak {entry['highlight_peak']:.3g} /sr"
               + (f"; FLIP {entry['flip_vs_explicit']:.3f}" if "flip_vs_explicit" in entry else ""))
     plot_parallel_misses(images, profiles, result, expo, out / "twisted_vs_parallel.png", cfg.name)
     return result
@@ -383,10 +384,10 @@ def plot_parallel_misses(images: dict, profiles: dict, result: dict, exposure: f
     cut = result["cut"]
     to = np.array(cut["theta_o_deg"])
     ax.errorbar(to, cut["explicit helical fibers"], yerr=cut["explicit_sigma"], fmt="o", ms=3, capsize=2,
-                label=f"explicit helical fibers (peak {result['explicit helical fibers']['highlight_deg']:+.0f} deg, "
+                label=f"explicit helical fibers (centre {result['explicit helical fibers']['highlight_deg']:+.1f} deg, "
                       f"FWHM {result['explicit helical fibers']['highlight_fwhm_deg']:.0f} deg)")
     for label in ("twisted table", "parallel table"):
-        ax.plot(to, cut[label], label=f"{label} (peak {result[label]['highlight_deg']:+.0f} deg, "
+        ax.plot(to, cut[label], label=f"{label} (centre {result[label]['highlight_deg']:+.1f} deg, "
                                        f"FWHM {result[label]['highlight_fwhm_deg']:.0f} deg)")
     ax.set(xlabel="theta_o (deg)", ylabel="S (1/sr)",
            title=f"the highlight: theta_i {cut['theta_i_deg']:.0f} deg, dphi {cut['dphi_deg']:.0f} deg, "
