@@ -8,6 +8,7 @@
     bcsdf cloth CONFIG     render the config's yarn-level model (a .bcc file or a swatch)
     bcsdf stability CONFIG check finiteness, energy and references on stiff and extreme cases
     bcsdf sweep CONFIG     bake every member of the config's sweep, write the family page
+    bcsdf family CONFIG    one model of the sweep's packings (the packing an input of it)
     bcsdf report CONFIG    one HTML page with the pictures and figures of every stage
     bcsdf render-scene SCENE.xml -o OUT.exr
                            render any Mitsuba XML scene with the plugins registered
@@ -44,7 +45,7 @@ artifacts/<name>/ and carry the changed settings' hash, so later stages see the
 change (a quick trial: --set name=trial keeps it apart from the real artifacts).
 Errors print what is wrong and exit with status 2; earlier artifacts stay intact."""
 
-STAGES = ("fiber", "bake", "train", "export", "render", "cloth", "stability", "sweep", "report")
+STAGES = ("fiber", "bake", "train", "export", "render", "cloth", "stability", "sweep", "family", "report")
 
 
 def main(argv=None) -> int:
@@ -60,6 +61,7 @@ def main(argv=None) -> int:
                         ("cloth", "render the config's yarn-level model (cloth: a .bcc file or a swatch)"),
                         ("stability", "numerical stability on stiff and extreme cases"),
                         ("sweep", "bake every member of the config's sweep: section, write the family page"),
+                        ("family", "train one model of the sweep's packings (family: section), measure it"),
                         ("report", "write the HTML report"),
                         ("run", "run every stage in order")):
         p = sub.add_parser(name, help=help_, description=f"bcsdf {name}: {help_}.", epilog=EPILOG,
@@ -270,6 +272,8 @@ def _applies(stage: str, cfg) -> bool:
     """Whether ``bcsdf run`` runs ``stage`` for this config (a fiber alone: no bake ...)."""
     if stage == "sweep":
         return bool(cfg.sweep)
+    if stage == "family":
+        return cfg.family is not None
     if stage == "cloth":
         return cfg.cloth is not None and cfg.bundle is not None
     return stage in ("fiber", "stability", "report") or cfg.bundle is not None

@@ -26,6 +26,7 @@ FIBER_SECTIONS = ("wavelengths", "fiber", "tabulate")
 BAKE_SECTIONS = FIBER_SECTIONS + ("bundle", "bake")
 TRAIN_SECTIONS = BAKE_SECTIONS + ("train",)
 RENDER_SECTIONS = TRAIN_SECTIONS + ("render",)
+FAMILY_SECTIONS = TRAIN_SECTIONS + ("sweep", "family")
 
 
 class ConfigError(ValueError):
@@ -597,6 +598,20 @@ class ClothCfg(Strict):
         return v
 
 
+class FamilyCfg(Strict):
+    """One model of a sweep's plies with the packing fraction as an input (``bcsdf family``;
+    pipeline/stages/family.py): trained on the sweep's members (every ``bundle.seed`` of a
+    packing: the model learns their mean) and measured at each packing against the seeds'
+    mean table, at ``held_out`` packings without having seen them."""
+
+    model: Optional[str] = Field(None, description="which of train.models is the network (default: the first)")
+    held_out: list[float] = Field(
+        default_factory=list, description="packings of the sweep's bundle.packing axis measured but not trained on; "
+                                          "each between two trained ones (the model does not extrapolate)")
+    strip: bool = Field(True, description="render the yarn of the render stage at five packings (and three dyes, "
+                                          "with bake.orders) from the one model file")
+
+
 class ReportCfg(Strict):
     queries: int = Field(200_000, ge=1000, le=10_000_000, description="batch size of the timings")
 
@@ -622,6 +637,9 @@ class Config(Strict):
     sweep: Optional[dict[str, list[Any]]] = Field(
         None, description="axes of a family of bakes: dotted key -> values (bcsdf sweep; pipeline/stages/sweep.py)")
 
+    family: Optional[FamilyCfg] = Field(
+        None, description="one model of the sweep's packings (bcsdf family; pipeline/stages/family.py)")
+
     @field_validator("sweep")
     @classmethod
     def _axes(cls, v):
@@ -632,7 +650,7 @@ class Config(Strict):
                              "{bundle.packing: [0.3, 0.5]}, or leave out 'sweep:'")
         members = 1
         for key, values in v.items():
-            if key.split(".")[0] in ("name", "sweep"):
+            if key.split(".")[0] in ("name", "sweep", "family"):
                 raise ValueError(f"{key!r} cannot be swept (members are named after their axes)")
             if not values:
                 raise ValueError(f"axis {key!r} has no values")
@@ -659,6 +677,45 @@ class Config(Strict):
         n_phi_i = len(b.phi_i(circle))
         twisted = self.bundle.twist is not None
         return n_phi_i, len(theta_nodes(b.theta_i_nodes_deg(), negative=expanded or twisted, poles=not twisted))
+
+    @model_validator(mode="after")
+    def _family_of_packings(self):
+        """``family:`` trains on a sweep over ``bundle.packing`` (seeds beside it, nothing else:
+        one ply type), holding out packings strictly inside the trained range."""
+        f = self.family
+        if f is None:
+            return self
+        axes = self.sweep or {}
+        if "bundle.packing" not in axes or self.bundle is None:
+            raise ValueError("family: a model of packings is trained on a sweep over them; add e.g. "
+                             "sweep: {bundle.packing: [0.1, 0.2, 0.3], bundle.seed: [1, 2, 3]}, or drop family:")
+        others = sorted(set(axes) - {"bundle.packing", "bundle.seed"})
+        if others:
+            raise ValueError(f"family: its sweep may vary bundle.packing and bundle.seed only (one ply type); "
+                             f"{', '.join(others)} would change the ply itself: sweep them in another config")
+        packings = axes["bundle.packing"]
+        if not all(isinstance(p, (int, float)) and not isinstance(p, bool) for p in packings):
+            raise ValueError(f"family: bundle.packing's values must be numbers (got {packings})")
+        missing = [p for p in f.held_out if not any(np.isclose(p, q) for q in packings)]
+        if missing:
+            raise ValueError(f"family.held_out {missing}: not among the sweep's bundle.packing values {packings}; "
+                             "a held-out packing is baked by the sweep and measured, not trained on")
+        trained = sorted(p for p in packings if not any(np.isclose(p, q) for q in f.held_out))
+        if len(trained) < 2:
+            raise ValueError(f"family: {len(trained)} trained packing(s) ({trained}); a model of packings needs at "
+                             "least two: add values to sweep.bundle.packing or hold fewer out")
+        outside = [p for p in f.held_out if not trained[0] < p < trained[-1]]
+        if outside:
+            raise ValueError(f"family.held_out {outside}: outside the trained packings [{trained[0]}, {trained[-1]}]; "
+                             "the model does not extrapolate: hold out packings between trained ones")
+        if f.model is not None and f.model not in self.train.models:
+            raise ValueError(f"family.model: {f.model!r} is not one of train.models {sorted(self.train.models)}")
+        t = self.train
+        if t.inputs or t.orders or t.encoding != "cone" or t.line_nodes or t.gain_azimuth_bins:
+            raise ValueError("family: the family's model takes the packing as its input and the orders of scattering "
+                             "where the sweep bakes them (bake.orders); leave train.inputs, train.orders, "
+                             "train.line_nodes and train.gain_azimuth_bins unset and train.encoding: cone")
+        return self
 
     @model_validator(mode="after")
     def _render_model_is_trained(self):
@@ -693,7 +750,7 @@ class Config(Strict):
                              "or drop train.orders")
         if self.train.orders and (self.train.inputs or self.train.encoding != "cone"):
             raise ValueError("train.orders: with the cone encoding and without train.inputs (a dyed near field is not "
-                             "supported; a family's packing and orders train together in pipeline.bench.packing)")
+                             "supported; a family's packing and orders train together: family: and bcsdf family)")
         if "offset" in self.train.inputs and not b.offsets:
             raise ValueError("train.inputs [offset] learns the near field: bake it with bake.offsets: N (e.g. 8), "
                              "or drop the offset input")

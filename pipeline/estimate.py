@@ -29,9 +29,10 @@ from .graph import stamp_path
 # sweep from their own runs, scaled to that pace. The estimate is a forecast, printed beside the
 # seconds each stage then takes: a machine or code that drifts from it shows there
 OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "cloth": 8.0, "stability": 0.0,
-            "sweep": 3.0, "report": 1.0}
+            "sweep": 3.0, "family": 5.0, "report": 1.0}
 REFERENCE = {"fiber": 2.9e-4, "bake": 5.75e-7, "train": 8.5e-7, "export": 1.97, "render": 1.23e-6,
-             "cloth": 1.0e-5, "stability": 6.3, "sweep": 5.75e-7, "report": 0.0}  # a sweep's work: its members' bakes
+             "cloth": 1.0e-5, "stability": 6.3, "sweep": 5.75e-7, "family": 8.5e-7, "report": 0.0}  # a sweep's work: its members' bakes; a family's:
+# its one model's training (train units) and its renders, in train units
 PROBE_REFERENCE = 10.6e-3  # seconds of probe() on the machine and day REFERENCE was measured
 _PROBE: list = []  # this process's probe, measured once
 
@@ -143,8 +144,23 @@ def _sweep_work(cfg) -> float:
     return sum(_bake_work(m) for _, m in sweep_members(cfg))
 
 
+def _family_work(cfg) -> float:
+    """One model trained on every member not held out (a train unit per member's bins), and
+    the yarn's renders: two per held-out packing, five (or fifteen, dyed) for the strip."""
+    f = cfg.family
+    held = lambda point: any(abs(point["bundle.packing"] - q) < 1e-9 for q in f.held_out)  # noqa: E731
+    trained = [m for point, m in sweep_members(cfg) if not held(point)]
+    one = cfg.model_copy(update={"train": cfg.train.model_copy(
+        update={"models": {"family": cfg.train.models[f.model or next(iter(cfg.train.models))]}})})
+    r = cfg.render
+    renders = 2 * len(f.held_out) + (5 * (3 if cfg.bake.orders else 1) if f.strip else 0)
+    return len(trained) * _train_work(one) + renders * r.width * r.height * r.spp * REFERENCE["render"] / REFERENCE[
+        "family"]
+
+
 WORK = {"fiber": _fiber_work, "bake": _bake_work, "train": _train_work, "export": _export_work,
-        "render": _render_work, "cloth": _cloth_work, "sweep": _sweep_work, "stability": lambda cfg: 1.0, "report": lambda cfg: 1.0}
+        "render": _render_work, "cloth": _cloth_work, "sweep": _sweep_work, "family": _family_work,
+        "stability": lambda cfg: 1.0, "report": lambda cfg: 1.0}
 
 
 def work(stage: str, cfg) -> float:

@@ -67,6 +67,8 @@ def template(stage: str, cfg) -> str:
         return "report_fiber"
     if stage == "report" and cfg.cloth is not None:
         return "report_cloth"  # it reads the cloth stage's pictures too
+    if stage == "report" and cfg.family is not None:
+        return "report_family"  # it reads the family stage's too
     return stage
 
 

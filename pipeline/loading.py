@@ -105,7 +105,7 @@ def sweep_members(cfg: Config) -> list[tuple[dict, Config]]:
     short = {k: k.rsplit(".", 1)[-1] for k in axes}
     if len(set(short.values())) < len(short):  # bundle.seed and bake.seed: keep the whole key
         short = {k: k for k in axes}
-    base = cfg.model_dump(mode="json", exclude={"sweep"})
+    base = cfg.model_dump(mode="json", exclude={"sweep", "family"})  # a member is one ply
     labels = {k: _labels(values) for k, values in axes.items()}
     members = []
     for n, picks in enumerate(itertools.product(*(range(len(values)) for values in axes.values()))):

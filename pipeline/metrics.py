@@ -45,3 +45,16 @@ def write_curve(path: Path, rows: list[dict]) -> Path:
     writer.writerows(rows)
     write_text(path, buf.getvalue())
     return path
+
+
+def rows_table(rows: list[dict], columns: list[str] | None = None) -> str:
+    """A Markdown table of ``rows`` (one dict each), numbers to 4 significant digits."""
+    columns = columns or list(dict.fromkeys(k for r in rows for k in r if not isinstance(r[k], (dict, list))))
+
+    def cell(v):
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return "" if v is None else str(v)
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(cell(r.get(c)) for c in columns) + " |" for r in rows]
+    return "\n".join(lines)

@@ -137,3 +137,20 @@ class ClothSummary(Summary):
     backends: dict[str, dict]             # per backend: seconds, mean radiance, FLIP against the reference
     exposure: float
     flyaways: Optional[dict] = None
+
+
+class FamilySummary(Summary):
+    STAGE: ClassVar[str] = "family"
+    config_hash: str
+    model: str                            # the train.models size that is the network
+    hidden: list[int]
+    parameters: int
+    parameter_bytes: int                  # weights.npz's float32 arrays
+    orders: int                           # the orders of scattering the model holds (0: none)
+    epochs: int
+    train_seconds: float
+    trained: list[float]                  # packings trained on
+    held_out: list[float]
+    members: int
+    rows: list[dict]                      # per packing: its set and figures (pipeline.family.measure)
+    renders: list[dict]                   # per held-out packing: the yarn, model against the seeds' mean table

@@ -27,7 +27,7 @@ def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
     path = ROOT / "configs" / name
     cfg = load_config(path)
     stages = ["fiber"] + (["bake", "train", "export", "render"] if cfg.bundle is not None else []) \
-        + (["cloth"] if cfg.cloth else []) + (["sweep"] if cfg.sweep else []) + ["report"]
+        + (["cloth"] if cfg.cloth else []) + (["sweep"] if cfg.sweep else []) + (["family"] if cfg.family else []) + ["report"]
     # 4 theta_o bins a quarter of the sphere; a cone layout: a bin on each cone, one between
     shrink = SHRINK + [f"bake.n_theta_o={7 if cfg.bake.theta_o_layout == 'cone' else 8}"] \
         + (["wavelengths.count=3"] if cfg.wavelengths.count > 3 else []) \
@@ -46,3 +46,5 @@ def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
     if cfg.sweep:
         family = (tmp_path / cfg.name / "sweep" / "index.html").read_text()
         assert "missing picture" not in family and 'href="../sweep/index.html"' in page
+    if cfg.family:
+        assert "One model of the family" in page and "family_strip.png" in page

@@ -178,7 +178,8 @@ def test_shipped_configs_match_dvc_yaml():
     assert set(lists["fibers_only"]) == set(shipped) - with_bundle
     assert set(lists["sweeps"]) == {n for n, p in shipped.items() if load_config(p).sweep}
     assert set(lists["cloths"]) == {n for n, p in shipped.items() if load_config(p).cloth is not None}
-    assert set(lists["plain_bundles"]) == with_bundle - set(lists["cloths"])
+    assert set(lists["families"]) == {n for n, p in shipped.items() if load_config(p).family is not None}
+    assert set(lists["plain_bundles"]) == with_bundle - set(lists["cloths"]) - set(lists["families"])
     for name, path in shipped.items():
         assert load_config(path).name == name, f"{path}: its name must be its file's stem (artifacts/<name>)"
         keys = set(yaml.safe_load(path.read_text()))

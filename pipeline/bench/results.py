@@ -26,6 +26,8 @@ from pathlib import Path
 
 from models.io import write_text
 
+from ..metrics import rows_table  # noqa: F401  (the benches' tables: results.rows_table)
+
 RESULTS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
@@ -107,16 +109,3 @@ def recorded(name: str, smoke: bool = False, folder: Path | None = None):
         save(name, f"```text\n{printed.getvalue().strip()}\n```", folder=folder)
     if done is not None:
         raise done
-
-
-def rows_table(rows: list[dict], columns: list[str] | None = None) -> str:
-    """A Markdown table of ``rows`` (one dict each), numbers to 4 significant digits."""
-    columns = columns or list(dict.fromkeys(k for r in rows for k in r if not isinstance(r[k], (dict, list))))
-
-    def cell(v):
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return "" if v is None else str(v)
-    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    lines += ["| " + " | ".join(cell(r.get(c)) for c in columns) + " |" for r in rows]
-    return "\n".join(lines)

@@ -31,7 +31,7 @@ from ..build import code_version
 from ..graph import stamp_path
 from ..html import html_page, img_tag, not_run
 from ..plots import pareto, save_figure, spectral_image, theta_rows
-from ..summaries import BakeSummary, ClothSummary, FiberSummary, RenderSummary, TrainSummary
+from ..summaries import BakeSummary, ClothSummary, FamilySummary, FiberSummary, RenderSummary, TrainSummary
 
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "onnx", "onnxruntime", "colour-science", "pydantic")
 
@@ -144,6 +144,8 @@ def run(cfg, out_root="artifacts") -> Path:
     sections.append(("Numerical stability", stability_section(root, failure_dir(cfg, "stability", out_root))))
     if cfg.sweep:
         sections.append(("Family (sweep)", sweep_section(cfg, root)))
+    if cfg.family is not None:
+        sections.append(("One model of the family", family_section(cfg, root, out)))
 
     # -- versions and config ---------------------------------------------------------
     versions = "".join(f"<tr><td>{p}</td><td>{_version(p)}</td></tr>" for p in PACKAGES)
@@ -201,7 +203,7 @@ def summary_section(cfg, root: Path, out_root) -> str:
         lines.append(f" The renders below use <b>{html.escape(used)}</b> (<code>render.model</code>).</p>"
                      if used != pick else " The renders below use it (<code>render.model</code>).</p>")
     times = []
-    for stage in ("fiber", "bake", "train", "export", "render", "cloth", "stability", "sweep"):
+    for stage in ("fiber", "bake", "train", "export", "render", "cloth", "stability", "sweep", "family"):
         p = stamp_path(stage, cfg, out_root)
         if p.exists():
             times.append(f"<td>{stage}</td><td>{json.loads(p.read_text()).get('seconds', float('nan')):.1f}</td>")
@@ -294,7 +296,8 @@ def stability_section(root: Path, failed: Path) -> str:
 # the stages each section shows, for the note that one of them failed
 SECTION_STAGES = {"Single-fiber model": ("fiber",), "Bundle and baked table": ("bake",),
                   "Neural compression": ("train", "export"), "Renders and FLIP maps": ("render",),
-                  "Cloth": ("cloth",), "Numerical stability": ("stability",), "Family (sweep)": ("sweep",)}
+                  "Cloth": ("cloth",), "Numerical stability": ("stability",), "Family (sweep)": ("sweep",),
+                  "One model of the family": ("family",)}
 
 
 def failure_note(cfg, stage: str, out_root) -> str:
@@ -439,6 +442,44 @@ def sweep_section(cfg, root: Path) -> str:
         return f"<p>Axes: {axes}.</p>" + not_run(f"bcsdf sweep {cfg.name}")
     return (f"<p>Axes: {axes}. The family's passthrough, albedo, profiles, slices and the spread of the "
             'arrangement against the Monte Carlo error: <a href="../sweep/index.html">the family page</a>.</p>')
+
+
+def family_section(cfg, root: Path, out: Path) -> str:
+    """The family's one model (``bcsdf family``): against packing beside the seeds' means,
+    its errors at every packing (held out and trained), the held-out renders, the strip."""
+    path = root / "family" / "summary.json"
+    if not path.exists():
+        return not_run(f"bcsdf family {cfg.name}")
+    s = FamilySummary.read(path, cfg.name)
+    pct = lambda v: "" if v is None else f"{v:.2%}"  # noqa: E731
+    ONE_SEED = "one seed's core L1 vs the mean"  # noqa: N806
+    head = ("<tr><th>packing</th><th>set</th><th>seeds</th><th>worst albedo error</th><th>dyed (worst of three)</th>"
+            "<th>core bins within the arrangement spread</th><th>core relative L1</th>"
+            "<th>one seed's own core L1</th></tr>")
+    body = "".join(f"<tr><td>{r['packing']:g}</td><td>{r['set']}</td><td>{r['seeds']}</td>"
+                   f"<td>{pct(r['worst albedo error'])}</td><td>{pct(r.get('worst dyed albedo error'))}</td>"
+                   f"<td>{pct(r.get('core bins within the spread'))}</td><td>{pct(r['core L1 vs seed mean'])}</td>"
+                   f"<td>{pct(r.get(ONE_SEED))}</td></tr>" for r in s.rows)
+    text = (f"<p>One model, {html.escape(s.model)} {s.hidden} ({s.parameters:,} parameters, {s.parameter_bytes:,} "
+            f"bytes of float32)" + (f", {s.orders} orders of scattering (dyed by <code>fiber_bundle</code>'s albedo)"
+                                    if s.orders else "")
+            + f", trained on {sum(r['seeds'] for r in s.rows if r['set'] == 'trained')} bakes at "
+              f"packings {', '.join(f'{p:g}' for p in s.trained)} in {s.train_seconds:.0f} s ({s.epochs} epochs); "
+              "<code>fiber_bundle</code>'s <code>packing</code> picks any packing between them at render time. Each "
+              "packing against the mean of its seeds' direct bakes (the arrangement spread: their standard deviation)"
+            + (f"; held out, never trained on: {', '.join(f'{p:g}' for p in s.held_out)}" if s.held_out else "")
+            + ".</p>")
+    text += f"<table>{head}{body}</table>"
+    if s.renders:
+        text += "<p>The yarn rendered with the model against the seeds' mean table at each held-out packing:</p>"
+        text += ("<table><tr><th>packing</th><th>FLIP</th><th>PSNR (dB)</th><th>model s</th><th>table s</th></tr>"
+                 + "".join(f"<tr><td>{r['packing']:g}</td><td>{r['FLIP vs direct table']:.4f}</td>"
+                           f"<td>{r['PSNR dB']:.1f}</td><td>{r['model s']:.2f}</td><td>{r['table s']:.2f}</td></tr>"
+                           for r in s.renders) + "</table>")
+    text += img_tag(out, root / "family" / "family.png", "the family against packing")
+    if (root / "family" / "strip.png").exists():
+        text += img_tag(out, root / "family" / "strip.png", "the yarn at five packings from one model file")
+    return text
 
 
 def _rows_table(rows) -> str:
