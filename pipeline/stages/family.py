@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mitsuba_ext.neural import OnnxMLP
 from models.fit import fit, prepare_family
 from models.neural import save_onnx, save_weights
 
@@ -87,7 +88,8 @@ def run(cfg, out_root="artifacts") -> Path:
           + (f" ({spec.orders} orders)" if spec.orders else "") + f": {len(history)} epochs in {seconds:.1f} s")
 
     # -- against the seeds' mean at every packing ------------------------------------------
-    rows = [{"set": "held out" if held(p) else "trained", **family.measure(model, spec, members, p)}
+    onnx = OnnxMLP(out / "model.onnx")   # measured as a renderer reads it
+    rows = [{"set": "held out" if held(p) else "trained", **family.measure(onnx, members, p)}
             for p in sorted({p for p, _ in members})]
     print(rows_table(rows))
     family.figure(out / "model.onnx", members, f.held_out, out / "family.png", f"{cfg.name}: a family of plies")
