@@ -31,8 +31,9 @@ from .graph import stamp_path
 OVERHEAD = {"fiber": 2.0, "bake": 3.0, "train": 3.0, "export": 3.0, "render": 4.0, "cloth": 8.0, "stability": 0.0,
             "sweep": 3.0, "family": 5.0, "report": 1.0}
 REFERENCE = {"fiber": 2.9e-4, "bake": 5.75e-7, "train": 8.5e-7, "export": 1.97, "render": 1.23e-6,
-             "cloth": 1.0e-5, "stability": 6.3, "sweep": 5.75e-7, "family": 8.5e-7, "report": 0.0}  # a sweep's work: its members' bakes; a family's:
-# its one model's training (train units) and its renders, in train units
+             "cloth": 1.0e-5, "stability": 6.3, "sweep": 5.75e-7, "family": 2.9e-6, "report": 0.0}  # a sweep's work: its members' bakes; a family's:
+# its one model's training (train units: wider, the orders and the packing, it costs more a unit), its
+# measures and renders (from configs/packing_sweep.yaml's run)
 PROBE_REFERENCE = 10.6e-3  # seconds of probe() on the machine and day REFERENCE was measured
 _PROBE: list = []  # this process's probe, measured once
 

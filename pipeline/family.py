@@ -85,7 +85,11 @@ def measure(model: OnnxMLP, family, packing: float) -> dict:
     """The model file (read by onnxruntime: what a renderer is given) at ``packing`` against
     the seeds' mean there:
 
-    * the worst albedo error over incident directions and wavelengths (``models.errors``);
+    * the worst albedo error over incident directions and wavelengths (``models.errors``),
+      and (two seeds or more) the seeds' mean albedo's own standard error, the arrangement
+      spread over the root of their number (its median over the rows), with the model's
+      error in its units (rms over the rows: about 1 where the model is as near as the truth
+      is known);
     * with orders, the same dyed by each of :func:`dyes` (the tail's ratio linear between the
       trained packings, as the plugin reads it) against the seeds' mean recoloured;
     * the share of the core's bins where the model lies within the arrangement spread;
@@ -107,9 +111,17 @@ def measure(model: OnnxMLP, family, packing: float) -> dict:
     core = errors.core_mask(rows(mean), omega)
     integral = lambda a: (a * t0.solid_angle[None, None, :, :, None]).sum((2, 3))  # noqa: E731
     flat = lambda a: a.reshape(-1, a.shape[-1])  # noqa: E731
+    albedo = integral(S)                                  # [phi_i, theta_i, lambda]
+    seeds = np.array([t.scattered for t in tables])
     record = {"packing": packing, "seeds": len(tables),
-              "worst albedo error": errors.albedo_error(flat(integral(S)),
-                                                        flat(np.mean([t.scattered for t in tables], 0)))}
+              "worst albedo error": errors.albedo_error(flat(albedo), flat(seeds.mean(0)))}
+    if len(tables) > 1:
+        # the truth's own uncertainty: the seeds' mean albedo varies by the arrangement spread
+        # over sqrt(seeds), and an error below it cannot be told from zero
+        se = seeds.std(0, ddof=1) / np.sqrt(len(tables))
+        held = se > 0
+        record["seeds' mean albedo se (median)"] = float(np.median(se[held] / seeds.mean(0)[held]))
+        record["albedo error over se (rms)"] = float(np.sqrt(np.mean(((albedo - seeds.mean(0))[held] / se[held]) ** 2)))
     if spec.orders:
         orders = order_channels(spec, out.reshape(mean.shape[:-1] + (-1,)))
         rho = between(np.clip, packing, spec.packings, [np.asarray(r) for r in spec.tail_ratio], False)  # the plugin's

@@ -453,11 +453,15 @@ def family_section(cfg, root: Path, out: Path) -> str:
     s = FamilySummary.read(path, cfg.name)
     pct = lambda v: "" if v is None else f"{v:.2%}"  # noqa: E731
     ONE_SEED = "one seed's core L1 vs the mean"  # noqa: N806
-    head = ("<tr><th>packing</th><th>set</th><th>seeds</th><th>worst albedo error</th><th>dyed (worst of three)</th>"
+    SE, Z = "seeds' mean albedo se (median)", "albedo error over se (rms)"  # noqa: N806
+    head = ("<tr><th>packing</th><th>set</th><th>seeds</th><th>worst albedo error</th>"
+            "<th>the seeds' mean's albedo se (median)</th><th>albedo error / se (rms)</th><th>dyed (worst of three)</th>"
             "<th>core bins within the arrangement spread</th><th>core relative L1</th>"
             "<th>one seed's own core L1</th></tr>")
     body = "".join(f"<tr><td>{r['packing']:g}</td><td>{r['set']}</td><td>{r['seeds']}</td>"
-                   f"<td>{pct(r['worst albedo error'])}</td><td>{pct(r.get('worst dyed albedo error'))}</td>"
+                   f"<td>{pct(r['worst albedo error'])}</td><td>{pct(r.get(SE))}</td>"
+                   f"<td>{'' if r.get(Z) is None else format(r[Z], '.2f')}</td>"
+                   f"<td>{pct(r.get('worst dyed albedo error'))}</td>"
                    f"<td>{pct(r.get('core bins within the spread'))}</td><td>{pct(r['core L1 vs seed mean'])}</td>"
                    f"<td>{pct(r.get(ONE_SEED))}</td></tr>" for r in s.rows)
     text = (f"<p>One model, {html.escape(s.model)} {s.hidden} ({s.parameters:,} parameters, {s.parameter_bytes:,} "
@@ -468,7 +472,8 @@ def family_section(cfg, root: Path, out: Path) -> str:
               "<code>fiber_bundle</code>'s <code>packing</code> picks any packing between them at render time. Each "
               "packing against the mean of its seeds' direct bakes (the arrangement spread: their standard deviation)"
             + (f"; held out, never trained on: {', '.join(f'{p:g}' for p in s.held_out)}" if s.held_out else "")
-            + ".</p>")
+            + ". The seeds' mean is known to its standard error (the arrangement spread over the root of the "
+              "seeds' number): an albedo error below it cannot be told from zero.</p>")
     text += f"<table>{head}{body}</table>"
     if s.renders:
         text += "<p>The yarn rendered with the model against the seeds' mean table at each held-out packing:</p>"
