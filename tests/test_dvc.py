@@ -53,6 +53,7 @@ def _clone(tmp_path):
     text = re.sub(r"  - bundles: \[[^\]]*\]", "  - bundles: [tiny]", text)
     text = re.sub(r"  - fibers_only: \[[^\]]*\]", "  - fibers_only: []", text)
     text = re.sub(r"  - sweeps: \[[^\]]*\]", "  - sweeps: []", text)
+    text = re.sub(r"  - families: \[[^\]]*\]", "  - families: []", text)
     text = re.sub(r"  - cloths: \[[^\]]*\]", "  - cloths: [tiny]", text)
     text = re.sub(r"  - plain_bundles: \[[^\]]*\]", "  - plain_bundles: []", text)
     (repo / "dvc.yaml").write_text(text)
