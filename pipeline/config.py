@@ -611,6 +611,10 @@ class FamilyCfg(Strict):
     strip: bool = Field(True, description="render the yarn of the render stage at five packings (and three dyes, "
                                           "with bake.orders) from the one model file")
 
+    def holds_out(self, packing: float) -> bool:
+        """Whether the sweep's ``packing`` is one of :attr:`held_out` (a float of the axis, to rounding)."""
+        return any(np.isclose(packing, q) for q in self.held_out)
+
 
 class ReportCfg(Strict):
     queries: int = Field(200_000, ge=1000, le=10_000_000, description="batch size of the timings")
@@ -700,7 +704,7 @@ class Config(Strict):
         if missing:
             raise ValueError(f"family.held_out {missing}: not among the sweep's bundle.packing values {packings}; "
                              "a held-out packing is baked by the sweep and measured, not trained on")
-        trained = sorted(p for p in packings if not any(np.isclose(p, q) for q in f.held_out))
+        trained = sorted(p for p in packings if not f.holds_out(p))
         if len(trained) < 2:
             raise ValueError(f"family: {len(trained)} trained packing(s) ({trained}); a model of packings needs at "
                              "least two: add values to sweep.bundle.packing or hold fewer out")

@@ -149,8 +149,7 @@ def _family_work(cfg) -> float:
     """One model trained on every member not held out (a train unit per member's bins), and
     the yarn's renders: two per held-out packing, five (or fifteen, dyed) for the strip."""
     f = cfg.family
-    held = lambda point: any(abs(point["bundle.packing"] - q) < 1e-9 for q in f.held_out)  # noqa: E731
-    trained = [m for point, m in sweep_members(cfg) if not held(point)]
+    trained = [m for point, m in sweep_members(cfg) if not f.holds_out(point["bundle.packing"])]
     one = cfg.model_copy(update={"train": cfg.train.model_copy(
         update={"models": {"family": cfg.train.models[f.model or next(iter(cfg.train.models))]}})})
     r = cfg.render

@@ -111,7 +111,7 @@ def main(argv=None):
               f"{cfg.bake.paths_per_phi_i} paths per bake; {seeds} seeds a packing; dyes: "
               f"{', '.join(family.dyes([550.0]))}; the model averaged over {family.QUADRATURE} x "
               f"{family.QUADRATURE} midpoints a bin")
-        print(results.rows_table([{k: v for k, v in r.items()} for r in summary.rows]))
+        print(results.rows_table(summary.rows))
 
         # the default model: one ply (the middle trained packing's first seed), the default
         # network, no orders

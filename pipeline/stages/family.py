@@ -68,9 +68,8 @@ def run(cfg, out_root="artifacts") -> Path:
 
     # -- the members: trained and held out -----------------------------------------------
     members = family.members(cfg, stage_dir(cfg, "sweep", out_root))
-    held = lambda p: any(np.isclose(p, q) for q in f.held_out)  # noqa: E731
-    trained = [(p, t) for p, t in members if not held(p)]
-    held_out = [(p, t) for p, t in members if held(p)]
+    trained = [(p, t) for p, t in members if not f.holds_out(p)]
+    held_out = [(p, t) for p, t in members if f.holds_out(p)]
     if cfg.bake.orders and any(t.orders is None for _, t in members):
         raise ValueError(f"bake.orders: {cfg.bake.orders}, but the sweep's tables hold no orders; re-run "
                          f"`bcsdf sweep {cfg.name}`")
@@ -89,7 +88,7 @@ def run(cfg, out_root="artifacts") -> Path:
 
     # -- against the seeds' mean at every packing ------------------------------------------
     onnx = OnnxMLP(out / "model.onnx")   # measured as a renderer reads it
-    rows = [{"set": "held out" if held(p) else "trained", **family.measure(onnx, members, p)}
+    rows = [{"set": "held out" if f.holds_out(p) else "trained", **family.measure(onnx, members, p)}
             for p in sorted({p for p, _ in members})]
     print(rows_table(rows))
     family.figure(out / "model.onnx", members, f.held_out, out / "family.png", f"{cfg.name}: a family of plies")
