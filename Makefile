@@ -7,7 +7,7 @@ SIZES = --set name=default_sizes --set 'train.models={small: [32, 32], medium: [
         --set train.epochs=500 --set render.model=small
 
 
-.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-encoding bench-render bench-closure bench-cluster bench-exit bench-hair bench-dye bench-near bench-packing bench-twisted figures bench-highlight bench-cloth cloth stability clean
+.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-encoding bench-render bench-closure bench-cluster bench-exit bench-hair bench-dye bench-near bench-packing bench-sun bench-twisted figures bench-highlight bench-cloth cloth stability clean
 setup:
 	./scripts/setup.sh
 
@@ -67,6 +67,9 @@ bench-near: setup
 
 bench-packing: setup
 	.venv/bin/python -m pipeline.bench.packing
+
+bench-sun: setup
+	.venv/bin/python -m pipeline.bench.sun
 
 # the README's headline figures from the default run, then every document's results blocks
 figures: run

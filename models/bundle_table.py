@@ -297,6 +297,24 @@ class BundleTable:
         return self._replace(values=self.orders[k - 1], stderr=self.orders_stderr[k - 1], orders=None,
                              orders_stderr=None, tail_ratio=None, single=None)
 
+    def redrawn(self, rng) -> "BundleTable":
+        """One draw of the bake's own noise: a table another seed might have baked, each bin
+        drawn from a normal distribution about its value with its standard error (held at 0
+        from below), the errors kept. A near-field or order-resolved table draws its cells or
+        orders, and its values are their sum, as a bake's are. The spread of a figure over
+        such draws is the table's noise in that figure: a draw differs from the table as the
+        table differs from its expectation. ``single`` is dropped (a draw's scattered light
+        may fall below it); ``rng``: a ``numpy.random.Generator``."""
+
+        def draw(values, stderr):
+            return np.maximum(values + stderr * rng.standard_normal(values.shape), 0.0).astype(np.float32)
+
+        for parts, errors in (("near", "near_stderr"), ("orders", "orders_stderr")):
+            if getattr(self, parts) is not None:
+                split = draw(getattr(self, parts), getattr(self, errors))
+                return self._replace(**{parts: split, "values": split.sum(axis=0), "single": None})
+        return self._replace(values=draw(self.values, self.stderr), single=None)
+
     def recolour(self, albedo) -> "BundleTable":
         """The table of a dyed fiber: every fiber event keeps a fraction ``albedo`` of this
         table's fiber's scattering (a number, or one per wavelength, in [0, 1]).

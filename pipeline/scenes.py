@@ -32,17 +32,28 @@ def _lights(mi):
     }
 
 
-def _sensor(mi, r, half_width, spp, seed=0):
+def sun_alone(mi) -> dict:
+    """The render stage's sun without its sky: one incident direction, where a table's far
+    field is read at a few bins (the sky alone lights a nearly lossless ply as a white
+    furnace does, which no error of its table's shape can change)."""
+    return {"sun": _lights(mi)["sun"]}
+
+
+def _sensor(mi, r, half_width, spp, seed=0, view=None):
     """Perspective camera on +z, 60 deg wide, framing ``half_width`` mm at the origin.
 
     A far-field BSDF under a sun looks the same wherever the view direction is the
     same: the perspective sweeps the view along the ply by +-30 deg, so the picture
-    shows the specular cone of the parallel fibers as a highlight.
+    shows the specular cone of the parallel fibers as a highlight. ``view``: ``(fov_deg,
+    turn_deg)``, another width (the same framing from further away: a narrower fov is a
+    camera nearer the far field) and the camera turned about the vertical by ``turn_deg``
+    (its view ``theta_o = turn_deg`` from the ply's normal plane).
     """
-    fov = FOV_DEG
+    fov, turn = (FOV_DEG, 0.0) if view is None else map(float, view)
     distance = half_width / np.tan(np.radians(fov / 2))
+    eye = distance * np.array([np.sin(np.radians(turn)), 0.0, np.cos(np.radians(turn))])
     return {"type": "perspective", "fov": fov, "fov_axis": "x",
-            "to_world": mi.ScalarTransform4f().look_at([0, 0, distance], [0, 0, 0], [0, 1, 0]),
+            "to_world": mi.ScalarTransform4f().look_at(eye.tolist(), [0, 0, 0], [0, 1, 0]),
             "film": {"type": "hdrfilm", "width": r.width, "height": r.height, "rfilter": {"type": "gaussian"},
                      "pixel_format": "luminance" if "mono" in mi.variant() else "rgb"},
             "sampler": {"type": "independent", "sample_count": spp, "seed": seed}}
@@ -86,24 +97,25 @@ def ply_rows(cfg, height: int) -> slice:
     return slice(max(0, int(height / 2 - reach)), min(height, int(np.ceil(height / 2 + reach))))
 
 
-def _base(mi, cfg, half_width, spp, seed):
+def _base(mi, cfg, half_width, spp, seed, lights=None, view=None):
     r = cfg.render
     return {"type": "scene", "integrator": {"type": "bundle_path", "max_depth": r.max_depth},
-            "sensor": _sensor(mi, r, half_width, spp, seed), **_lights(mi)}
+            "sensor": _sensor(mi, r, half_width, spp, seed, view), **(_lights(mi) if lights is None else lights)}
 
 
-def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None) -> dict:
-    """The bundle as a cylinder along x; ``bsdf`` is a ``fiber_bundle`` dict."""
+def ply_scene(mi, cfg, bsdf: dict, spp: int, seed: int = 0, twist_turns=None, lights=None, view=None) -> dict:
+    """The bundle as a cylinder along x; ``bsdf`` is a ``fiber_bundle`` dict. ``lights``:
+    emitter dicts instead of the sky and sun; ``view``: as :func:`_sensor`'s."""
     turns = cfg.render.twist_turns if twist_turns is None else twist_turns
     L, Rb = ply_length(cfg), cfg.bundle.bounding_radius_um() * UM
-    scene = _base(mi, cfg, 0.5 * L, spp, seed)
+    scene = _base(mi, cfg, 0.5 * L, spp, seed, lights, view)
     scene["ply"] = {"type": "cylinder", "p0": [-0.5 * L, 0, 0], "p1": [0.5 * L, 0, 0], "radius": Rb,
                     "bsdf": {**bsdf, "twist_rate": 360.0 * turns / L, "up": [0.0, 1.0, 0.0]}}
     return scene
 
 
 def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, plugin: str = "fiber_table",
-                   curve_file=None, reach: float = 0.0) -> dict:
+                   curve_file=None, reach: float = 0.0, lights=None, view=None) -> dict:
     """The same ply, every fiber its own shape with the fiber model (``plugin``:
     ``fiber_table``, or ``fiber_ray`` for a bake with the h-resolved exit), unturned: views
     of other turns of the arrangement, and of other heights of a twisted one, move its
@@ -117,10 +129,10 @@ def explicit_scene(mi, cfg, bundle, fiber_table_path, spp: int, seed: int = 0, p
     (a :class:`~models.bundle.TwistedBundle`, spaced so that they never touch) are one
     ``bsplinecurve`` along their helices (``pipeline.closure.helix_control_points``),
     written to ``curve_file``, long enough to be moved by up to ``reach`` scene units
-    along the axis.
+    along the axis. ``lights``, ``view``: as :func:`ply_scene`'s.
     """
     L = ply_length(cfg)
-    scene = _base(mi, cfg, 0.5 * L, spp, seed)
+    scene = _base(mi, cfg, 0.5 * L, spp, seed, lights, view)
     fiber = {"type": plugin, "filename": str(fiber_table_path)}
     # the bundle frame (x, t, z) of ply_scene without twist is (y, x, -z) of the scene;
     # the fibers run past the image edges so that their ends stay out of view

@@ -389,3 +389,32 @@ def test_bake_of_a_reciprocal_fiber_is_reciprocal(model):
     assert len(z) > 200
     reciprocal = np.median(np.abs(z)) < 0.9 and np.mean(np.abs(z) > 3) < 0.02   # 0.67 for pure noise
     assert reciprocal == (model == "mie")
+
+
+def test_a_redrawn_table_varies_as_a_bake_of_another_seed(mi_llvm, ray_fiber):
+    """The table's noise as ``BundleTable.redrawn`` draws it (each bin within its standard
+    error) is what another seed's bake of the same ply differs by: for 100 disjoint sums of
+    bins (what a column of a rendered profile adds up), the difference between two seeds'
+    bakes over sqrt(2) x the sums' spread among 64 draws of one of them has an rms of 1 (the
+    draws reproduce the bake's own variation, with nothing known of the other seed). The
+    converse: errors taken twice too large give an rms near 0.5, outside."""
+    ply = poisson((80.0, 80.0), 20.0, packing=0.3, seed=2)
+    spec = BakeSpec(np.deg2rad([10.0, 40.0]), [0.0], 24, 18, relative_phi=True)
+    a, b = (bake_unreduced(ply, ray_fiber, spec, 60_000, seed=s) for s in (1, 2))
+    rng = np.random.default_rng(0)
+    groups = rng.integers(100, size=a.values.size)   # each bin in one of 100 sums
+
+    def sums(t):
+        return np.bincount(groups, t.values.astype(np.float64).ravel(), 100)
+
+    def rms_z(table):
+        spread = np.std([sums(table.redrawn(rng)) for _ in range(64)], axis=0, ddof=1)
+        z = (sums(a) - sums(b)) / (np.sqrt(2) * spread)
+        return float(np.sqrt(np.mean(z**2)))
+
+    # 100 independent z: the rms of unit normals lies within +-0.07 of 1 (1 sigma), the
+    # spread's own estimate from 64 draws adds about 9% per sum
+    assert 0.78 < rms_z(a) < 1.28
+    assert rms_z(a._replace(stderr=2 * a.stderr)) < 0.7
+    drawn = a.redrawn(rng)
+    assert drawn.single is None and np.all(drawn.values >= 0) and np.array_equal(drawn.stderr, a.stderr)

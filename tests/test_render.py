@@ -44,7 +44,7 @@ def baked(tmp_path_factory):
     return path, art
 
 
-def wide_view(mi, r, half_width, spp, seed=0):
+def wide_view(mi, r, half_width, spp, seed=0, view=None):
     """60 deg across the ply: the view sweeps theta_o over +-30 deg, so the mean radiance
     integrates the table over a range of directions instead of reading one steep bin."""
     distance = half_width / np.tan(np.radians(30))
@@ -97,6 +97,39 @@ def test_explicit_fibers_and_the_baked_bundle_look_the_same(baked, mi_plugins, m
     single = scenes.explicit_scene(mi, cfg, bundle, fiber, 128)
     single["integrator"]["max_depth"] = 2
     assert excess(single).mean() < 0.8 * e.mean()
+
+
+def test_the_table_noise_is_none_for_an_exact_table_and_scales_with_its_errors(baked, mi_plugins, tmp_path):
+    """``pipeline.noise.table_noise`` renders tables redrawn within the bake's standard errors
+    at the sampler seed of the render it is given: a table whose errors are 0 redraws to
+    itself, so both figures are exactly 0 (draws at another seed would keep the renders'
+    sampling noise); with the bake's errors they are not, and with errors 4x as large (the
+    same normal draws, scaled) about 4x as large. "Exactly": to float32 rounding (the film's
+    sums run in threads; 1e-5 is a hundred float32 epsilons, and sampling noise at these
+    samples some 1e-2)."""
+    from models.bundle_table import BundleTable
+    from pipeline import scenes
+    from pipeline.bsdfs import backend_props
+    from pipeline.images import render_timed
+    from pipeline.noise import table_noise
+
+    mi = mi_plugins
+    path, art = baked
+    cfg = load_config(path)
+    props = backend_props(cfg, art, "table")
+    table = BundleTable.load(props["table"])
+    rows = scenes.ply_rows(cfg, cfg.render.height)
+    noise = {}
+    for k in (0, 1, 4):
+        file = tmp_path / f"errors_x{k}.npz"
+        table._replace(stderr=k * table.stderr).save(file)
+        bsdf = {**props, "table": str(file)}
+        img, _, _ = render_timed(mi, scenes.ply_scene(mi, cfg, bsdf, cfg.render.spp, 0, twist_turns=0.0))
+        noise[k] = table_noise(mi, cfg, bsdf, img, rows)
+    assert noise[0]["mean_relative"] < 1e-5 and noise[0]["profile_l1"] < 1e-5, noise[0]
+    assert noise[1]["profile_l1"] > 0.001, noise[1]
+    for key in ("mean_relative", "profile_l1"):
+        assert 3.0 < noise[4][key] / noise[1][key] < 5.0, (key, noise)
 
 
 def test_fiber_table_in_a_white_sky_is_white(baked, mi_plugins):

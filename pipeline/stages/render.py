@@ -44,6 +44,7 @@ from ..build import build_ply, cross_section, make_spec
 from ..config import RENDER_SECTIONS
 from ..images import exposure_of, flip_and_psnr, render_timed, save_images, save_png, to_srgb
 from ..metrics import write_metrics
+from ..noise import table_noise
 from ..plots import save_figure
 from ..scenes import FOV_DEG
 from ..summaries import RenderSummary
@@ -259,6 +260,7 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
     ply = {"explicit": {"spp": per_turn * turns, "seconds": t_explicit, "mean_relative_stderr": rel_stderr,
                         "mean_radiance": explicit_img[rows].reshape(-1, 3).mean(0).tolist()}}
     strip = [to_srgb(explicit_img, expo)]
+    noise = None
     for backend in [b for b in ("table", "mlp") if b in props]:
         img, seconds, _ = render_timed(mi, scenes.ply_scene(mi, cfg, props[backend], r.spp, 0, twist_turns=0.0),
                                        backend)
@@ -268,24 +270,32 @@ def explicit_check(mi, cfg, props: dict, out_root, out: Path) -> dict:
         ply[backend] = {"spp": r.spp, "seconds": seconds, "mean_radiance": mean.tolist(),
                         "mean_vs_explicit": ratio, "mean_vs_explicit_stderr": ratio * rel_stderr,
                         "flip_vs_explicit": flip}
+        if backend == "table":  # what the bake's own noise alone would put between the two
+            noise = table_noise(mi, cfg, props["table"], img, rows)
+            ply[backend]["table_noise"] = noise
         strip.append(to_srgb(img, expo))
         print(f"[render] ply: bundle ({backend}) / explicit fibers (16 views) mean radiance {ratio:.4f} "
-              f"+- {ratio * rel_stderr:.4f}, FLIP {flip:.4f}; {seconds:.2f} s against {t_explicit:.1f} s")
+              f"+- {ratio * rel_stderr:.4f}" + (f" (the table's own noise: {ratio * noise['mean_relative']:.4f})"
+                                                if backend == "table" else "")
+              + f", FLIP {flip:.4f}; {seconds:.2f} s against {t_explicit:.1f} s")
     save_png(np.concatenate(strip, 0), out / "explicit_vs_bundle.png")
     result["ply"] = ply
     if twisted and "table" in props:
         result["parallel"] = what_parallel_misses(mi, cfg, props["table"], ply_model, fiber_table, explicit_img,
-                                                  out)
+                                                  out, noise)
     return result
 
 
-def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Path, explicit_img, out: Path) -> dict:
+def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Path, explicit_img, out: Path,
+                         noise: dict | None = None) -> dict:
     """A twisted ply's explicit fibers against its own (twisted) table and against the table
     of the same cross-section baked with parallel fibers (here, with the twisted bake's
     nodes and bins, and as many path-node pairs):
 
     * **the ply scene**: mean radiance over the ply, FLIP, and the brightness along the ply
-      (the perspective sweeps the view by +-30 deg along it), its relative L1 difference;
+      (the perspective sweeps the view by +-30 deg along it), its relative L1 difference, and
+      for the twisted table beside it the table's own noise in that figure (``noise``:
+      :func:`table_noise`);
     * **the highlight**: the far field along a cut through it (``closure.theta_cut``: light
       at ``theta_i`` = 30 deg, seen sideways, ``theta_o`` from -80 to 80 deg), the explicit
       helices rendered in the closure scene against both tables' lookups; its position (the
@@ -341,9 +351,13 @@ def what_parallel_misses(mi, cfg, table_props: dict, ply_model, fiber_table: Pat
                  "highlight_deg": pos, "highlight_fwhm_deg": width, "highlight_peak": float(np.max(cut[name]))}
         if name != "explicit helical fibers":
             entry["flip_vs_explicit"] = flip_and_psnr(explicit_img, img, expo)[0]
+        if name == "twisted table" and noise is not None:
+            entry["profile_l1_table_noise"] = noise["profile_l1"]
         result[name] = entry
         print(f"[render] twisted ply, {name}: mean radiance / explicit {entry['mean_vs_explicit']:.3f}, brightness "
-              f"along the ply off by {entry['profile_l1_vs_explicit']:.1%}; highlight (theta_i 30 deg, sideways) at "
+              f"along the ply off by {entry['profile_l1_vs_explicit']:.1%}"
+              + (f" (the table's own noise: {noise['profile_l1']:.1%})" if "profile_l1_table_noise" in entry else "")
+              + "; highlight (theta_i 30 deg, sideways) at "
               f"theta_o {pos:+.1f} deg (centroid of its upper half), {width:.0f} deg wide, "
               f"peak {entry['highlight_peak']:.3g} /sr"
               + (f"; FLIP {entry['flip_vs_explicit']:.3f}" if "flip_vs_explicit" in entry else ""))

@@ -370,9 +370,12 @@ def render_section(cfg, root: Path, out: Path) -> str:
                  "against the bundle BSDF: "
                  + "; ".join(f"{k}: mean radiance x{v['mean_vs_explicit']:.3f}"
                              + (f" &plusmn; {v['mean_vs_explicit_stderr']:.3f}" if "mean_vs_explicit_stderr" in v else "")
+                             + (f" (the table's own noise &plusmn; {v['mean_vs_explicit'] * v['table_noise']['mean_relative']:.3f})"
+                                if "table_noise" in v else "")
                              + f", FLIP {v['flip_vs_explicit']:.3f}, {v['seconds']:.2f} s"
                              for k, v in p_.items() if k != "explicit")
-                 + " (&plusmn; one standard error of the explicit mean, from its views' spread; the explicit "
+                 + " (&plusmn; one standard error of the explicit mean, from its views' spread; the table's own "
+                   "noise: the spread over tables redrawn within the bake's standard errors; the explicit "
                    "fibers are resolved, the bundle is its far field).</p>")
         body += img_tag(out, root / "render" / "explicit_vs_bundle.png",
                      "explicit fibers (16 views) against the bundle with the table and the MLP")
@@ -383,7 +386,10 @@ def render_section(cfg, root: Path, out: Path) -> str:
                      "its own table and against the table of the same cross-section baked with parallel fibers "
                      f"(baked here in {par['parallel_bake_seconds']:.0f} s). In the ply scene: "
                      + "; ".join(f"{k}: mean radiance x{v['mean_vs_explicit']:.3f}, brightness along the ply off by "
-                                 f"{v['profile_l1_vs_explicit']:.1%}, FLIP {v['flip_vs_explicit']:.3f}"
+                                 f"{v['profile_l1_vs_explicit']:.1%}"
+                                 + (f" (the table's own noise alone: {v['profile_l1_table_noise']:.1%})"
+                                    if "profile_l1_table_noise" in v else "")
+                                 + f", FLIP {v['flip_vs_explicit']:.3f}"
                                  for k, v in par.items() if isinstance(v, dict) and "flip_vs_explicit" in v)
                      + f". The highlight, a cut through the far field (light at theta_i {cut['theta_i_deg']:.0f} deg, "
                      f"seen at dphi {cut['dphi_deg']:.0f} deg, {cut['wavelength_nm']:.0f} nm; the explicit fibers "
