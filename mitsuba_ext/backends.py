@@ -159,7 +159,7 @@ class TableBackend:
 
     def sampling_grid(self, uniform: float):
         t = self.table
-        mass = t.values.astype(np.float64).mean(-1) * t.solid_angle  # energy per bin
+        mass = t.values.mean(-1, dtype=np.float64) * t.solid_angle  # energy per bin
         return DirectionGrid(mass, t.phi_i, t.theta_i, t.phi_o_edges, t.theta_o_edges,
                              self.relative, self.Float, uniform)
 
@@ -171,7 +171,7 @@ class TableBackend:
         t = self.table
         edges = np.concatenate([[-np.pi / 2], 0.5 * (t.theta_i[1:] + t.theta_i[:-1]), [np.pi / 2]])
         # [cell, theta_l node, dphi bin, theta_c bin] -> [1, theta_c, cell, -dphi bin, theta_l]
-        S = t.near[:, 0].astype(np.float64).mean(-1)
+        S = t.near[:, 0].mean(-1, dtype=np.float64)
         mass = np.transpose(S[:, :, ::-1, :], (3, 0, 2, 1))[None]
         mass = mass * bin_solid_angle(t.phi_o_edges, edges)[None, None, None]
         return DirectionGrid(mass, np.zeros(1), t.theta_o, t.phi_o_edges, edges, True, self.Float, uniform)

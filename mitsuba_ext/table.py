@@ -40,7 +40,7 @@ class DrJitTable:
         flat = lambda a: Float(np.ascontiguousarray(a, dtype=np.float32).ravel())  # noqa: E731
         self.values = flat(table.values)
         self.s_phi, self.s_u = (flat(a) for a in bin_slopes(table))
-        self.nbytes = 3 * table.values.astype(np.float32).nbytes
+        self.nbytes = 3 * 4 * table.values.size   # float32 values and two slopes
 
     def eval(self, phi_i, theta_i, phi_o, theta_o, mode: str = "linear", block=None) -> list:
         """``S`` at every table wavelength (a list of arrays, one per channel of ``values``)

@@ -496,16 +496,19 @@ def bin_slopes(table: BundleTable) -> tuple[np.ndarray, np.ndarray]:
     """Limited slopes of S per bin in ``phi_o`` (per radian) and in ``u = sin(theta_o)``.
 
     Shapes as ``values``; ``phi_o`` is periodic, the first and last ``theta_o`` bins are flat.
+    Computed in float64 one ``theta_i`` node at a time: a near-field table's channels are
+    tens of MB, and whole-table float64 temporaries would cost a dozen times that.
     """
-    v = table.values.astype(np.float64)
-    d_phi = 2 * np.pi / v.shape[2]
-    s_phi = minmod(np.roll(v, -1, 2) - v, v - np.roll(v, 1, 2)) / d_phi
+    s_phi, s_u = (np.zeros(table.values.shape, np.float32) for _ in range(2))
     u = np.sin(table.theta_o_edges)
     uc = 0.5 * (u[1:] + u[:-1])
-    diff = np.diff(v, axis=3) / np.diff(uc)[:, None]
-    s_u = np.zeros_like(v)
-    s_u[:, :, :, 1:-1] = minmod(diff[:, :, :, 1:], diff[:, :, :, :-1])
-    return s_phi.astype(np.float32), s_u.astype(np.float32)
+    d_phi = 2 * np.pi / table.values.shape[2]
+    for b in range(table.values.shape[1]):
+        v = table.values[:, b].astype(np.float64)            # [phi_i, phi_o, theta_o, channel]
+        s_phi[:, b] = minmod(np.roll(v, -1, 1) - v, v - np.roll(v, 1, 1)) / d_phi
+        diff = np.diff(v, axis=2) / np.diff(uc)[:, None]
+        s_u[:, b, :, 1:-1] = minmod(diff[:, :, 1:], diff[:, :, :-1])
+    return s_phi, s_u
 
 
 def node_corners(grid, x, periodic: bool, nearest: bool, xp=np) -> list:

@@ -199,3 +199,34 @@ def test_importance_sampler_conditions_on_the_nearest_graded_node(dr_float):
                       np.where(np.arange(len(nodes)) == b[:, None], 9.0, 0.0), 1) < 1e-5
     ok = (cond == a * len(nodes) + b) | near_tie
     assert ok.all(), (theta[~ok][:5], cond[~ok][:5], (a * len(nodes) + b)[~ok][:5])
+
+
+def test_bin_slopes_are_a_ramps_own_slopes_and_flat_at_an_extremum(tmp_path):
+    """The lookup's limited slopes (``bin_slopes``), against a closed form: S linear in
+    ``phi_o`` and in ``u = sin(theta_o)`` over the bins' centres, with slopes that differ by
+    ``theta_i`` node and by channel, has those slopes in every bin with neighbours on both
+    sides; a bin holding a maximum along ``phi_o`` is flat there (minmod)."""
+    from models.bundle_table import BundleTable, bin_slopes
+
+    synthetic_table(make_config(tmp_path), tmp_path / "t.npz")
+    table = BundleTable.load(tmp_path / "t.npz", expand=True)
+    n_a, n_b, n_p, n_t, n_l = table.values.shape
+    phi = 0.5 * (table.phi_o_edges[1:] + table.phi_o_edges[:-1])
+    u_edges = np.sin(table.theta_o_edges)
+    u = 0.5 * (u_edges[1:] + u_edges[:-1])
+    a = 0.01 * (1 + np.arange(n_b))[None, :, None, None, None] * (1 + np.arange(n_l))   # per radian of phi_o
+    b = 0.02 * (2 + np.arange(n_b))[None, :, None, None, None] * (3 - np.arange(n_l) / n_l)  # per unit of u
+    ramp = 1.0 + a * phi[:, None, None] + b * u[:, None]
+    s_phi, s_u = bin_slopes(table._replace(values=ramp.astype(np.float32)))
+    eps = 8 * np.finfo(np.float32).eps   # the float32 values' rounding over differences of neighbours
+    scale = np.abs(ramp).max() / np.diff(phi).min()
+    assert np.allclose(s_phi[:, :, 1:-1], np.broadcast_to(a, s_phi.shape)[:, :, 1:-1], rtol=0, atol=eps * scale)
+    scale = np.abs(ramp).max() / np.diff(u).min()
+    assert np.allclose(s_u[:, :, :, 1:-1], np.broadcast_to(b, s_u.shape)[:, :, :, 1:-1], rtol=0, atol=eps * scale)
+    assert np.all(s_u[:, :, :, [0, -1]] == 0)                  # the first and last theta_o bins are flat
+    peak = np.exp(-((phi - phi[n_p // 2]) / 0.5) ** 2)[:, None, None] * np.ones(table.values.shape)
+    s_phi, _ = bin_slopes(table._replace(values=peak.astype(np.float32)))
+    assert np.all(s_phi[:, :, n_p // 2] == 0) and np.all(s_phi[:, :, n_p // 2 - 1] > 0)
+    peak = np.exp(-((u - u[n_t // 2]) / 0.3) ** 2)[:, None] * np.ones(table.values.shape)
+    _, s_u = bin_slopes(table._replace(values=peak.astype(np.float32)))
+    assert np.all(s_u[:, :, :, n_t // 2] == 0) and np.all(s_u[:, :, :, n_t // 2 - 1] > 0)

@@ -37,6 +37,7 @@ rows) and draws ``docs/images/cloth_scale.png``, ``cloth_explicit.png``::
     .venv/bin/python -m pipeline.bench.cloth --quick             # fewer sizes and distances
     .venv/bin/python -m pipeline.bench.cloth --parts explicit --ply-px 4   # one part, one distance (the others kept)
     .venv/bin/python -m pipeline.bench.cloth --parts explicit --ply-px 4 --samples 4   # 4x the samples, kept apart
+    .venv/bin/python -m pipeline.bench.cloth --parts explicit --ply-px 4 --samples 4 --near 16   # a near-field table
 """
 
 from __future__ import annotations
@@ -76,6 +77,7 @@ from pipeline.loading import load_config
 from pipeline.garment import build, flyaways, yarn_model, yarn_spec
 from pipeline.images import exposure_of, flip_and_psnr, to_srgb
 
+from .. import graph
 from ..graph import require
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
@@ -104,8 +106,13 @@ def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _load(config):
+    """The config a measurement runs: ``[path, *overrides]`` (JSON to the children)."""
+    return load_config(config[0], config[1:])
+
+
 def _setup(config, root):
-    cfg = load_config(config)
+    cfg = _load(config)
     props = backend_props(cfg, root, "table")
     mi.set_variant(cfg.cloth.variant)
     mitsuba_ext.register()
@@ -289,7 +296,7 @@ def child_overlap(config, root, spacing, lam_nm, spp, turns, overlaps):
 
     mi.set_variant("llvm_ad_mono")
     mitsuba_ext.register()
-    cfg = load_config(config)
+    cfg = _load(config)
     ply = build_ply(cfg)
     fiber = closure.explicit_fiber(fiber_table_path(cfg, root), "lobe", lam_nm)
     unit = 1e-3
@@ -391,8 +398,9 @@ def colour_ratio(test, reference, mask) -> dict:
     """Mean radiance of ``test`` over ``reference`` on the cloth's pixels ``mask`` (the sky's,
     equal in both, would dilute it), and per channel: multiply scattered light in the dyed
     yarn is red."""
-    return {"mean_ratio": float(test[mask].mean() / reference[mask].mean()),
-            "mean_ratio_rgb": (test[mask].mean(0) / reference[mask].mean(0)).tolist()}
+    rgb = (test[mask].mean(0) / reference[mask].mean(0)).tolist()
+    return {"mean_ratio": float(test[mask].mean() / reference[mask].mean()), "mean_ratio_rgb": rgb,
+            **{f"ratio_{c}": v for c, v in zip("rgb", rgb)}}   # flat, for the record's table
 
 
 def ply_scale(image, ply_px: int):
@@ -404,7 +412,7 @@ def ply_scale(image, ply_px: int):
 
 
 def measure_scale(config, root, quick, tmp) -> list:
-    cfg = load_config(config)
+    cfg = _load(config)
     total = len(read_bcc(cfg.cloth.model).curves) if cfg.cloth.model else cfg.cloth.swatch.courses
     sizes = sorted({n for n in ((1, 10, total) if quick else (1, 3, 10, 30, total)) if n <= total})
     scale = []
@@ -419,7 +427,7 @@ def measure_speed(config, root, quick, tmp) -> list:
     overlapping plies' entry, with plies sampled more densely (the same hairs) and with the
     hairs as B-splines (the same plies), side by side (each in its own process): seconds, and
     the time to equal noise."""
-    cfg = load_config(config)
+    cfg = _load(config)
     cases = SPEED_CASES[:2] if quick else SPEED_CASES
     plies, hairs, geometry = {}, {}, {}
     for per_segment in sorted({c[2] for c in cases}):  # 2 first: the hairs are drawn about the stage's plies
@@ -456,12 +464,12 @@ def measure_speed(config, root, quick, tmp) -> list:
 
 
 def measure_explicit(config, root, quick, tmp, ply_px=None, samples=1) -> list:
-    own = load_config(config).cloth.exit_split
+    own = _load(config).cloth.exit_split
     others = [k for k in EXITS if k != own]
     # ``samples`` times the seeds on both sides (seeds 0, 1, ...: the standard run's and more)
     bundle_spp, explicit_spp = ((spp, samples * seeds) for spp, seeds in (BUNDLE_SPP, EXPLICIT_SPP))
     renders = [("bundle", bundle_spp)] + [(f"bundle_{k}", bundle_spp) for k in others] + [("explicit", explicit_spp)]
-    cfg = load_config(config)
+    cfg = _load(config)
     near = load_bundle_table(cfg, root)[0].near is not None
     if near:   # a near-field table: also read as its far field, to see what the near field changes
         renders.insert(1, ("bundle_far", bundle_spp))
@@ -531,6 +539,7 @@ def measure_explicit(config, root, quick, tmp, ply_px=None, samples=1) -> list:
             row["far_field"] = {"flip": masked_flip(ref, far, exposure, mask), **colour_ratio(far, ref, mask),
                                 "flip_ply_scale": masked_flip(ply_scale(ref, px), ply_scale(far, px), exposure, mask)}
             row["flip_far_field"] = row["far_field"]["flip"]   # flat, for the record's table
+            row.update({f"far_ratio_{c}": row["far_field"][f"ratio_{c}"] for c in "rgb"})
             print(f"[explicit] {px} px, the same table as a far field: FLIP {row['far_field']['flip']:.3f}, mean RGB "
                   f"{np.round(row['far_field']['mean_ratio_rgb'], 3).tolist()}, at the ply's scale "
                   f"{row['far_field']['flip_ply_scale']:.3f}", flush=True)
@@ -697,27 +706,45 @@ def main(argv=None) -> int:
                         help="the explicit part with this many times the samples on both sides (how FLIP falls "
                              "with the noise): its rows go to 'explicit_x<K>' in benchmarks/cloth.json, its pictures to "
                              "docs/images/cloth_explicit_x<K>.png; the others are kept")
+    parser.add_argument("--near", type=int, default=0, metavar="N",
+                        help="the explicit part with the config's ply baked with N near-field cells across its "
+                             "width (bake.offsets=N, under the name <config>_near<N>; baked here where missing): "
+                             "its rows go to 'explicit_near<N>' (with --samples K, 'explicit_near<N>_x<K>'), each "
+                             "with the same table read as its far field")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.samples < 1:
         parser.error(f"--samples {args.samples}: give a whole number of at least 1 (times the standard samples)")
+    if args.near and (args.near < 2 or args.parts != ["explicit"]):
+        parser.error(f"--near {args.near}: give N >= 2 cells (e.g. 16), with --parts explicit (the near field "
+                     "changes the plies' look, which the explicit part measures)")
     if args.child:
         kind, *rest = json.loads(args.child)
         children = {"scale": child_scale, "explicit": child_explicit, "memory": child_memory, "speed": child_speed,
                     "overlap": child_overlap}
         print(json.dumps(children[kind](*rest)))
         return 0
-    require(load_config(args.config), ("bake", "train", "export"), args.artifacts,
-            f".venv/bin/bcsdf run {args.config} (make cloth)")
+    if args.near:   # its own bake, made here where missing
+        config = [str(args.config), *near_field(args.config, args.near, args.artifacts)]
+    else:
+        require(load_config(args.config), ("bake", "train", "export"), args.artifacts,
+                f".venv/bin/bcsdf run {args.config} (make cloth)")
+        config = [str(args.config)]
     earlier = results.load("cloth")
     result = earlier["data"] if earlier else {}
     result["config"] = str(args.config)
     with tempfile.TemporaryDirectory() as tmp:
         parts = {**PARTS, "explicit": functools.partial(measure_explicit, ply_px=args.ply_px, samples=args.samples)}
-        fresh = {part: parts[part](args.config, args.artifacts, args.quick, tmp) for part in args.parts}
+        fresh = {part: parts[part](config, args.artifacts, args.quick, tmp) for part in args.parts}
+        # parts, and a part's distances, are measured by separate commands: each row names its own
+        by = results.provenance()
+        for rows in fresh.values():
+            for row in rows if isinstance(rows, list) else [rows]:
+                row["by"] = by
         (DOCS / "images").mkdir(parents=True, exist_ok=True)
-        if args.samples != 1 and "explicit" in fresh:  # beside the standard rows, not instead of them
-            key = f"explicit_x{args.samples}"
+        if (args.samples != 1 or args.near) and "explicit" in fresh:  # beside the standard rows, not instead
+            key = "explicit" + (f"_near{args.near}" if args.near else "") + \
+                (f"_x{args.samples}" if args.samples != 1 else "")
             rows = fresh.pop("explicit")
             plot_pairs(rows, tmp, DOCS / "images" / f"cloth_{key}.png")
             measured = {r["ply_px"] for r in rows}
@@ -735,6 +762,20 @@ def main(argv=None) -> int:
     return 0
 
 
+def near_field(config, cells: int, root) -> list[str]:
+    """The overrides of the config's ply baked with ``cells`` near-field cells, its fiber
+    and bake stages run where their artifacts are missing (the explicit part reads the
+    table; the plies' neural model is not rendered)."""
+    overrides = [f"name={Path(config).stem}_near{cells}", f"bake.offsets={cells}"]
+    cfg = load_config(config, overrides)
+    try:
+        backend_props(cfg, root, "table")
+    except ValueError:
+        for stage in ("fiber", "bake"):
+            graph.run_stage(stage, cfg, root)
+    return overrides
+
+
 def markdown(result: dict) -> str:
     """The record's tables, one per part measured (the parts not run this time keep theirs)."""
     parts = []
@@ -746,8 +787,21 @@ def markdown(result: dict) -> str:
         if key not in result:
             continue
         rows = result[key] if isinstance(result[key], list) else [result[key]]
-        parts.append(f"**{title}** (`{key}`)\n\n{results.rows_table(rows)}")
+        parts.append(f"**{title}** (`{key}`{_by(result, key)})\n\n{results.rows_table(rows)}")
+    for key in sorted(k for k in result if k.startswith("explicit_near")):   # --near N [--samples K]
+        cells, _, times = key.removeprefix("explicit_near").partition("_x")
+        more = f", {times} times the samples" if times else ""
+        parts.append(f"**The plies with a near-field table of {cells} cells across their width{more}; `far`: the "
+                     f"same table read as its far field** (`{key}`{_by(result, key)})\n\n"
+                     f"{results.rows_table(result[key])}")
     return "\n\n".join(parts)
+
+
+def _by(result: dict, key: str) -> str:
+    """Where a part's rows come from: each command, its date and machine."""
+    rows = result[key] if isinstance(result[key], list) else [result[key]]
+    by = list(dict.fromkeys((r["by"]["command"], r["by"]["date"], r["by"]["machine"]) for r in rows if "by" in r))
+    return "".join(f"; `{c}`, {d}, {m}" for c, d, m in by)
 
 
 if __name__ == "__main__":

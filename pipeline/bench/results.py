@@ -57,10 +57,15 @@ def command() -> str:
     return " ".join([script.name, *sys.argv[1:]])
 
 
+def provenance() -> dict:
+    """What a record's header says of a measurement: this command, today, this machine."""
+    return {"command": command(), "date": date.today().isoformat(), "machine": machine()}
+
+
 def save(name: str, markdown: str, data=None, cmd: str | None = None, folder: Path | None = None) -> Path:
     """Write ``<folder>/<name>.json``: the command, machine, date, ``markdown`` and ``data``."""
-    record = {"name": name, "command": cmd or command(), "date": date.today().isoformat(), "machine": machine(),
-              "markdown": markdown.strip(), "data": data}
+    record = {"name": name, **provenance(), "markdown": markdown.strip(), "data": data}
+    record["command"] = cmd or record["command"]
     path = (folder or RESULTS) / f"{name}.json"
     write_text(path, json.dumps(record, indent=1) + "\n")
     print(f"recorded {path}")
