@@ -77,8 +77,8 @@ from pipeline.loading import load_config
 from pipeline.garment import build, flyaways, yarn_model, yarn_spec
 from pipeline.images import exposure_of, flip_and_psnr, to_srgb
 
-from .. import graph
 from ..graph import require
+from . import baked
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 PLY_PX = (1, 2, 4, 8)   # the camera distances: a ply's width in pixels
@@ -464,12 +464,12 @@ def measure_speed(config, root, quick, tmp) -> list:
 
 
 def measure_explicit(config, root, quick, tmp, ply_px=None, samples=1) -> list:
-    own = _load(config).cloth.exit_split
+    cfg = _load(config)
+    own = cfg.cloth.exit_split
     others = [k for k in EXITS if k != own]
     # ``samples`` times the seeds on both sides (seeds 0, 1, ...: the standard run's and more)
     bundle_spp, explicit_spp = ((spp, samples * seeds) for spp, seeds in (BUNDLE_SPP, EXPLICIT_SPP))
     renders = [("bundle", bundle_spp)] + [(f"bundle_{k}", bundle_spp) for k in others] + [("explicit", explicit_spp)]
-    cfg = _load(config)
     near = load_bundle_table(cfg, root)[0].near is not None
     if near:   # a near-field table: also read as its far field, to see what the near field changes
         renders.insert(1, ("bundle_far", bundle_spp))
@@ -738,8 +738,8 @@ def main(argv=None) -> int:
         fresh = {part: parts[part](config, args.artifacts, args.quick, tmp) for part in args.parts}
         # parts, and a part's distances, are measured by separate commands: each row names its own
         by = results.provenance()
-        for rows in fresh.values():
-            for row in rows if isinstance(rows, list) else [rows]:
+        for part in fresh.values():
+            for row in _rows(part):
                 row["by"] = by
         (DOCS / "images").mkdir(parents=True, exist_ok=True)
         if (args.samples != 1 or args.near) and "explicit" in fresh:  # beside the standard rows, not instead
@@ -767,12 +767,7 @@ def near_field(config, cells: int, root) -> list[str]:
     and bake stages run where their artifacts are missing (the explicit part reads the
     table; the plies' neural model is not rendered)."""
     overrides = [f"name={Path(config).stem}_near{cells}", f"bake.offsets={cells}"]
-    cfg = load_config(config, overrides)
-    try:
-        backend_props(cfg, root, "table")
-    except ValueError:
-        for stage in ("fiber", "bake"):
-            graph.run_stage(stage, cfg, root)
+    baked(load_config(config, overrides), root)
     return overrides
 
 
@@ -786,8 +781,7 @@ def markdown(result: dict) -> str:
                        ("overlap", "Overlapping fibers"), ("memory", "Memory")):
         if key not in result:
             continue
-        rows = result[key] if isinstance(result[key], list) else [result[key]]
-        parts.append(f"**{title}** (`{key}`{_by(result, key)})\n\n{results.rows_table(rows)}")
+        parts.append(f"**{title}** (`{key}`{_by(result, key)})\n\n{results.rows_table(_rows(result[key]))}")
     for key in sorted(k for k in result if k.startswith("explicit_near")):   # --near N [--samples K]
         cells, _, times = key.removeprefix("explicit_near").partition("_x")
         more = f", {times} times the samples" if times else ""
@@ -797,10 +791,15 @@ def markdown(result: dict) -> str:
     return "\n\n".join(parts)
 
 
+def _rows(part) -> list:
+    """A part's rows: a list of them, or one (``memory``)."""
+    return part if isinstance(part, list) else [part]
+
+
 def _by(result: dict, key: str) -> str:
     """Where a part's rows come from: each command, its date and machine."""
-    rows = result[key] if isinstance(result[key], list) else [result[key]]
-    by = list(dict.fromkeys((r["by"]["command"], r["by"]["date"], r["by"]["machine"]) for r in rows if "by" in r))
+    by = list(dict.fromkeys((r["by"]["command"], r["by"]["date"], r["by"]["machine"])
+                            for r in _rows(result[key]) if "by" in r))
     return "".join(f"; `{c}`, {d}, {m}" for c, d, m in by)
 
 

@@ -65,7 +65,8 @@ def provenance() -> dict:
 def save(name: str, markdown: str, data=None, cmd: str | None = None, folder: Path | None = None) -> Path:
     """Write ``<folder>/<name>.json``: the command, machine, date, ``markdown`` and ``data``."""
     record = {"name": name, **provenance(), "markdown": markdown.strip(), "data": data}
-    record["command"] = cmd or record["command"]
+    if cmd:
+        record["command"] = cmd
     path = (folder or RESULTS) / f"{name}.json"
     write_text(path, json.dumps(record, indent=1) + "\n")
     print(f"recorded {path}")

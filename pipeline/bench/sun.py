@@ -41,9 +41,8 @@ from ..bsdfs import backend_props
 from ..build import build_ply
 from ..images import render_timed
 from ..loading import load_config
-from .. import graph
 from ..noise import table_noise
-from . import results
+from . import baked, results
 
 LAM = 550.0
 STAGE = "the render stage's camera"
@@ -52,17 +51,11 @@ VIEWS = {STAGE: (60.0, 0.0), "far, theta_o -20 deg": (6.0, -20.0), "far, theta_o
 LIGHT = {"all light": None, "singly scattered": 2}   # the explicit fibers' max_depth
 
 
-def baked(config: str, paths: int):
+def variant(config: str, paths: int):
     """The config baked with ``paths`` and three orders, under a name of its own (reused
     where its artifacts match)."""
-    cfg = load_config(config, [f"name={Path(config).stem}_sun_{paths}", f"bake.paths_per_phi_i={paths}",
-                               "bake.orders=3"])
-    try:
-        backend_props(cfg, "artifacts", "table")
-    except ValueError:
-        graph.run_stage("fiber", cfg)
-        graph.run_stage("bake", cfg)
-    return cfg
+    return baked(load_config(config, [f"name={Path(config).stem}_sun_{paths}", f"bake.paths_per_phi_i={paths}",
+                                      "bake.orders=3"]))
 
 
 def explicit(cfg, ply, fiber_table, plugin: str, view, max_depth) -> tuple[np.ndarray, float]:
@@ -154,7 +147,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="2M paths, the stage's camera and one far one")
     a = ap.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")
-    cfg = baked(a.config, 2_000_000 if a.quick else a.paths)
+    cfg = variant(a.config, 2_000_000 if a.quick else a.paths)
     views = dict(list(VIEWS.items())[:3:2]) if a.quick else VIEWS
     with mitsuba_ext.variant("llvm_ad_mono"):
         rows = measure(cfg, views)
