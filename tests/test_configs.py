@@ -31,7 +31,8 @@ def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
     # 4 theta_o bins a quarter of the sphere; a cone layout: a bin on each cone, one between
     shrink = SHRINK + [f"bake.n_theta_o={7 if cfg.bake.theta_o_layout == 'cone' else 8}"] \
         + (["wavelengths.count=3"] if cfg.wavelengths.count > 3 else []) \
-        + (["cloth.width=24", "cloth.height=16", "cloth.spp=1", "cloth.curves=2"] if cfg.cloth else [])
+        + (["cloth.width=24", "cloth.height=16", "cloth.spp=1", "cloth.curves=2"] if cfg.cloth else []) \
+        + (["family.model=s"] if cfg.family and cfg.family.model else [])   # SHRINK's one network
     sets = [a for s in shrink for a in ("--set", s)]
     for stage in stages:
         assert cli.main(["--artifacts", str(tmp_path), stage, str(path), *sets]) == 0, capsys.readouterr().err

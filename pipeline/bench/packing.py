@@ -17,7 +17,8 @@ bakes (``pipeline.family.measure``):
 Then what a bench adds to the stage (``render_checks``): the yarn of the render stage with the
 model at each held-out packing against the same yarn with the seeds' mean table, dyed red
 (FLIP; undyed is the stage's own), and the model's render time and size against the default
-model's (one ply of the family, trained alone, no orders). The family figure and the strip of
+model's (one ply of the family, trained alone, no orders, the config's first network of
+``train.models``: the default one). The family figure and the strip of
 five packings and three dyes are the stage's, copied to ``docs/images/``. Records
 ``benchmarks/packing.json``::
 
@@ -114,18 +115,19 @@ def main(argv=None):
         print(results.rows_table(summary.rows))
 
         # the default model: one ply (the middle trained packing's first seed), the default
-        # network, no orders
+        # network (train.models' first), no orders
         middle = summary.trained[len(summary.trained) // 2]
         ply = next(stage_dir(cfg, "sweep", artifacts) / m.name / "bake" / "bundle_table.npz"
                    for point, m in sweep_members(cfg) if np.isclose(point["bundle.packing"], middle))
         single = prepare(BundleTable.load(ply, expand=True), ply, cfg.train, "")
-        plain_spec = dataclasses.replace(single.base, hidden=list(summary.hidden))
+        default = next(iter(cfg.train.models))
+        plain_spec = dataclasses.replace(single.base, hidden=list(cfg.train.models[default]))
         plain, *_ = fit(plain_spec, single, cfg.train, "default")
         plain_bytes = save_weights(out.parent / "bench_default.npz", plain_spec, plain)
         renders = render_checks(cfg, out, summary, out.parent / "bench_default.npz")
         print(f"renders: the yarn of the render stage ({cfg.render.variant}, {cfg.render.width} x "
               f"{cfg.render.height}, {cfg.render.spp} spp); parameters {summary.parameter_bytes} bytes against the "
-              f"default model's {plain_bytes} ({summary.parameter_bytes / plain_bytes:.1f}x)")
+              f"default model's {plain_bytes} ({default} {plain_spec.hidden}; {summary.parameter_bytes / plain_bytes:.1f}x)")
         print(results.rows_table(renders))
         if not args.quick:
             for src, dst in ((out / "strip.png", STRIP), (out / "family.png", FAMILY)):
