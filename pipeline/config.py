@@ -608,6 +608,11 @@ class FamilyCfg(Strict):
     held_out: list[float] = Field(
         default_factory=list, description="packings of the sweep's bundle.packing axis measured but not trained on; "
                                           "each between two trained ones (the model does not extrapolate)")
+    held_out_seeds: list[int] = Field(
+        default_factory=list, max_length=100,
+        description="more bundle.seed draws baked at each held-out packing, beside the sweep's seeds: the "
+                    "truth there is the seeds' mean, whose own arrangement noise falls as 1/sqrt(seeds), and "
+                    "an error measured against it cannot be told apart below that noise")
     strip: bool = Field(True, description="render the yarn of the render stage at five packings (and three dyes, "
                                           "with bake.orders) from the one model file")
 
@@ -712,6 +717,17 @@ class Config(Strict):
         if outside:
             raise ValueError(f"family.held_out {outside}: outside the trained packings [{trained[0]}, {trained[-1]}]; "
                              "the model does not extrapolate: hold out packings between trained ones")
+        if f.held_out_seeds:
+            seeds = axes.get("bundle.seed")
+            if seeds is None or not f.held_out:
+                raise ValueError("family.held_out_seeds: more draws at the held-out packings need held-out packings "
+                                 "(family.held_out) and a sweep over bundle.seed beside bundle.packing")
+            again = sorted(set(f.held_out_seeds) & set(seeds)) or sorted(
+                s for s in set(f.held_out_seeds) if f.held_out_seeds.count(s) > 1)
+            if again:
+                raise ValueError(f"family.held_out_seeds {again}: already drawn (sweep bundle.seed {seeds}, or named "
+                                 "twice); name seeds that the sweep does not, e.g. "
+                                 f"[{max(seeds) + 1}, {max(seeds) + 2}, ...]")
         if f.model is not None and f.model not in self.train.models:
             raise ValueError(f"family.model: {f.model!r} is not one of train.models {sorted(self.train.models)}")
         t = self.train

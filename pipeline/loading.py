@@ -92,25 +92,40 @@ def set_key(data: dict, key: str, value) -> None:
     node[parts[-1]] = value
 
 
+def sweep_axes(cfg: Config) -> dict[str, list]:
+    """``cfg``'s sweep axes, the seed axis extended by ``family.held_out_seeds`` (the draws
+    baked at held-out packings only): every value some member takes, in member order."""
+    axes = {k: list(v) for k, v in (cfg.sweep or {}).items()}
+    if cfg.family is not None and cfg.family.held_out_seeds:
+        axes["bundle.seed"] += cfg.family.held_out_seeds
+    return axes
+
+
 def sweep_members(cfg: Config) -> list[tuple[dict, Config]]:
     """The members of ``cfg``'s sweep: every combination of its axes' values (a grid, the
-    first axis slowest), each ``({key: value}, Config)``, named after its values
-    (``packing-0.3_seed-2``) and validated like any config.
+    first axis slowest), then each held-out packing at each of ``family.held_out_seeds``;
+    each ``({key: value}, Config)``, named after its values (``packing-0.3_seed-2``) and
+    validated like any config.
 
     Raises :class:`ConfigError` naming the member and the key of the first invalid one.
     """
     if not cfg.sweep:
         return []
-    axes = cfg.sweep
+    axes = sweep_axes(cfg)
+    grid = [dict(zip(axes, picks)) for picks in itertools.product(*(range(len(v)) for v in cfg.sweep.values()))]
+    f = cfg.family
+    extra = [] if f is None else [
+        {k: {"bundle.packing": i, "bundle.seed": len(cfg.sweep["bundle.seed"]) + j}[k] for k in axes}
+        for i, p in enumerate(axes["bundle.packing"]) if f.holds_out(p) for j in range(len(f.held_out_seeds))]
     short = {k: k.rsplit(".", 1)[-1] for k in axes}
     if len(set(short.values())) < len(short):  # bundle.seed and bake.seed: keep the whole key
         short = {k: k for k in axes}
     base = cfg.model_dump(mode="json", exclude={"sweep", "family"})  # a member is one ply
     labels = {k: _labels(values) for k, values in axes.items()}
     members = []
-    for n, picks in enumerate(itertools.product(*(range(len(values)) for values in axes.values()))):
-        point = {k: axes[k][i] for k, i in zip(axes, picks)}
-        name = "_".join(f"{short[k]}-{labels[k][i]}" for k, i in zip(axes, picks))
+    for n, picks in enumerate(grid + extra):
+        point = {k: axes[k][i] for k, i in picks.items()}
+        name = "_".join(f"{short[k]}-{labels[k][i]}" for k, i in picks.items())
         if len(name) > 100:
             name = f"member-{n:03d}"
         data = json.loads(json.dumps(base))

@@ -26,7 +26,7 @@ BASE = {"wavelengths": {"start_nm": 450, "stop_nm": 650, "count": 3},
         "train": {"models": {"s": [16, 16]}, "epochs": 300, "patience": 300},
         "render": {"width": 32, "height": 16, "spp": 2, "scenes": ["yarn"]},
         "sweep": {"bundle.packing": PACKINGS, "bundle.seed": [1, 2]},
-        "family": {"held_out": [0.2]}}
+        "family": {"held_out": [0.2], "held_out_seeds": [3]}}
 
 
 def _bcsdf(tmp_path, *args, trace=False):
@@ -48,8 +48,8 @@ def _family(tmp, **bake):
 
 @pytest.fixture(scope="module")
 def family(tmp_path_factory):
-    """A sweep of three packings x two seeds baked with 4 orders of scattering, the family
-    trained on 0.1 and 0.3 (0.2 held out) through the CLI, with Python's import trace (the
+    """A sweep of three packings x two seeds baked with 4 orders of scattering, a third seed
+    at 0.2, the family trained on 0.1 and 0.3 (0.2 held out) through the CLI, with Python's import trace (the
     stage's deps are checked below)."""
     return _family(tmp_path_factory.mktemp("family"))
 
@@ -100,18 +100,22 @@ def test_the_family_stage_writes_its_files_summary_and_report_section(family):
     for name in ("weights.npz", "model.onnx", "family.png", "strip.png", "direct_0.2.npz", "summary.json"):
         assert (out / name).stat().st_size > 0, name
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["trained"] == [0.1, 0.3] and summary["held_out"] == [0.2] and summary["members"] == 6
+    assert summary["trained"] == [0.1, 0.3] and summary["held_out"] == [0.2] and summary["members"] == 7
     assert summary["orders"] == 4 and all("worst dyed albedo error" in r for r in summary["rows"])
     assert [(r["packing"], r["set"]) for r in summary["rows"]] == [(0.1, "trained"), (0.2, "held out"),
                                                                    (0.3, "trained")]
     for r in summary["rows"]:
         assert all(np.isfinite(v) for v in r.values() if isinstance(v, float)), r
     assert len(summary["renders"]) == 1 and 0.0 <= summary["renders"][0]["FLIP vs direct table"] < 1.0
-    # the direct table at the held-out packing is its seeds' mean
+    # family.held_out_seeds draws the held-out packing once more, and no other
+    sweep = tmp / "a" / "fam" / "sweep"
+    assert sorted(p.name for p in sweep.glob("packing-*_seed-3")) == ["packing-0.2_seed-3"]
+    held = [r for r in summary["rows"] if r["set"] == "held out"]
+    assert [r["seeds"] for r in summary["rows"]] == [2, 3, 2]
+    # the direct table at the held-out packing is the mean of all its seeds
     direct = BundleTable.load(out / "direct_0.2.npz")
-    seeds = [BundleTable.load(p, expand=True) for p in sorted((tmp / "a" / "fam" / "sweep").glob("packing-0.2_*/bake/"
-                                                                                     "bundle_table.npz"))]
-    assert len(seeds) == 2
+    seeds = [BundleTable.load(p, expand=True) for p in sorted(sweep.glob("packing-0.2_*/bake/bundle_table.npz"))]
+    assert len(seeds) == 3 and len(held) == 1
     # a table's values are stored as float16 times a power of two that puts its largest at
     # 2^15: rounded to 2^-11 relative, and below float16's normal range to steps of 2^-24 of
     # that scale (max 2^-39); a few steps for the two seeds' roundings and the mean's
@@ -141,6 +145,10 @@ def test_the_family_stage_declares_the_code_it_runs(family):
     ({"family": {"held_out": [0.1, 0.2]}}, "at least two"),
     ({"sweep": {"bundle.packing": PACKINGS, "fiber.radius_um": [3.0, 4.0]}}, "one ply type"),
     ({"family": {"model": "m"}}, "not one of train.models"),
+    ({"family": {"held_out": [0.2], "held_out_seeds": [2, 3]}}, "already drawn"),
+    ({"family": {"held_out": [0.2], "held_out_seeds": [3, 3]}}, "named twice"),
+    ({"family": {"held_out": [], "held_out_seeds": [3]}}, "need held-out packings"),
+    ({"sweep": {"bundle.packing": PACKINGS}}, "a sweep over bundle.seed"),
     ({"train": {"models": {"s": [16]}, "inputs": ["offset"]}}, "leave train.inputs"),
 ])
 def test_a_family_that_cannot_be_trained_is_refused_before_anything_runs(tmp_path, change, says):

@@ -2,7 +2,8 @@
 
 The family of ``configs/packing_sweep.yaml`` run as a user runs it: ``bcsdf sweep`` bakes the
 default ply over its packing fraction, three Poisson draws at each (one draw differs from the
-next by many times one bake's Monte Carlo error), and ``bcsdf family`` trains one model on
+next by many times one bake's Monte Carlo error; nine at a held-out packing, so that the truth
+the model is measured against there is known to well within the goal), and ``bcsdf family`` trains one model on
 all of them but the ``family.held_out`` packings, with the packing as an input and the orders
 of scattering as outputs, and measures it at every packing against the mean of its seeds'
 bakes (``pipeline.family.measure``):
@@ -106,10 +107,12 @@ def main(argv=None):
         out = stage_dir(cfg, "family", artifacts)
         summary = FamilySummary.read(out / "summary.json", CONFIG)
         seeds = len(cfg.sweep.get("bundle.seed", [cfg.bundle.seed]))
+        more = len(cfg.family.held_out_seeds)
         print(f"one model {summary.hidden} of {summary.orders} orders ({summary.parameter_bytes} parameter bytes) "
-              f"on {summary.members - seeds * len(summary.held_out)} bakes at packings {summary.trained}, trained in "
+              f"on {seeds * len(summary.trained)} bakes at packings {summary.trained}, trained in "
               f"{summary.train_seconds:.1f} s ({summary.epochs} epochs); held out: {summary.held_out}; "
-              f"{cfg.bake.paths_per_phi_i} paths per bake; {seeds} seeds a packing; dyes: "
+              f"{cfg.bake.paths_per_phi_i} paths per bake; {seeds} seeds a trained packing, {seeds + more} a "
+              f"held-out one; dyes: "
               f"{', '.join(family.dyes([550.0]))}; the model averaged over {family.QUADRATURE} x "
               f"{family.QUADRATURE} midpoints a bin")
         print(results.rows_table(summary.rows))

@@ -9,11 +9,14 @@ read linearly between them), so that ``fiber_bundle``'s ``packing`` (a value or 
 picks any packing in the trained range at render time, and its ``albedo`` dyes it where the
 sweep baked the orders of scattering.
 
-===================  ============================================================
-``family.model``      which of ``train.models`` is the network (default: the first)
-``family.held_out``   packings of the sweep measured, not trained on (between trained ones)
-``family.strip``      render the yarn at five packings (and three dyes) from the model file
-===================  ============================================================
+==========================  =========================================================
+``family.model``            which of ``train.models`` is the network (default: the first)
+``family.held_out``         packings of the sweep measured, not trained on (between trained
+                            ones)
+``family.held_out_seeds``   more draws baked at each held-out packing, where the seeds' mean
+                            is the truth the model is held to
+``family.strip``            render the yarn at five packings (and three dyes) from the file
+==========================  =========================================================
 
 The schedule and the loss are ``train:``'s. An example (``configs/packing_sweep.yaml``)::
 

@@ -30,6 +30,7 @@ from ..artifacts import config_dir, failure_dir, load_bundle_table, model_size, 
 from ..build import code_version
 from ..graph import stamp_path
 from ..html import html_page, img_tag, not_run
+from ..loading import sweep_axes
 from ..plots import pareto, save_figure, spectral_image, theta_rows
 from ..summaries import BakeSummary, ClothSummary, FamilySummary, FiberSummary, RenderSummary, TrainSummary
 
@@ -443,7 +444,7 @@ def cloth_section(root: Path, out: Path) -> str:
 def sweep_section(cfg, root: Path) -> str:
     """A link to the family page ``bcsdf sweep`` writes (its own page: it is rewritten
     whenever the sweep grows, without this report)."""
-    axes = ", ".join(f"{html.escape(k)} ({len(v)} values)" for k, v in cfg.sweep.items())
+    axes = ", ".join(f"{html.escape(k)} ({len(v)} values)" for k, v in sweep_axes(cfg).items())
     if not (root / "sweep" / "index.html").exists():
         return f"<p>Axes: {axes}.</p>" + not_run(f"bcsdf sweep {cfg.name}")
     return (f"<p>Axes: {axes}. The family's passthrough, albedo, profiles, slices and the spread of the "

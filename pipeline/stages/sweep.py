@@ -57,7 +57,7 @@ from ..artifacts import stage_dir
 from ..baking import Bake
 from ..build import build_ply
 from ..config import FIBER_SECTIONS
-from ..loading import sweep_members
+from ..loading import sweep_axes, sweep_members
 from ..html import html_page, img_tag
 from ..metrics import write_curve, write_metrics
 from ..plots import save_figure
@@ -188,7 +188,7 @@ def seed_spread(rows: list[dict], axes: dict) -> list[dict]:
 def write_family(cfg, expanded, root: Path, out_root) -> Path:
     """The family summary of the members ``expanded`` (``sweep_members(cfg)``)."""
 
-    axes, members = cfg.sweep, [m for _, m in expanded]
+    axes, members = sweep_axes(cfg), [m for _, m in expanded]
     rows, tables = [], []
     for point, m in expanded:
         bake = root / m.name / "bake"
