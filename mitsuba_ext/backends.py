@@ -238,7 +238,7 @@ class _NeuralBackend:
 
     def _per_packing(self, at_node):
         """A family's quantity at this backend's packing (per lane), linear between its values
-        at the trained packings, ``at_node(k)`` (a Dr.Jit array or a list of them)."""
+        at the model's packing nodes, ``at_node(k)`` (a Dr.Jit array or a list of them)."""
         values = [at_node(k) for k in range(len(self.spec.packings))]
         p, nodes = self.constants[0], self.spec.packings
         if isinstance(values[0], list):
@@ -295,7 +295,7 @@ class _NeuralBackend:
 
     def passthrough(self, phi_i, theta_i):
         s = self.spec
-        if "packing" in s.inputs:   # a family's: linear between the trained packings
+        if "packing" in s.inputs:   # a family's: linear between its packing nodes
             return self._per_packing(lambda k: passthrough_at(self.Float, s.passthrough_packing[k],
                                                               s.passthrough_phi_i, phi_i, theta_i))
         return passthrough_at(self.Float, s.passthrough, s.passthrough_phi_i, phi_i, theta_i,

@@ -41,6 +41,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy.interpolate import PchipInterpolator
 from tqdm import tqdm
 
 from . import errors
@@ -446,9 +447,10 @@ def fit_bins(model, p: BinFit, c, name, on_epoch=None, t0=None):
 
 
 # Between two trained packings a family's network has no data, and its albedo there is its own
-# interpolation (it dipped below both neighbours and below what the passthrough, linear, leaves);
-# the gain at this many steps per interval makes each output's albedo linear between the trained
-# packings' instead (packing_gains), as the passthrough and the tail's ratio are.
+# interpolation (it dipped below both neighbours and below what the passthrough leaves); the
+# gain at this many steps per interval puts each output's albedo on the trained packings' curve
+# instead (packing_gains, along_packing), and the passthrough and the tail's ratio are read off
+# their own curves at the same nodes.
 GAIN_PACKING_STEPS = 4
 GAIN_STRATA = 8  # k x k midpoints per bin for the model's albedo in the gain (`bench.train --calibration` compares k)
 # The gain corrects the albedo bias of a log-space fit, a few per cent to tens of per cent. A
@@ -500,11 +502,26 @@ def azimuth_ratio(p: BinFit, S_model: np.ndarray, at: np.ndarray, n_nodes: int, 
     return held_ratio(num, den).reshape(bins, n_nodes, -1)
 
 
+def along_packing(packings, values, at) -> np.ndarray:
+    """``values [trained packing, ...]`` (the seeds' means) read at the packings ``at``, on one
+    monotone cubic through them per element (PCHIP, Fritsch and Carlson).
+
+    A ply's albedo and passthrough bend with the packing (the albedo rises ever more slowly as
+    the ply fills), and the straight line between two trained packings cuts under the bend
+    (``make bench-packing`` measures it at the held-out packings). PCHIP follows it from the
+    neighbours' slopes, reproduces a straight line, and never leaves the range of an
+    interval's two ends: a probability stays one, a positive albedo positive. It is odd
+    (the curve of ``c - v`` is ``c`` minus the curve of ``v``), so quantities that sum to a
+    constant at the trained packings (a lossless ply's albedo and passthrough) still do
+    between them."""
+    return PchipInterpolator(np.asarray(packings, float), np.asarray(values, float), axis=0)(np.asarray(at, float))
+
+
 def packing_gains(model, p: BinFit, spec: NeuralSpec, albedo: np.ndarray, at: np.ndarray, strata: int):
     """A family's gain between its trained packings: ``(packings, gains [node, theta node,
     output])`` at ``GAIN_PACKING_STEPS - 1`` packings inside each interval, each the ratio of the
-    albedo linear between the interval's ends (``albedo [trained packing, theta node, output]``,
-    the seeds' mean per node) to the network's there (its bin averages over ``strata`` x
+    albedo there on the trained packings' curve (:func:`along_packing` of ``albedo [trained
+    packing, theta node, output]``, the seeds' mean per node) to the network's there (its bin averages over ``strata`` x
     ``strata`` midpoints, on the first trained packing's samples with the packing replaced),
     held within :data:`GAIN_LIMIT` either way; the outputs' scales not folded in."""
     P = np.asarray(spec.packings, float)
@@ -526,7 +543,7 @@ def packing_gains(model, p: BinFit, spec: NeuralSpec, albedo: np.ndarray, at: np
             mean = np.zeros_like(albedo[0])
             np.add.at(mean, at[groups], model_albedo)
             mean /= np.maximum(count, 1)[:, None]
-            target = (1 - w) * albedo[k] + w * albedo[k + 1]
+            target = along_packing(P, albedo, q)
             nodes.append(q)
             gains.append(held_ratio(target, mean))
     return nodes, np.array(gains)
@@ -545,7 +562,8 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, a
     ratio beyond :data:`GAIN_LIMIT` either way is held there; a model of the orders has each
     output's scale (:func:`order_scales`) folded in. Between the trained packings a family's gain
     has nodes of its own (:func:`packing_gains`, ``spec.gain_packings``), where it makes each
-    output's albedo linear between its trained neighbours'.
+    output's albedo on the trained packings' curve (:func:`along_packing`), and the passthrough
+    and the tail's ratio are read off theirs there: ``spec.packings`` becomes every node.
     The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
     every bin: the ridge along the specular cone is narrower than a bin, and random points
     (the fit's) would put their own noise into the gain.
@@ -596,7 +614,11 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, a
         inside, inside_gain = packing_gains(model, p, spec, num / np.maximum(count, 1)[..., None], at, strata)
         order = np.argsort(np.r_[spec.packings, inside])
         exported = np.concatenate([exported, inside_gain * scale])[order]
-        spec.gain_packings = np.r_[spec.packings, inside][order].tolist()
+        every = np.r_[spec.packings, inside][order]
+        spec.passthrough_packing = along_packing(spec.packings, spec.passthrough_packing, every).tolist()
+        if spec.tail_ratio:
+            spec.tail_ratio = along_packing(spec.packings, spec.tail_ratio, every).tolist()
+        spec.packings = every.tolist()
     spec.gain = (exported if "packing" in spec.inputs else exported[0]).tolist()
     spec.gain_theta_i = np.clip(nodes, -np.pi / 2, np.pi / 2).tolist()  # (rounded up)
     # after: integrated on another grid (strata + 1 midpoints a side, none shared), so that the

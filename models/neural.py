@@ -83,8 +83,11 @@ from . import lines as fl
 from . import rounding as rd
 from .io import atomic_path
 
-FORMAT = "bcsdf.neural/5"  # /5: extra inputs; /4: the energy gain; /3: feature lines (models/lines.py)
-READABLE = ("bcsdf.neural/2", "bcsdf.neural/3", "bcsdf.neural/4", FORMAT)  # older: read as models without them
+# /6: a family's per-packing data on one list of nodes; /5: extra inputs; /4: the energy gain;
+# /3: feature lines (models/lines.py)
+FORMAT = "bcsdf.neural/6"
+READABLE = ("bcsdf.neural/2", "bcsdf.neural/3", "bcsdf.neural/4", "bcsdf.neural/5", FORMAT)  # older: read as
+# models without them (a /5 family's gain had nodes of its own: refused, :meth:`NeuralSpec.from_dict`)
 FOLDS = ("theta", "dphi", "xz")
 INPUTS = ("offset", "packing")  # extra scalar inputs a model may take (above)
 ENCODINGS = ("cone", "cartesian", "halfdiff")  # the project's, and the benches' baselines (above)
@@ -131,14 +134,14 @@ class NeuralSpec:
     offset_cells: int = 0
     passthrough_offset: list = field(default_factory=list)
     passthrough_offset_theta_i: list = field(default_factory=list)
-    # a family's inputs (packing): the range trained on, {name: [lo, hi]}; and the
-    # passthrough [packing node][passthrough_phi_i node] at the trained packings, increasing
+    # a family's inputs (packing): the range trained on, {name: [lo, hi]}; the nodes of its
+    # per-packing data, increasing (the trained packings, and packings between them where the
+    # energy gain has set them: models.fit.energy_gain), and the passthrough
+    # [packing node][passthrough_phi_i node] at them; the gain and the tail's ratio are per
+    # packing node too, all read linearly between the nodes
     input_range: dict = field(default_factory=dict)
     passthrough_packing: list = field(default_factory=list)
     packings: list = field(default_factory=list)
-    # the packings of the energy gain's nodes (a family's; increasing, the trained ones among them):
-    # gain [gain packing node][gain_theta_i node][output]; empty: the trained packings
-    gain_packings: list = field(default_factory=list)
     encoding: str = "cone"   # ENCODINGS: the directions' features (above)
     # the orders of scattering (above): K channels of the spectrum, 0: none; the tail's ratio
     # rho [passthrough_phi_i node][tail_ratio_theta_i node][wavelength] (a family's: per packing node first)
@@ -176,7 +179,7 @@ class NeuralSpec:
                              "need three node counts >= 2 and at least one channel (or none of either)")
         if self.gain or self.gain_theta_i:
             g, t = np.asarray(self.gain, float), np.asarray(self.gain_theta_i, float)
-            shape = ((len(self.gain_packings or self.packings),) if "packing" in self.inputs else ()) + \
+            shape = ((len(self.packings),) if "packing" in self.inputs else ()) + \
                 (len(t), self.n_outputs)
             if g.shape != shape or not (np.all(np.isfinite(g)) and np.all(g > 0)) or \
                     not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0) or np.any(np.abs(t) > np.pi / 2):
@@ -190,8 +193,6 @@ class NeuralSpec:
                 raise ValueError("model metadata: azimuth_gain must hold a positive finite value per (azimuth bin, "
                                  "gain_theta_i node, output), beside a gain, for a circular ply's model without "
                                  "extra inputs or orders")
-        if self.gain_packings and (np.any(np.diff(self.gain_packings) <= 0) or "packing" not in self.inputs):
-            raise ValueError("model metadata: gain_packings must be increasing, for a model with a 'packing' input")
         if [i for i in self.inputs if i not in INPUTS] or len(set(self.inputs)) != len(self.inputs):
             raise ValueError(f"model metadata: inputs {self.inputs}; known extra inputs: {INPUTS}, each once")
         if "offset" in self.inputs and not (self.relative_phi and isinstance(self.offset_cells, int)
@@ -265,6 +266,10 @@ class NeuralSpec:
     def from_dict(cls, d: dict) -> "NeuralSpec":
         if d.get("format") not in READABLE:
             raise ValueError(f"model format {d.get('format')!r}, expected {FORMAT!r}; re-run `bcsdf train`")
+        d = dict(d)
+        if d.pop("gain_packings", None):
+            raise ValueError(f"model format {d.get('format')!r}: a family's model whose gain has packing nodes of "
+                             f"its own, which {FORMAT!r} keeps with the passthrough's; re-run `bcsdf family`")
         return cls(**{**d, "format": FORMAT})
 
 
@@ -589,9 +594,8 @@ def energy_gain(lib, spec: NeuralSpec, theta_i, *extra):
     linear in ``theta_i`` (``|theta_i|`` under the theta fold) through ``spec.gain_theta_i``,
     constant beyond the end nodes, written as a sum of clipped segments, ``g_0 + sum_k m_k
     (clip(t, t_k, t_k+1) - t_k)``, the slopes ``m_k``: ops every backend has. A family's model
-    (a ``packing`` input) holds one such gain per node of ``spec.gain_packings`` (the trained
-    packings and packings between them; the trained ones where empty), piecewise linear between
-    them the same way. ``lib`` as :func:`features`; returns ``[..., n_lambda]`` for numpy and
+    (a ``packing`` input) holds one such gain per node of ``spec.packings`` (the trained
+    packings and packings between them), piecewise linear between them the same way. ``lib`` as :func:`features`; returns ``[..., n_lambda]`` for numpy and
     PyTorch (the segments times a matrix: one ``MatMul`` in the ONNX graph), a list over
     wavelengths for Dr.Jit and bounded arithmetic, or ``None`` without a gain."""
     if not spec.gain:
@@ -603,7 +607,7 @@ def energy_gain(lib, spec: NeuralSpec, theta_i, *extra):
     if g.ndim == 2:
         return _piecewise_linear(lib, clip, t, spec.gain_theta_i, g)
     p = extra[spec.inputs.index("packing")]
-    nodes = spec.gain_packings or spec.packings
+    nodes = spec.packings
     rows = np.moveaxis(g, 0, 1).reshape(len(spec.gain_theta_i), -1)   # [theta node, packing node x lambda]
     per_packing = _piecewise_linear(lib, clip, t, spec.gain_theta_i, rows)   # the gain of every packing node
     L = g.shape[-1]
@@ -625,29 +629,21 @@ def between(clip, x, nodes, at_nodes, spectra: bool):
 
 
 def bracketed(spec: NeuralSpec, packing: float) -> NeuralSpec:
-    """A family's spec (a ``packing`` input) whose per-packing data keep only the two nodes
-    around ``packing``: the energy gain's (``gain_packings``), and the trained packings' of the
-    passthrough and the tail's ratio.
+    """A family's spec (a ``packing`` input) whose per-packing data (the energy gain, the
+    passthrough, the tail's ratio) keep only the two nodes of ``spec.packings`` around
+    ``packing``.
 
     Anywhere between those nodes it evaluates as ``spec`` does (:func:`between` is linear
     between neighbouring nodes and the segments below them sum to the lower node's value),
     to float rounding; the range trained on (``input_range``) is kept. A uniform packing
     is read through it: the gain of every node is most of what a family's evaluation costs
     beyond its network, and all but two of them have weight 0 there."""
-    if "packing" not in spec.inputs:
+    if "packing" not in spec.inputs or len(spec.packings) <= 2:
         return spec
-
-    def pair(nodes, *arrays):
-        nodes = list(nodes)
-        if len(nodes) <= 2:
-            return (nodes, *arrays)
-        k = int(np.clip(np.searchsorted(nodes, packing, side="right") - 1, 0, len(nodes) - 2))
-        return (nodes[k:k + 2], *(list(a[k:k + 2]) if a else a for a in arrays))
-
-    gain_nodes, gain = pair(spec.gain_packings or spec.packings, spec.gain)
-    packings, passthrough, tail_ratio = pair(spec.packings, spec.passthrough_packing, spec.tail_ratio)
-    return replace(spec, packings=packings, passthrough_packing=passthrough, tail_ratio=tail_ratio, gain=gain,
-                   gain_packings=gain_nodes if spec.gain_packings else [])
+    k = int(np.clip(np.searchsorted(spec.packings, packing, side="right") - 1, 0, len(spec.packings) - 2))
+    pair = lambda a: list(a[k:k + 2]) if a else a  # noqa: E731
+    return replace(spec, packings=pair(spec.packings), passthrough_packing=pair(spec.passthrough_packing),
+                   tail_ratio=pair(spec.tail_ratio), gain=pair(spec.gain))
 
 
 def azimuth_gain(lib, spec: NeuralSpec, theta_i, phi_i, phi_o):

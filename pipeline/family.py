@@ -170,7 +170,7 @@ def figure(onnx_path: Path, family: list, held_out, path: Path, title: str = "a 
                   fmt="o", color="k", capsize=3, label="direct bakes (seeds' mean +- spread)")
     at_nodes = [float(np.mean(q)) for q in spec.passthrough_packing]
     ax_p.plot(grid, [between(np.clip, p, spec.packings, at_nodes, False) for p in grid], "k-",
-              label="model (linear between trained packings)")
+              label="model (its packing nodes, linear between)")
     for ax, what in ((ax_a, "scattered fraction (mean over wavelengths)"), (ax_p, "passthrough probability")):
         ax.set_xlabel("packing fraction")
         ax.set_ylabel(what)

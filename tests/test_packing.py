@@ -35,12 +35,14 @@ def family(tmp_path_factory):
 
 
 def test_a_family_is_folded_member_by_member_with_its_packing(family):
-    """The range, the passthrough per packing (the seeds' mean) and every member's samples
-    with its packing as a constant input; each member's energy weights give its own albedo."""
+    """The range, the passthrough per packing (the seeds' mean; after the fit also at the
+    gain's nodes between them, on the family's line) and every member's samples with its
+    packing as a constant input; each member's energy weights give its own albedo."""
     members, problem, spec, _, _ = family
     assert spec.inputs == ["packing"] and spec.input_range == {"packing": [0.1, 0.4]}
-    assert spec.packings == PACKINGS
-    np.testing.assert_allclose(np.asarray(spec.passthrough_packing)[:, 0], [0.5 - p for p in PACKINGS])
+    assert problem.base.packings == PACKINGS and set(PACKINGS) < set(spec.packings)
+    np.testing.assert_allclose(np.asarray(problem.base.passthrough_packing)[:, 0], [0.5 - p for p in PACKINGS])
+    np.testing.assert_allclose(np.asarray(spec.passthrough_packing)[:, 0], [0.5 - p for p in spec.packings])
     one = fold_table(members[0][1], spec, {"packing": 0.1})
     data = problem.data
     assert len(data.S) == len(members) * len(one.S) and np.all(data.extra_cell[: len(one.S)] == 0.1)
@@ -121,8 +123,8 @@ def test_the_energy_gain_holds_each_trained_packings_albedo(family):
 
     _, problem, spec, model, _ = family
     data = problem.data
-    assert np.asarray(spec.gain).shape == (len(spec.gain_packings), len(spec.gain_theta_i), 3)
-    assert set(PACKINGS) <= set(spec.gain_packings)
+    assert np.asarray(spec.gain).shape == (len(spec.packings), len(spec.gain_theta_i), 3)
+    assert set(PACKINGS) <= set(spec.packings)
     S = model_bin_averages(spec, model, data.cell, k=8, extra_cell=data.extra_cell)
     albedo = np.zeros_like(data.albedo)
     np.add.at(albedo, data.group, S * data.omega[:, None])
@@ -139,28 +141,41 @@ def test_the_energy_gain_holds_each_trained_packings_albedo(family):
             np.testing.assert_allclose(albedo[rows].sum(0), data.albedo[rows].sum(0), rtol=2e-5)
 
 
+def trained_only(spec):
+    """``spec`` with its per-packing data at the trained packings alone (the gain linear
+    between them, the network's own interpolation inside)."""
+    keep = [k for k, q in enumerate(spec.packings) if q in PACKINGS]
+    pick = lambda a: [a[k] for k in keep] if a else a  # noqa: E731
+    return dataclasses.replace(spec, packings=pick(spec.packings), gain=pick(spec.gain),
+                               passthrough_packing=pick(spec.passthrough_packing), tail_ratio=pick(spec.tail_ratio))
+
+
+def model_albedo(problem, spec, model, seeds, q):
+    """The model's albedo per group of the first member (its directions), read at packing ``q``
+    (its bin averages at 8 x 8 midpoints); ``seeds`` members per packing."""
+    from models.fit import model_bin_averages
+
+    data = problem.data
+    G = len(data.albedo) // (seeds * len(PACKINGS))   # the groups of one member
+    first = data.group < G
+    S = model_bin_averages(spec, model, data.cell[first], k=8, extra_cell=np.full((first.sum(), 1, 2), q))
+    out = np.zeros((G, S.shape[1]))
+    np.add.at(out, data.group[first], S * data.omega[first, None])
+    return out
+
+
 def test_between_trained_packings_the_albedo_is_linear(family):
     """The synthetic family's light grows linearly with the packing, so its albedo between two
     trained packings is the straight line between theirs. The gain's nodes between them
     (``models.fit.packing_gains``) put the model's albedo on that line at each node, to float32
-    rounding. Without them (the converse: the gain of the trained packings alone, linear between
-    them) the network's own interpolation misses the line by more."""
-    from models.fit import model_bin_averages
-
+    rounding (the monotone cubic through the trained packings reproduces a line). Without them
+    (the converse: the gain of the trained packings alone, linear between them) the network's
+    own interpolation misses the line by more."""
     _, problem, spec, model, _ = family
     data = problem.data
-    inside = [q for q in spec.gain_packings if q not in PACKINGS]
+    inside = [q for q in spec.packings if q not in PACKINGS]
     assert len(inside) == 3 * (len(PACKINGS) - 1)
-    G = len(data.albedo) // (2 * len(PACKINGS))   # the groups of one member (two seeds per packing)
-    first = data.group < G   # the first member's samples, read at another packing
-    trained_only = dataclasses.replace(spec, gain_packings=[], gain=[g for q, g in zip(spec.gain_packings, spec.gain)
-                                                                     if q in PACKINGS])
-
-    def albedo(s, q):
-        S = model_bin_averages(s, model, data.cell[first], k=8, extra_cell=np.full((first.sum(), 1, 2), q))
-        out = np.zeros((G, 3))
-        np.add.at(out, data.group[first], S * data.omega[first, None])
-        return out
+    G = len(data.albedo) // (2 * len(PACKINGS))
 
     def line(q):   # the seeds' albedo, linear between the trained packings around q
         k = int(np.searchsorted(PACKINGS, q)) - 1
@@ -171,9 +186,51 @@ def test_between_trained_packings_the_albedo_is_linear(family):
 
     misses = []
     for q in inside:
-        np.testing.assert_allclose(albedo(spec, q), line(q), rtol=2e-5)
-        misses.append(np.max(np.abs(albedo(trained_only, q) / line(q) - 1)))
+        np.testing.assert_allclose(model_albedo(problem, spec, model, 2, q), line(q), rtol=2e-5)
+        misses.append(np.max(np.abs(model_albedo(problem, trained_only(spec), model, 2, q) / line(q) - 1)))
     assert max(misses) > 1e-3, misses
+
+
+def test_between_trained_packings_a_bending_family_is_followed_closer_than_by_its_chords(tmp_path):
+    """A family that bends as a ply's does: its light grows as ``1 - exp(-p / 0.1)`` (ever more
+    slowly as the ply fills), its passthrough falls as ``0.05 + 0.6 exp(-p / 0.1)``. Between the
+    trained packings the straight line (the chord) cuts under the albedo's curve, by 3.7% at
+    worst at the gain's nodes, and over the passthrough's, by 9.3%. The model's albedo there,
+    and its passthrough, lie within 0.4 of the chord's miss of the closed form (a monotone
+    cubic through the four packings: 1.1% and 2.1%), and its albedo is that cubic's
+    (:func:`models.fit.along_packing`) to float32 rounding."""
+    from models.fit import along_packing
+    from models.neural import between
+
+    cfg = make_config(tmp_path)
+    base = synthetic_table(cfg, tmp_path / "t.npz", passthrough=0.3).expanded()
+    law = lambda p: 1 - np.exp(-p / 0.1)  # noqa: E731
+    passthrough = lambda p: 0.05 + 0.6 * np.exp(-p / 0.1)  # noqa: E731
+    members = [(p, base._replace(values=(base.values * law(p)).astype(np.float32),
+                                 stderr=(base.stderr * law(p)).astype(np.float32),
+                                 passthrough=np.full_like(base.passthrough, passthrough(p))))
+               for p in PACKINGS]
+    c = cfg.train.model_copy(update={"inputs": ["packing"], "epochs": 80, "patience": 80})
+    problem = prepare_family(members, c, "")
+    spec = dataclasses.replace(problem.base, hidden=[16, 16])
+    model, *_ = fit(spec, problem, c, "bending family")
+    data = problem.data
+    G = len(data.albedo) // len(PACKINGS)
+    at_trained = np.stack([data.albedo[j * G:(j + 1) * G] for j in range(len(PACKINGS))])
+    one = data.albedo[:G] / law(PACKINGS[0])   # the family's albedo per unit of its law
+    inside = [q for q in spec.packings if q not in PACKINGS]
+    albedo_miss, chord_miss, pass_miss, pass_chord = [], [], [], []
+    for q in inside:
+        A = model_albedo(problem, spec, model, 1, q)
+        np.testing.assert_allclose(A, along_packing(PACKINGS, at_trained, q), rtol=2e-5)
+        albedo_miss.append(np.max(np.abs(A / (one * law(q)) - 1)))
+        chord_miss.append(np.max(np.abs(np.interp(q, PACKINGS, law(np.array(PACKINGS))) / law(q) - 1)))
+        T = between(np.clip, np.float64(q), spec.packings, np.asarray(spec.passthrough_packing), False)
+        pass_miss.append(np.max(np.abs(T / passthrough(q) - 1)))
+        pass_chord.append(abs(np.interp(q, PACKINGS, passthrough(np.array(PACKINGS))) / passthrough(q) - 1))
+    assert max(chord_miss) > 0.03 and max(pass_chord) > 0.09
+    assert max(albedo_miss) < 0.4 * max(chord_miss), (albedo_miss, chord_miss)
+    assert max(pass_miss) < 0.4 * max(pass_chord), (pass_miss, pass_chord)
 
 
 # ----------------------------------------------------------------------------------
@@ -234,14 +291,15 @@ def test_a_family_of_orders_is_dyed_at_every_trained_packing(order_family):
     """Each order's albedo is held per trained packing by its gain, so the dyed model's albedo,
     ``dyed(order albedos, a, rho)`` with the tail's ratio the model keeps at that packing, is
     the seeds' recoloured tables' to float32 rounding, at every packing and incident longitude;
-    the tail's ratio is kept per trained packing (the seeds' mean)."""
+    the tail's ratio is kept per packing node (the seeds' mean at the trained ones, on the
+    family's line between them)."""
     from models.bundle_table import dyed
     from models.fit import model_bin_averages
 
     members, problem, spec, model, _ = order_family
     data = problem.data
-    assert spec.orders == 3 and np.asarray(spec.tail_ratio).shape == (len(PACKINGS), 1, 13, 3)
-    np.testing.assert_allclose(np.asarray(spec.tail_ratio)[:, 0, 0, 0], [0.3 + p for p in PACKINGS])
+    assert spec.orders == 3 and np.asarray(spec.tail_ratio).shape == (len(spec.packings), 1, 13, 3)
+    np.testing.assert_allclose(np.asarray(spec.tail_ratio)[:, 0, 0, 0], [0.3 + p for p in spec.packings])
     S = model_bin_averages(spec, model, data.cell, k=8, extra_cell=data.extra_cell, orders=True)
     albedo = np.zeros_like(data.albedo)           # [groups, K x lambda]: each order's
     np.add.at(albedo, data.group, S * data.omega[:, None])
@@ -250,7 +308,7 @@ def test_a_family_of_orders_is_dyed_at_every_trained_packing(order_family):
     theta[data.group] = np.abs(data.cell[:, 1])
     split = lambda a: [a[..., k * 3:(k + 1) * 3] for k in range(3)]  # noqa: E731
     for k, p in enumerate(PACKINGS):
-        rho = np.asarray(spec.tail_ratio[k])[0, 0]
+        rho = np.asarray(spec.tail_ratio[spec.packings.index(p)])[0, 0]
         want = np.mean([t.recolour(DYE).scattered for q, t in members if q == p], 0)[0]   # [theta_i, lambda]
         for j, t in enumerate(members[0][1].theta_i):
             rows = (key == k) & np.isclose(theta, abs(t))
@@ -262,9 +320,9 @@ def test_a_family_of_orders_is_dyed_at_every_trained_packing(order_family):
 
 def test_a_family_backend_reads_each_lane_at_its_own_packing(order_family, mi_llvm):
     """``at_packing`` with one packing per lane (a texture's, per hit): each lane's value, its
-    passthrough and its tail's ratio are those of the backend set to that packing alone,
-    linear between the trained packings (the synthetic family's passthrough is ``0.5 - p``,
-    its tail's ratio ``0.3 + p``)."""
+    passthrough and its tail's ratio are those of the backend set to that packing alone, on
+    the family's lines between the trained packings (the synthetic family's passthrough is
+    ``0.5 - p``, its tail's ratio ``0.3 + p``)."""
     import drjit as dr
 
     from mitsuba_ext.backends import MLPBackend
@@ -285,8 +343,8 @@ def test_a_family_backend_reads_each_lane_at_its_own_packing(order_family, mi_ll
     assert np.ptp(S[0]) > 0 and dr.width(view.constants[0]) == 4
 
 
-def test_a_uniform_packing_is_read_between_its_two_trained_packings(order_family, mi_llvm):
-    """A uniform packing keeps only the two trained packings around it (``bracketed``): the
+def test_a_uniform_packing_is_read_between_its_two_packing_nodes(order_family, mi_llvm):
+    """A uniform packing keeps only the two packing nodes around it (``bracketed``): the
     gain and the passthrough there are the full family's, at the nodes and between them; the
     backend set to a packing traces that pair. A pair read outside its own interval (clamped
     at its ends) is not the family: the comparison can fail."""
@@ -306,7 +364,7 @@ def test_a_uniform_packing_is_read_between_its_two_trained_packings(order_family
                                    between(np.clip, np.float64(p), spec.packings, np.asarray(spec.passthrough_packing),
                                            False))
     backend = MLPBackend(tmp / "orders.npz", mi_llvm.Float, packing=0.27)
-    assert backend.here.spec.packings == [0.2, 0.3] and backend.mlp.spec.packings == PACKINGS
+    assert np.allclose(backend.here.spec.packings, [0.25, 0.275]) and backend.mlp.spec.packings == spec.packings
     far = bracketed(spec, 0.35)
     at = np.full(7, 0.15)
     assert not np.allclose(energy_gain(np, far, theta, at), energy_gain(np, spec, theta, at))
@@ -349,3 +407,17 @@ def test_a_packing_texture_sets_the_packing_per_hit(order_family, mi_plugins):
         assert value[3].sum() > value[0].sum() and P[3] < P[0]
     with pytest.raises(Exception, match=r"'packing' texture: its values span 0.2 .. 0.6"):
         mi.load_dict({"type": "fiber_bundle", "backend": "mlp", "model": model, "packing": bitmap([0.2, 0.6])})
+
+
+def test_a_family_model_of_the_older_format_is_refused_by_name(family):
+    """``bcsdf.neural/5`` kept a family's gain on packing nodes of its own (``gain_packings``)
+    and its passthrough on the trained packings; read as ``/6`` the passthrough would sit on the
+    wrong nodes. Such a file is refused with the command that rebuilds it; a ``/5`` model
+    without those nodes (every one-ply model) still reads."""
+    from models.neural import NeuralSpec
+
+    _, _, spec, _, _ = family
+    old = {**spec.to_dict(), "format": "bcsdf.neural/5", "gain_packings": list(spec.packings)}
+    with pytest.raises(ValueError, match="re-run `bcsdf family`"):
+        NeuralSpec.from_dict(old)
+    assert NeuralSpec.from_dict({**old, "gain_packings": []}).packings == spec.packings

@@ -4,8 +4,9 @@ A look-development artist turns the ply's density in the scene; a bake and a tra
 per value would take minutes each. The sweep (``bcsdf sweep``) bakes the ply type at a
 few packings, several Poisson draws each; this stage trains **one** model on all of them
 (``models.fit.prepare_family``: each member's samples with its packing as a fifth input;
-the passthrough, and with ``bake.orders`` the tail's ratio, kept per trained packing and
-read linearly between them), so that ``fiber_bundle``'s ``packing`` (a value or a texture)
+the passthrough, and with ``bake.orders`` the tail's ratio, kept per trained packing, and
+the albedo held there by the energy gain; between the trained packings all three follow one
+monotone cubic through them, ``models.fit.along_packing``), so that ``fiber_bundle``'s ``packing`` (a value or a texture)
 picks any packing in the trained range at render time, and its ``albedo`` dyes it where the
 sweep baked the orders of scattering.
 
