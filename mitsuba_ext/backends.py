@@ -188,6 +188,9 @@ class _NeuralBackend:
 
     near = None   # True where the model holds the near field and it is used
     constants = ()  # the values of the inputs that hold for the whole shape (a family's packing)
+    # a family's per-packing data as read: at a uniform packing the two nodes around it alone
+    # (models.neural.bracketed; every node would cost a spectrum of segments each), per lane all
+    nodes = None
     albedo = None   # a uniform dye: the per-event albedo at the model's wavelengths (set_dye)
 
     def _init_spec(self, spec, Float, near_field: bool = True, packing: float | None = None):
@@ -227,6 +230,7 @@ class _NeuralBackend:
         """Evaluate a family's model at ``packing`` everywhere (:meth:`check_packing`)."""
         # opaque: an evaluated input of the kernel, not a literal compiled into it
         self.constants = (dr.opaque(self.Float, self.check_packing(packing)),)
+        self.nodes = bracketed(self.spec, self.check_packing(packing))
 
     def at_packing(self, packing):
         """This backend read at ``packing``, a Dr.Jit array with one value per lane (a
@@ -234,13 +238,15 @@ class _NeuralBackend:
         lo, hi = self.spec.input_range["packing"]
         view = copy.copy(self)
         view.constants = (dr.clip(packing, lo, hi),)
+        view.nodes = self.spec
         return view
 
     def _per_packing(self, at_node):
         """A family's quantity at this backend's packing (per lane), linear between its values
-        at the model's packing nodes, ``at_node(k)`` (a Dr.Jit array or a list of them)."""
-        values = [at_node(k) for k in range(len(self.spec.packings))]
-        p, nodes = self.constants[0], self.spec.packings
+        at the packing nodes read (:attr:`nodes`), ``at_node(k)`` (a Dr.Jit array or a list of
+        them) for the ``k``-th of them."""
+        values = [at_node(k) for k in range(len(self.nodes.packings))]
+        p, nodes = self.constants[0], self.nodes.packings
         if isinstance(values[0], list):
             return [between(dr.clip, p, nodes, [v[l] for v in values], False) for l in range(len(values[0]))]
         return between(dr.clip, p, nodes, values, False)
@@ -265,7 +271,7 @@ class _NeuralBackend:
         rho = lambda values: tail_ratio_at(self.Float, values, s.passthrough_phi_i, s.tail_ratio_theta_i,  # noqa: E731
                                            phi_i, theta_i)
         if "packing" in s.inputs:
-            return orders, self._per_packing(lambda k: rho(s.tail_ratio[k]))
+            return orders, self._per_packing(lambda k: rho(self.nodes.tail_ratio[k]))
         return orders, rho(s.tail_ratio)
 
     def eval(self, phi_i, theta_i, phi_o, theta_o):
@@ -296,7 +302,7 @@ class _NeuralBackend:
     def passthrough(self, phi_i, theta_i):
         s = self.spec
         if "packing" in s.inputs:   # a family's: linear between its packing nodes
-            return self._per_packing(lambda k: passthrough_at(self.Float, s.passthrough_packing[k],
+            return self._per_packing(lambda k: passthrough_at(self.Float, self.nodes.passthrough_packing[k],
                                                               s.passthrough_phi_i, phi_i, theta_i))
         return passthrough_at(self.Float, s.passthrough, s.passthrough_phi_i, phi_i, theta_i,
                               s.passthrough_theta or None, s.passthrough_theta_i)
@@ -334,10 +340,10 @@ class MLPBackend(_NeuralBackend):
 
     def set_packing(self, packing: float) -> None:
         """As :meth:`_NeuralBackend.set_packing`; the traced kernel holds the gain of the two
-        trained packings around it alone (:func:`models.neural.bracketed`): an edit within them
-        recompiles nothing, one across a trained packing compiles that pair's kernel."""
+        packing nodes around it alone (:func:`models.neural.bracketed`): an edit within them
+        recompiles nothing, one across a node compiles that pair's kernel."""
         super().set_packing(packing)
-        self.here = self.mlp.with_spec(bracketed(self.mlp.spec, self.check_packing(packing)))
+        self.here = self.mlp.with_spec(self.nodes)
 
     def at_packing(self, packing):
         view = super().at_packing(packing)

@@ -337,9 +337,12 @@ def test_a_family_backend_reads_each_lane_at_its_own_packing(order_family, mi_ll
     np.testing.assert_allclose(np.asarray(view.passthrough(angles[0], angles[1])), 0.5 - lanes, atol=1e-6)
     np.testing.assert_allclose(np.array([np.asarray(r) for r in rho]), np.tile(0.3 + lanes, (3, 1)), atol=1e-6)
     for i, p in enumerate(lanes):
-        backend.set_packing(p)
+        backend.set_packing(p)   # the two packing nodes around p alone
         one = np.array([np.asarray(s)[0] for s in backend.eval(*(a[i] for a in angles))])
         np.testing.assert_allclose(S[:, i], one, rtol=1e-5)
+        np.testing.assert_allclose(np.asarray(backend.passthrough(angles[0][i], angles[1][i])), 0.5 - p, atol=1e-6)
+        _, rho_one = backend.eval_orders(*(a[i] for a in angles))
+        np.testing.assert_allclose([np.asarray(r)[0] for r in rho_one], np.full(3, 0.3 + p), atol=1e-6)
     assert np.ptp(S[0]) > 0 and dr.width(view.constants[0]) == 4
 
 
