@@ -521,8 +521,9 @@ def packing_gains(model, p: BinFit, spec: NeuralSpec, albedo: np.ndarray, at: np
     """A family's gain between its trained packings: ``(packings, gains [node, theta node,
     output])`` at ``GAIN_PACKING_STEPS - 1`` packings inside each interval, each the ratio of the
     albedo there on the trained packings' curve (:func:`along_packing` of ``albedo [trained
-    packing, theta node, output]``, the seeds' mean per node) to the network's there (its bin averages over ``strata`` x
-    ``strata`` midpoints, on the first trained packing's samples with the packing replaced),
+    packing, theta node, output]``, the seeds' mean per node) to the network's there (its bin
+    averages over ``strata`` x ``strata`` midpoints, on the first trained packing's samples
+    with the packing replaced),
     held within :data:`GAIN_LIMIT` either way; the outputs' scales not folded in."""
     P = np.asarray(spec.packings, float)
     column = spec.inputs.index("packing")
@@ -561,7 +562,7 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, a
     is the target. A family's model (``packing`` input) gets one gain per trained packing. A
     ratio beyond :data:`GAIN_LIMIT` either way is held there; a model of the orders has each
     output's scale (:func:`order_scales`) folded in. Between the trained packings a family's gain
-    has nodes of its own (:func:`packing_gains`, ``spec.gain_packings``), where it makes each
+    has nodes of its own (:func:`packing_gains`), where it puts each
     output's albedo on the trained packings' curve (:func:`along_packing`), and the passthrough
     and the tail's ratio are read off theirs there: ``spec.packings`` becomes every node.
     The model's albedo is integrated over ``strata`` x ``strata`` midpoints of
