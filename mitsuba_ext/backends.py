@@ -229,8 +229,9 @@ class _NeuralBackend:
     def set_packing(self, packing: float) -> None:
         """Evaluate a family's model at ``packing`` everywhere (:meth:`check_packing`)."""
         # opaque: an evaluated input of the kernel, not a literal compiled into it
-        self.constants = (dr.opaque(self.Float, self.check_packing(packing)),)
-        self.nodes = bracketed(self.spec, self.check_packing(packing))
+        packing = self.check_packing(packing)
+        self.constants = (dr.opaque(self.Float, packing),)
+        self.nodes = bracketed(self.spec, packing)
 
     def at_packing(self, packing):
         """This backend read at ``packing``, a Dr.Jit array with one value per lane (a

@@ -595,9 +595,10 @@ def energy_gain(lib, spec: NeuralSpec, theta_i, *extra):
     constant beyond the end nodes, written as a sum of clipped segments, ``g_0 + sum_k m_k
     (clip(t, t_k, t_k+1) - t_k)``, the slopes ``m_k``: ops every backend has. A family's model
     (a ``packing`` input) holds one such gain per node of ``spec.packings`` (the trained
-    packings and packings between them), piecewise linear between them the same way. ``lib`` as :func:`features`; returns ``[..., n_lambda]`` for numpy and
-    PyTorch (the segments times a matrix: one ``MatMul`` in the ONNX graph), a list over
-    wavelengths for Dr.Jit and bounded arithmetic, or ``None`` without a gain."""
+    packings and packings between them), piecewise linear between them the same way. ``lib``
+    as :func:`features`; returns ``[..., n_lambda]`` for numpy and PyTorch (the segments
+    times a matrix: one ``MatMul`` in the ONNX graph), a list over wavelengths for Dr.Jit and
+    bounded arithmetic, or ``None`` without a gain."""
     if not spec.gain:
         return None
     clip = getattr(lib, "clip", None) or getattr(lib, "clamp")

@@ -49,8 +49,8 @@ def _family(tmp, **bake):
 @pytest.fixture(scope="module")
 def family(tmp_path_factory):
     """A sweep of three packings x two seeds baked with 4 orders of scattering, a third seed
-    at 0.2, the family trained on 0.1 and 0.3 (0.2 held out) through the CLI, with Python's import trace (the
-    stage's deps are checked below)."""
+    at 0.2, the family trained on 0.1 and 0.3 (0.2 held out) through the CLI, with Python's
+    import trace (the stage's deps are checked below)."""
     return _family(tmp_path_factory.mktemp("family"))
 
 

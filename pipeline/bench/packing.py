@@ -3,8 +3,8 @@
 The family of ``configs/packing_sweep.yaml`` run as a user runs it: ``bcsdf sweep`` bakes the
 default ply over its packing fraction, three Poisson draws at each (one draw differs from the
 next by many times one bake's Monte Carlo error; nine at a held-out packing, so that the truth
-the model is measured against there is known to well within the goal), and ``bcsdf family`` trains one model on
-all of them but the ``family.held_out`` packings, with the packing as an input and the orders
+the model is measured against there is known to well within the goal), and ``bcsdf family``
+trains one model on all of them but the ``family.held_out`` packings, with the packing as an input and the orders
 of scattering as outputs, and measures it at every packing against the mean of its seeds'
 bakes (``pipeline.family.measure``):
 

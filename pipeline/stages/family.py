@@ -6,9 +6,9 @@ few packings, several Poisson draws each; this stage trains **one** model on all
 (``models.fit.prepare_family``: each member's samples with its packing as a fifth input;
 the passthrough, and with ``bake.orders`` the tail's ratio, kept per trained packing, and
 the albedo held there by the energy gain; between the trained packings all three follow one
-monotone cubic through them, ``models.fit.along_packing``), so that ``fiber_bundle``'s ``packing`` (a value or a texture)
-picks any packing in the trained range at render time, and its ``albedo`` dyes it where the
-sweep baked the orders of scattering.
+monotone cubic through them, ``models.fit.along_packing``), so that ``fiber_bundle``'s
+``packing`` (a value or a texture) picks any packing in the trained range at render time,
+and its ``albedo`` dyes it where the sweep baked the orders of scattering.
 
 ==========================  =========================================================
 ``family.model``            which of ``train.models`` is the network (default: the first)
