@@ -7,7 +7,7 @@ SIZES = --set name=default_sizes --set 'train.models={small: [32, 32], medium: [
         --set train.epochs=500 --set render.model=small
 
 
-.PHONY: setup setup-run run run-sizes test bench bench-bake bench-neural bench-train bench-encoding bench-render bench-closure bench-cluster bench-exit bench-hair bench-dye bench-near bench-packing bench-sun bench-twisted figures bench-highlight bench-cloth cloth stability clean
+.PHONY: setup setup-run run run-sizes test test-slow bench bench-bake bench-neural bench-train bench-encoding bench-render bench-closure bench-cluster bench-exit bench-hair bench-dye bench-near bench-packing bench-sun bench-twisted figures bench-highlight bench-cloth cloth stability clean
 setup:
 	./scripts/setup.sh
 
@@ -26,6 +26,9 @@ run-sizes: setup-run
 
 test: setup
 	.venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=15  # two workers, a test file each; the slowest printed
+
+test-slow: setup
+	.venv/bin/python -m pytest -q -m slow tests  # the long checks: CI runs them after make test
 
 bench: setup
 	.venv/bin/python -m pipeline.bench.fiber

@@ -340,24 +340,28 @@ def explicit_twisted_shapes(curve_file, fiber_bsdf: dict, turn: float, shift: fl
                                                                                  -float(np.rad2deg(turn)))}}
 
 
-def view_placements(ply, n_views: int, unit: float, turns: bool = True) -> list[tuple[float, float]]:
+def view_placements(ply, n_views: int, unit: float, turns: bool = True,
+                    offset=(0.0, 0.0)) -> list[tuple[float, float]]:
     """``(turn, shift)`` of each view of an explicit ply, averaging over what its bake
     averages over: the incident azimuth (turns, a circle's: ``turns``) and, for a twisted ply
     (a :class:`~models.bundle.TwistedBundle`), the height within the period (shifts, scene
     units). Parallel fibers and a rigid circular twist need the turns alone (for the latter
     a turn is a shift); an ellipse, whose bake keeps its azimuth, the shifts alone (none if
     parallel); a migrating circle both, as a rank-1 lattice over (turn, height) whose every
-    projection, and the shift a turn amounts to, are stratified."""
+    projection, and the shift a turn amounts to, are stratified. ``offset`` (turn, shift) in
+    [0, 1): moves the lattice by that share of a stratum (a random one makes the average an
+    unbiased estimate of the whole period's: :func:`replicated_bins`)."""
 
     twisted = isinstance(ply, TwistedBundle)
     P = ply.period * unit if twisted else 0.0
+    o_turn, o_shift = offset
     if not turns:
-        return [(0.0, k / n_views * P) for k in range(n_views)]
-    placed = [2 * np.pi * k / n_views for k in range(n_views)]
+        return [(0.0, (k + o_shift) / n_views * P) for k in range(n_views)]
+    placed = [2 * np.pi * (k + o_turn) / n_views for k in range(n_views)]
     if not twisted or ply.screw:
         return [(t, 0.0) for t in placed]
     a = next(a for a in (5, 3, 7, 11, 13, 1) if np.gcd(a, n_views) == 1)  # k -> a k mod n: a permutation
-    return [(t, (a * k % n_views) / n_views * P) for k, t in enumerate(placed)]
+    return [(t, (a * k % n_views + o_shift) / n_views * P) for k, t in enumerate(placed)]
 
 
 def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, resolution: int = 48,
@@ -382,12 +386,15 @@ def explicit_intensity(mi, bundle, fiber_bsdf: dict, w_i, views, spp: int = 16, 
 
 def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, resolution: int = 48,
                          unit: float = 1e-3, turns: bool = True, curves: bool = False,
-                         integrator: str = "bundle_path", cells: int = 0) -> list:
+                         integrator: str = "bundle_path", cells: int = 0, offset=(0.0, 0.0),
+                         seed: int = 0) -> list:
     """:func:`explicit_intensity` for many ``(w_i, views)`` at once (every ``views`` as
     long): each turn of the arrangement is loaded once, and the sun and the camera are
     moved between requests (``mi.traverse``), as a fresh scene would place them; the
     scenes' loads and kernels, not their pixels, are what explicit fibers cost here.
-    ``cells``: the :func:`profile` across the ply's bounding width instead (arrays)."""
+    ``cells``: the :func:`profile` across the ply's bounding width instead (arrays).
+    ``offset``: :func:`view_placements`'; ``seed``: the first view's render seed (view ``k``
+    renders with ``seed + k``)."""
 
     twisted = isinstance(bundle, TwistedBundle)
     section = bundle.bundle if twisted else bundle
@@ -396,7 +403,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
     hs = 1.2 * section.bounding_radius * unit
     half_length = fiber_half_length(hs, [np.arcsin(np.clip(w_o[1], -1, 1)) for _, views in requests for w_o in views])
     n_views = len(requests[0][1])
-    placements = view_placements(bundle, n_views, unit, turns)
+    placements = view_placements(bundle, n_views, unit, turns, offset)
     if any(len(views) != n_views for _, views in requests):
         raise ValueError("explicit_intensities: every request needs as many views")
     values = np.zeros((len(requests), n_views) + ((cells,) if cells else ()))
@@ -421,7 +428,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
                 params["sensor.to_world"] = _camera(mi, views[k], hs)[2]
                 params["sun.to_world"] = suns[r]
                 params.update()
-                img = render_image(mi, loaded, seed=k)
+                img = render_image(mi, loaded, seed=seed + k)
                 values[r, k] = (profile(img, views[k], hs, section.bounding_radius * unit, cells) if cells
                                 else intensity(img, views[k], hs))
     if cells:
@@ -453,19 +460,22 @@ def bundle_profiles(mi, bsdf: dict, R, requests, cells: int, shape=None, spp: in
     return np.array(out)
 
 
-def bin_views(table, phi_i, k_phi, k_theta, n=4) -> list:
-    """``n x n`` directions stratified over output bin ``(k_phi, k_theta)`` of ``table``
-    (uniform in ``phi`` and ``sin(theta)``, i.e. in solid angle), in a shuffled order so
-    that the even and the odd ones each cover the bin; ``phi`` relative to ``phi_i`` for
-    a relative table."""
+def bin_views(table, phi_i, k_phi, k_theta, n=4, jitter=(0.5, 0.5)) -> list:
+    """``n x n`` directions (``n = (n_phi, n_theta)``: a grid of those) stratified over output
+    bin ``(k_phi, k_theta)`` of ``table`` (uniform in ``phi`` and ``sin(theta)``, i.e. in solid
+    angle), in a shuffled order; ``phi`` relative to ``phi_i`` for a relative table. ``jitter`` in [0, 1)^2: where in its stratum
+    each direction lies (the midpoints by default; one random pair for all strata, a
+    Cranley-Patterson rotation, makes the mean an unbiased estimate of the bin's)."""
+    n_phi, n_theta = (n, n) if np.isscalar(n) else n
     pe, te = table.phi_o_edges, table.theta_o_edges
     rel = table.meta["reductions"]["phi_o"] == "relative"
     u0, u1 = np.sin(te[k_theta]), np.sin(te[k_theta + 1])
-    views = [direction(pe[k_phi] + (a + 0.5) / n * (pe[k_phi + 1] - pe[k_phi]) + (phi_i if rel else 0.0),
-                       np.arcsin(u0 + (b + 0.5) / n * (u1 - u0)))
-             for a in range(n) for b in range(n)]
-    order = [(a * n + (b + a) % n) for b in range(n) for a in range(n)]  # Latin-square order
-    return [views[j] for j in order]
+    ja, jb = jitter
+    views = {(a, b): direction(pe[k_phi] + (a + ja) / n_phi * (pe[k_phi + 1] - pe[k_phi]) + (phi_i if rel else 0.0),
+                               np.arcsin(u0 + (b + jb) / n_theta * (u1 - u0)))
+             for a in range(n_phi) for b in range(n_theta)}
+    # Latin-square order (on a square grid the even and the odd views each cover the bin)
+    return [views[k % n_phi, (k // n_phi + k % n_phi) % n_theta] for k in range(n_phi * n_theta)]
 
 
 # -- measurements over many directions (the render stage and bench_closure) ------------
@@ -597,6 +607,33 @@ def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: f
                      "theta_o": float(np.rad2deg(table.theta_o[k_theta])), "ratio": float(I / predicted),
                      "sigma": float(np.hypot(S_err / S, se / I))})
     return rows
+
+
+def replicated_bins(mi, bundle, fiber_bsdf: dict, table, cases, replicates: int, phi_i: float = 0.0,
+                    seed: int = 0, strata=(2, 8), **options) -> list[tuple[float, float]]:
+    """The explicit intensity over each bin ``(theta_i index, phi bin, theta bin)`` of
+    ``cases`` and its standard error, from ``replicates`` independent passes of
+    :func:`explicit_intensities`: each pass moves the bin's directions (``strata``, a grid
+    of :func:`bin_views`; more in theta, where a lobe beside its cone falls fastest) and the
+    ply's turns (and heights) by one random share of a stratum, and renders with seeds of its
+    own. Each pass is then an unbiased estimate of the bin's and the period's average (render
+    noise and quadrature alike), so the passes' spread gives a standard error with
+    ``replicates - 1`` degrees of freedom; the even and odd turns of one pass at the strata's
+    midpoints (:func:`explicit_intensity`) give one, and the midpoints are biased where a
+    bin's light falls steeply. ``options``: :func:`explicit_intensities`'."""
+    if replicates < 2:
+        raise ValueError("replicated_bins: a standard error needs at least two replicates")
+    rng = np.random.default_rng(seed)
+    passes = []
+    for r in range(replicates):
+        jitter, offset = rng.random(2), rng.random(2)
+        requests = [(direction(phi_i, table.theta_i[j]), bin_views(table, phi_i, k_phi, k_theta, strata, jitter))
+                    for j, k_phi, k_theta in cases]
+        measured = explicit_intensities(mi, bundle, fiber_bsdf, requests, offset=offset,
+                                        seed=r * len(requests[0][1]), **options)
+        passes.append([I for I, _ in measured])
+    v = np.array(passes)
+    return list(zip(v.mean(axis=0), v.std(axis=0, ddof=1) / np.sqrt(replicates)))
 
 
 def theta_cut(mi, ply, fiber_bsdf: dict, theta_i: float, dphi: float, theta_o, turns: int = 8, spp: int = 8,

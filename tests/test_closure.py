@@ -402,6 +402,46 @@ def test_the_last_node_held_along_its_cone_reads_the_pole_gap(mono, tmp_path):
     assert np.sum(np.abs(pole[3:, 0]) > 0.05 + 3 * pole[3:, 1]) >= 2, pole
 
 
+def test_bin_views_moved_by_a_random_share_of_their_strata_average_to_the_bin():
+    """A light falling steeply across a bin (e-fold 2.3 deg in theta, as beside a lobe's cone):
+    the strata's midpoints miss the bin's average (solid angle: uniform in phi and sin theta)
+    by more than a per cent; views moved by one random share of their strata (a
+    Cranley-Patterson rotation, what ``closure.replicated_bins`` draws) average to it, each
+    draw's views inside the bin and one per stratum. The turns move by the same rule."""
+    from types import SimpleNamespace
+
+    table = SimpleNamespace(phi_o_edges=np.deg2rad([-90.0, -80.0]), theta_o_edges=np.deg2rad([-10.0, 0.0]),
+                            meta={"reductions": {"phi_o": "relative"}})
+
+    def light(views):
+        w = np.array(views)
+        theta, phi = np.arcsin(w[:, 1]), np.arctan2(w[:, 2], w[:, 0])
+        return np.exp(-np.rad2deg(theta) / 2.3) * (1.0 + 0.3 * np.cos(8 * phi))
+
+    # the bin's average: midpoints of a fine grid in (phi, sin theta)
+    u = np.sin(np.deg2rad(-10.0)) + (np.arange(4000) + 0.5) / 4000 * (0.0 - np.sin(np.deg2rad(-10.0)))
+    ph = np.deg2rad(-90.0) + (np.arange(40) + 0.5) / 40 * np.deg2rad(10.0)
+    T, P = np.meshgrid(np.arcsin(u), ph, indexing="ij")
+    exact = light(np.stack([np.cos(T) * np.cos(P), np.sin(T), np.cos(T) * np.sin(P)], -1).reshape(-1, 3)).mean()
+
+    assert abs(light(closure.bin_views(table, 0.0, 0, 0)).mean() / exact - 1) > 0.01   # 4 x 4 midpoints
+    rng = np.random.default_rng(5)
+    draws = []
+    for _ in range(2000):
+        views = np.array(closure.bin_views(table, 0.0, 0, 0, (2, 8), rng.random(2)))
+        theta, phi = np.rad2deg(np.arcsin(views[:, 1])), np.rad2deg(np.arctan2(views[:, 2], views[:, 0]))
+        assert np.all((theta >= -10.0) & (theta <= 0.0) & (phi >= -90.0) & (phi <= -80.0))
+        u0 = np.sin(np.deg2rad(-10.0))
+        strata = {(int((p + 90.0) // 5.0), int((np.sin(np.deg2rad(t)) - u0) // (-u0 / 8))) for p, t in zip(phi, theta)}
+        assert len(strata) == 16
+        draws.append(light(views).mean())
+    draws = np.array(draws)
+    assert abs(draws.mean() - exact) < 4 * draws.std() / np.sqrt(len(draws)), (draws.mean(), exact)
+
+    turns = [t for t, _ in closure.view_placements(None, 16, 1e-3, offset=(0.25, 0.0))]
+    assert np.allclose(turns, 2 * np.pi * (np.arange(16) + 0.25) / 16)
+
+
 # ----------------------------------------------------------------------------------
 # Explicit fibers against the bake (light version; the full sweep: pipeline.bench.closure)
 # ----------------------------------------------------------------------------------

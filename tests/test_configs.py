@@ -20,7 +20,9 @@ SHRINK = ["tabulate.theta_i_step_deg=30", "bake.paths_per_phi_i=2000",
 CONFIGS = sorted(p.name for p in (ROOT / "configs").glob("*.yaml"))
 
 
-@pytest.mark.parametrize("name", CONFIGS)
+# the packing sweep bakes its 33 members, however small: a long check (`make test-slow`, CI)
+@pytest.mark.parametrize("name", [pytest.param(n, marks=[pytest.mark.slow] if n == "packing_sweep.yaml" else [])
+                                  for n in CONFIGS])
 def test_shipped_config_runs_end_to_end(name, tmp_path, capsys):
     from pipeline.loading import load_config
 

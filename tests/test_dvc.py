@@ -92,6 +92,7 @@ def _stale(run) -> set:
     return {"report" if n == "report_cloth" else n for n in names}  # the tiny config's report reads its cloth
 
 
+@pytest.mark.slow   # about two minutes (DVC runs each stage as its own process): `make test-slow`, CI
 def test_dvc_pipeline_deps_metrics_and_staleness(tmp_path):
     repo, trace, env, run = _clone(tmp_path)
     assert (repo / ".dvc").is_dir()  # committed: `dvc repro` works on a fresh clone

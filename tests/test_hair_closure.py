@@ -31,7 +31,8 @@ def test_one_hair_fiber_on_a_curve_renders_the_camera_transport_ray_fiber():
     assert outside(res_flipped).sum() >= 6, res_flipped
 
 
-@pytest.mark.parametrize("ply,sigma_a", [("six", 0.0), ("six+twist", 0.5)])
+@pytest.mark.parametrize("ply,sigma_a", [("six", 0.0),   # the twisted ply's bakes take a minute: `make test-slow`, CI
+                                         pytest.param("six+twist", 0.5, marks=pytest.mark.slow)])
 def test_explicit_hair_ply_renders_its_bake(ply, sigma_a):
     """A ply of six ``hair`` fibers on curves (parallel and lossless; twisted at a pitch of
     1500 um and absorbing) against the bake of the camera-transport ray fiber with the
@@ -50,7 +51,7 @@ def test_explicit_hair_ply_renders_its_bake(ply, sigma_a):
     assert not np.any(outside(res_from_camera)), res_from_camera
 
 
-@pytest.mark.slow   # a minute alone, more beside the other worker: `.ci/run` runs it
+@pytest.mark.slow   # a minute alone: `make test-slow`, CI
 def test_the_default_ply_of_hair_fibers_renders_its_bake_traced_from_the_camera():
     """The default ply (39 fibers of 20 um in 200 um, lossless): explicit ``hair`` fibers
     against its camera-transport table traced from the camera, within 3% + 3 standard errors
@@ -60,7 +61,7 @@ def test_the_default_ply_of_hair_fibers_renders_its_bake_traced_from_the_camera(
     ply = ply_of("default")
     camera, light = ray_fiber("camera"), ray_fiber("light")
     tables = [bake_of(ply, camera, "curve", 8_000_000, estimator="camera"), bake_of(ply, light, "lobe", 4_000_000)]
-    res, res_light = explicit_hair(ply, camera, tables, spp=32)
+    res, res_light = explicit_hair(ply, camera, tables, spp=9, replicates=4)
     print("traced from the camera:", np.round(res, 3).tolist())
     print("light transport:", np.round(res_light, 3).tolist())
     assert not np.any(outside(res)), res

@@ -2,7 +2,7 @@
 
 The commands that bake and train (the quick trial, a ply of one's own) take a minute or
 two each: they are ``slow`` tests, which ``.ci/run`` runs on every landing
-(``pytest -m slow tests/test_readme.py``), each in a copy of the repository's files.
+(``make test-slow``), each in a copy of the repository's files.
 """
 
 import re

@@ -3,8 +3,10 @@
 
 Explicit plies of ``hair`` fibers (``bsplinecurve``, straight or helical) rendered by
 Mitsuba's ``path`` in the closure scene (``pipeline.closure``: orthographic, the whole
-width, 16 turns of the ply, 4 x 4 directions per table bin) against two bakes of the same
-ply with the mapped ray fiber (``models.fiber.ray.mitsuba_hair``):
+width, 16 turns of the ply, 4 x 4 directions per table bin, in independent passes whose turns
+and directions are moved by a random share of their strata: ``closure.replicated_bins``)
+against three bakes of the same ply with the mapped ray fiber
+(``models.fiber.ray.mitsuba_hair``):
 
 ``light / lobe``       the default: the model in light transport (conserves energy), each
                        path leaving where it really leaves (agrees with exact geometry);
@@ -15,12 +17,13 @@ ply with the mapped ray fiber (``models.fiber.ray.mitsuba_hair``):
                        ``models.bake.twisted_camera``): what the light side weighs by a
                        heavy-tailed change of offset, the camera side reads directly.
 
-Per bin: bake / explicit and its standard error (bake and render). It also tabulates the
+Per bin: bake / explicit and its standard error (the bake's, and the render's from the
+spread of its passes). It also tabulates the
 albedo of a lossless fiber in either transport, the reason the two differ. Records
 ``benchmarks/hair.json`` (``pipeline.bench.results``)::
 
-    .venv/bin/python -m pipeline.bench.hair            # about 12 minutes on 2 cores
-    .venv/bin/python -m pipeline.bench.hair --quick    # the six-fiber ply, fewer paths
+    .venv/bin/python -m pipeline.bench.hair            # about 25 minutes on 2 cores
+    .venv/bin/python -m pipeline.bench.hair --quick    # the six-fiber plies, fewer paths and samples
 """
 
 from __future__ import annotations
@@ -103,18 +106,23 @@ def bake_of(ply, fiber, exit_model: str, paths: int, seed: int = 1, estimator: s
     return tally_to_table(tally, spec, fiber, {"theta_i": None, "phi_i": None, "phi_o": "relative"})
 
 
-def explicit_hair(ply, fiber, tables, spp: int = 16) -> list:
+def explicit_hair(ply, fiber, tables, spp: int = 16, replicates: int = 0, seed: int = 0) -> list:
     """``[ratio, sigma]`` rows per table: bake / explicit ``hair`` fibers at the bins of
-    :func:`cases_of`, with the standard error of both."""
+    :func:`cases_of`, with the standard error of both. The render's: from ``replicates``
+    independent passes of ``spp`` samples a pixel (``closure.replicated_bins``), or with
+    ``replicates=0`` from the even and odd turns of one pass at the strata's midpoints (one
+    degree of freedom, and the midpoints' own bias where a bin's light falls steeply)."""
 
     mi.set_variant("llvm_ad_mono")
     lam = list(WL).index(LAM)
     t = tables[0]
     cases = cases_of(t)
     hair = mitsuba_hair(fiber.meta, fiber.wavelength, LAM)
-    measured = closure.explicit_intensities(
-        mi, ply, hair, [(closure.direction(0.0, t.theta_i[j]), closure.bin_views(t, 0.0, k, m)) for j, k, m in cases],
-        spp=spp, resolution=32, curves=True, integrator="path")
+    options = {"spp": spp, "resolution": 32, "curves": True, "integrator": "path"}
+    measured = (closure.replicated_bins(mi, ply, hair, t, cases, replicates, seed=seed, **options) if replicates
+                else closure.explicit_intensities(mi, ply, hair, [(closure.direction(0.0, t.theta_i[j]),
+                                                                   closure.bin_views(t, 0.0, k, m))
+                                                                  for j, k, m in cases], **options))
     R_b = getattr(ply, "bundle", ply).bounding_radius * 1e-3
     out = []
     for table in tables:
@@ -149,7 +157,7 @@ def albedos(betas=(0.2, 0.3, 0.5), thetas=(0.0, 30.0, 60.0, 75.0, 85.0)) -> list
     return rows
 
 
-def measure(plies, paths: int, spp: int) -> list:
+def measure(plies, paths: int, spp: int, replicates: int) -> list:
     rows = []
     for name, sigma_a in tqdm(plies, desc="hair closure", unit="ply"):
         ply = ply_of(name)
@@ -161,12 +169,12 @@ def measure(plies, paths: int, spp: int) -> list:
             tables.append(bake_of(ply, fibers[b], exit_model, paths, estimator=estimator))
             t_bake[b] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        results = explicit_hair(ply, fibers["camera / curve"], tables, spp)
+        results = explicit_hair(ply, fibers["camera / curve"], tables, spp, replicates)
         t_render = time.perf_counter() - t0
         bins = [[float(np.rad2deg(tables[0].theta_i[j])), float(np.rad2deg(tables[0].phi_o[k])),
                  float(np.rad2deg(tables[0].theta_o[m]))] for j, k, m in cases_of(tables[0])]
         row = {"ply": name, "n_fibers": int(len(getattr(ply, "bundle", ply).radii)), "sigma_a": sigma_a,
-               "paths": paths, "spp": spp, "bake_s": sum(t_bake.values()), "render_s": t_render, "bins": bins}
+               "paths": paths, "spp": spp, "replicates": replicates, "bake_s": sum(t_bake.values()), "render_s": t_render, "bins": bins}
         for b, res in zip(bakes, results):
             row[b] = {"seconds": t_bake[b], "ratio": res[:, 0].round(4).tolist(), "sigma": res[:, 1].round(4).tolist(),
                       "outside": int(outside(res).sum()), "worst": float(res[np.argmax(np.abs(res[:, 0] - 1)), 0]),
@@ -195,14 +203,16 @@ def markdown(rows, albedo_rows) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pipeline.bench.hair", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="the six-fiber ply only, 2M paths, 16 spp")
+    ap.add_argument("--quick", action="store_true", help="the six-fiber plies only, 2M paths, 4 passes of 4 spp")
     ap.add_argument("--paths", type=int, default=16_000_000, help="bake paths per ply and bake")
-    ap.add_argument("--spp", type=int, default=64, help="samples per pixel of the explicit renders")
+    ap.add_argument("--spp", type=int, default=16, help="samples per pixel of each pass of the explicit renders")
+    ap.add_argument("--replicates", type=int, default=8,
+                    help="independent passes of the explicit renders (their spread is the render's standard error)")
     a = ap.parse_args(argv)
     plies = [("six", 0.0), ("six+twist", 0.5)] if a.quick else \
         [("one", 0.0), ("six", 0.0), ("six+twist", 0.5), ("default", 0.0), ("default", 0.5), ("default+twist", 0.0)]
-    paths, spp = (2_000_000, 16) if a.quick else (a.paths, a.spp)
-    rows = measure(plies, paths, spp)
+    paths, spp, replicates = (2_000_000, 4, 4) if a.quick else (a.paths, a.spp, a.replicates)
+    rows = measure(plies, paths, spp, replicates)
     albedo_rows = albedos()
     table = markdown(rows, albedo_rows)
     print(table)
