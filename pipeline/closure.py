@@ -463,9 +463,10 @@ def bundle_profiles(mi, bsdf: dict, R, requests, cells: int, shape=None, spp: in
 def bin_views(table, phi_i, k_phi, k_theta, n=4, jitter=(0.5, 0.5)) -> list:
     """``n x n`` directions (``n = (n_phi, n_theta)``: a grid of those) stratified over output
     bin ``(k_phi, k_theta)`` of ``table`` (uniform in ``phi`` and ``sin(theta)``, i.e. in solid
-    angle), in a shuffled order; ``phi`` relative to ``phi_i`` for a relative table. ``jitter`` in [0, 1)^2: where in its stratum
-    each direction lies (the midpoints by default; one random pair for all strata, a
-    Cranley-Patterson rotation, makes the mean an unbiased estimate of the bin's)."""
+    angle), in a shuffled order; ``phi`` relative to ``phi_i`` for a relative table.
+    ``jitter`` in [0, 1)^2: where in its stratum each direction lies (the midpoints by
+    default; one random pair for all strata, a Cranley-Patterson rotation, makes the mean an
+    unbiased estimate of the bin's)."""
     n_phi, n_theta = (n, n) if np.isscalar(n) else n
     pe, te = table.phi_o_edges, table.theta_o_edges
     rel = table.meta["reductions"]["phi_o"] == "relative"

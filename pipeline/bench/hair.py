@@ -3,7 +3,7 @@
 
 Explicit plies of ``hair`` fibers (``bsplinecurve``, straight or helical) rendered by
 Mitsuba's ``path`` in the closure scene (``pipeline.closure``: orthographic, the whole
-width, 16 turns of the ply, 4 x 4 directions per table bin, in independent passes whose turns
+width, 16 turns of the ply, 2 x 8 directions per table bin, in independent passes whose turns
 and directions are moved by a random share of their strata: ``closure.replicated_bins``)
 against three bakes of the same ply with the mapped ray fiber
 (``models.fiber.ray.mitsuba_hair``):
@@ -174,7 +174,8 @@ def measure(plies, paths: int, spp: int, replicates: int) -> list:
         bins = [[float(np.rad2deg(tables[0].theta_i[j])), float(np.rad2deg(tables[0].phi_o[k])),
                  float(np.rad2deg(tables[0].theta_o[m]))] for j, k, m in cases_of(tables[0])]
         row = {"ply": name, "n_fibers": int(len(getattr(ply, "bundle", ply).radii)), "sigma_a": sigma_a,
-               "paths": paths, "spp": spp, "replicates": replicates, "bake_s": sum(t_bake.values()), "render_s": t_render, "bins": bins}
+               "paths": paths, "spp": spp, "replicates": replicates, "bake_s": sum(t_bake.values()),
+               "render_s": t_render, "bins": bins}
         for b, res in zip(bakes, results):
             row[b] = {"seconds": t_bake[b], "ratio": res[:, 0].round(4).tolist(), "sigma": res[:, 1].round(4).tolist(),
                       "outside": int(outside(res).sum()), "worst": float(res[np.argmax(np.abs(res[:, 0] - 1)), 0]),
