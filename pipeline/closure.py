@@ -479,6 +479,14 @@ def bin_views(table, phi_i, k_phi, k_theta, n=4, jitter=(0.5, 0.5)) -> list:
     return [views[k % n_phi, (k // n_phi + k % n_phi) % n_theta] for k in range(n_phi * n_theta)]
 
 
+
+def bin_requests(table, cases, phi_i: float = 0.0, n=4, jitter=(0.5, 0.5)) -> list:
+    """The ``(w_i, views)`` requests of :func:`explicit_intensities` for each bin ``(theta_i
+    index, phi bin, theta bin)`` of ``cases``: light from ``(phi_i, theta_i)``, seen over the
+    bin's :func:`bin_views` (``n``, ``jitter``: theirs)."""
+    return [(direction(phi_i, table.theta_i[j]), bin_views(table, phi_i, k_phi, k_theta, n, jitter))
+            for j, k_phi, k_theta in cases]
+
 # -- measurements over many directions (the render stage and bench_closure) ------------
 def evaluator(mi, kind: str, path, wavelength_nm: float | None):
     """``S_of(pi, ti, po, to)``: what a renderer is given, at ``wavelength_nm`` (``None``:
@@ -596,10 +604,8 @@ def explicit_bins(mi, bundle, fiber_bsdf: dict, table, cases, lam: int, phi_i: f
     if not cases:
         return rows
     section = getattr(bundle, "bundle", bundle)  # a twisted ply's cross-section
-    measured = explicit_intensities(mi, bundle, fiber_bsdf,
-                                    [(direction(phi_i, table.theta_i[j]), bin_views(table, phi_i, k_phi, k_theta))
-                                     for j, k_phi, k_theta in cases],
-                                    spp=spp, resolution=resolution, unit=unit, turns=section.is_circle, **options)
+    measured = explicit_intensities(mi, bundle, fiber_bsdf, bin_requests(table, cases, phi_i), spp=spp,
+                                    resolution=resolution, unit=unit, turns=section.is_circle, **options)
     for (j, k_phi, k_theta), (I, se) in zip(cases, measured):
         ti = table.theta_i[j]
         S, S_err = table.values[a, j, k_phi, k_theta, lam], table.stderr[a, j, k_phi, k_theta, lam]
@@ -628,8 +634,7 @@ def replicated_bins(mi, bundle, fiber_bsdf: dict, table, cases, replicates: int,
     passes = []
     for r in range(replicates):
         jitter, offset = rng.random(2), rng.random(2)
-        requests = [(direction(phi_i, table.theta_i[j]), bin_views(table, phi_i, k_phi, k_theta, strata, jitter))
-                    for j, k_phi, k_theta in cases]
+        requests = bin_requests(table, cases, phi_i, strata, jitter)
         measured = explicit_intensities(mi, bundle, fiber_bsdf, requests, offset=offset,
                                         seed=r * len(requests[0][1]), **options)
         passes.append([I for I, _ in measured])

@@ -120,9 +120,7 @@ def explicit_hair(ply, fiber, tables, spp: int = 16, replicates: int = 0, seed: 
     hair = mitsuba_hair(fiber.meta, fiber.wavelength, LAM)
     options = {"spp": spp, "resolution": 32, "curves": True, "integrator": "path"}
     measured = (closure.replicated_bins(mi, ply, hair, t, cases, replicates, seed=seed, **options) if replicates
-                else closure.explicit_intensities(mi, ply, hair, [(closure.direction(0.0, t.theta_i[j]),
-                                                                   closure.bin_views(t, 0.0, k, m))
-                                                                  for j, k, m in cases], **options))
+                else closure.explicit_intensities(mi, ply, hair, closure.bin_requests(t, cases), **options))
     R_b = getattr(ply, "bundle", ply).bounding_radius * 1e-3
     out = []
     for table in tables:

@@ -102,8 +102,7 @@ def main(argv=None):
             first = bake(ply, fiber, theta, 2, paths)
             cases = [(j, k_phi, int(np.floor((np.pi / 2 - first.theta_i[j]) / np.pi * 18)))
                      for j in (1, 2) for k_phi in (1, 9, 15)]
-            requests = [(closure.direction(0.0, first.theta_i[j]), closure.bin_views(first, 0.0, k_phi, k_theta))
-                        for j, k_phi, k_theta in cases]
+            requests = closure.bin_requests(first, cases)
             mi.set_variant("llvm_ad_mono")
             mitsuba_ext.register()
             explicit_bsdf = {"type": "fiber_table", "filename": str(fiber_path), "wavelength": 550.0,
