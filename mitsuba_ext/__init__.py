@@ -1,5 +1,6 @@
 """Mitsuba 3 plugins for fiber bundles: BSDFs ``fiber_bundle``, ``fiber_table`` and
-``fiber_ray``, integrator ``bundle_path``.
+``fiber_ray``, integrator ``bundle_path``; ``hair_resampled``, Mitsuba's ``hair`` sampled as
+its density says.
 
 Usage, after choosing a variant at your entry point::
 
@@ -19,6 +20,7 @@ again after switching variants. The modules:
 
 =================  =================================================================
 ``bsdf``           the BSDF plugin classes (need a variant at import)
+``hair``           Mitsuba's ``hair`` with its residual sampled from its own lobe
 ``integrator``     the ``bundle_path`` class (needs a variant at import)
 ``frame``          the bundle frame along a curve, angles, spectra to colours
 ``crossing``       displaced exits, the far side, checks of a scene's bundles
@@ -44,7 +46,7 @@ def plugin_modules() -> list:
     if mi.variant() is None:
         raise RuntimeError("mitsuba_ext.register(): choose a variant first, e.g. mi.set_variant('llvm_ad_rgb')")
     modules = []
-    for name in ("mitsuba_ext.bsdf", "mitsuba_ext.integrator"):
+    for name in ("mitsuba_ext.bsdf", "mitsuba_ext.hair", "mitsuba_ext.integrator"):
         module = importlib.import_module(name)
         if module.VARIANT != mi.variant():  # its classes derive from another variant's
             module = importlib.reload(module)
@@ -53,10 +55,10 @@ def plugin_modules() -> list:
 
 
 def register() -> None:
-    """Register ``fiber_bundle``, ``fiber_table``, ``fiber_ray`` and ``bundle_path`` for the
-    active Mitsuba variant."""
-    bsdf, integrator = plugin_modules()
-    for name, cls in bsdf.PLUGINS.items():
+    """Register ``fiber_bundle``, ``fiber_table``, ``fiber_ray``, ``hair_resampled`` and
+    ``bundle_path`` for the active Mitsuba variant."""
+    bsdf, hair, integrator = plugin_modules()
+    for name, cls in (bsdf.PLUGINS | hair.PLUGINS).items():
         mi.register_bsdf(name, lambda props, cls=cls: cls(props))
     for name, cls in integrator.PLUGINS.items():
         mi.register_integrator(name, lambda props, cls=cls: cls(props))

@@ -111,9 +111,10 @@ def scene(mi, shapes: dict, w_i, w_o, half_size, *, irradiance=1.0, resolution=6
                    "far_clip": 1e4 * half_size,
                    "film": {"type": "hdrfilm", "width": resolution, "height": resolution,
                             "rfilter": {"type": "box"}, "pixel_format": "luminance"},
-                   # Mitsuba's stratified sampler takes a square count and warns on any other
-                   # (192 warnings per render stage): rounded here as it would round
-                   "sampler": {"type": "stratified", "sample_count": max(1, round(spp ** 0.5)) ** 2, "seed": seed}},
+                   # independent, not stratified: Mitsuba's stratified sampler, driven by a
+                   # path tracer's loop, made a dense ply's light of ten and more fiber events
+                   # several times too bright (docs/DESIGN.md, "The ray fiber and Mitsuba's hair")
+                   "sampler": {"type": "independent", "sample_count": int(spp), "seed": seed}},
         "sun": {"type": "directional", "direction": (-w_i).tolist(),
                 "irradiance": {"type": "spectrum", "value": float(irradiance)}},
         **shapes,
@@ -191,11 +192,22 @@ def rendered_intensity(mi, scene, w_o, half_size) -> float:
     return intensity(render_image(mi, scene), w_o, half_size)
 
 
+def hair_bsdf(meta: dict, wavelength, wavelength_nm: float) -> dict:
+    """Mitsuba's ``hair`` with the parameters of a ray fiber (``models.fiber.ray.mitsuba_hair``),
+    as the closure renders it: ``hair_resampled`` (``mitsuba_ext.hair``: ``hair``'s own value
+    and density, its residual sampled from that density, which Mitsuba 3.9.1's ``hair`` does
+    not do)."""
+    return mitsuba_hair(meta, wavelength, wavelength_nm) | {"type": "hair_resampled"}
+
+
+HAIR_PLUGINS = ("hair", "hair_resampled")   # Mitsuba's hair, and it sampled as its density says
+
+
 def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float | None) -> dict:
     """The BSDF of one explicit fiber that leaves as a bake with ``exit_model`` does:
     ``fiber_ray`` (each path from its own exit) for the h-resolved ``lobe`` exit, Mitsuba's
     own ``hair`` for the ``curve`` exit of a ray fiber of camera transport (what ``hair`` on
-    curves renders; one wavelength), ``fiber_table`` (the displaced exit of ``bundle_path``,
+    curves renders, through :func:`hair_bsdf`; one wavelength), ``fiber_table`` (the displaced exit of ``bundle_path``,
     h uniform) otherwise. The ``entry`` exit has no explicit counterpart yet; it is compared
     with ``fiber_table``. ``wavelength_nm``: what a mono variant renders; ``None`` for a
     spectral variant."""
@@ -205,7 +217,7 @@ def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float | None) ->
             if wavelength_nm is None:
                 raise ValueError("explicit_fiber: Mitsuba's hair takes one index of refraction; render the "
                                  "explicit hair fibers in a mono variant at one wavelength")
-            return mitsuba_hair(table.meta, table.wavelength, float(wavelength_nm))
+            return hair_bsdf(table.meta, table.wavelength, float(wavelength_nm))
     plugin = "fiber_ray" if exit_model == "lobe" else "fiber_table"
     bsdf = {"type": plugin, "filename": str(fiber_table), "up": UP}
     return bsdf if wavelength_nm is None else {**bsdf, "wavelength": float(wavelength_nm)}
@@ -398,7 +410,7 @@ def explicit_intensities(mi, bundle, fiber_bsdf: dict, requests, spp: int = 16, 
 
     twisted = isinstance(bundle, TwistedBundle)
     section = bundle.bundle if twisted else bundle
-    if fiber_bsdf.get("type") == "hair":  # Mitsuba's hair counts on curves, invisible from inside
+    if fiber_bsdf.get("type") in HAIR_PLUGINS:  # Mitsuba's hair counts on curves, invisible from inside
         curves, integrator = True, "path"
     hs = 1.2 * section.bounding_radius * unit
     half_length = fiber_half_length(hs, [np.arcsin(np.clip(w_o[1], -1, 1)) for _, views in requests for w_o in views])

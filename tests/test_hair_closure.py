@@ -95,7 +95,7 @@ def test_fiber_ray_refuses_a_camera_transport_table_and_the_closure_renders_it_a
     with pytest.raises((ValueError, RuntimeError), match="camera transport"):   # Mitsuba wraps it
         mono.load_dict({"type": "fiber_ray", "filename": str(path), "wavelength": 550.0})
     hair = closure.explicit_fiber(path, "curve", 550.0)
-    assert hair["type"] == "hair" and hair["int_ior"] == pytest.approx(1.5639)
+    assert hair["type"] == "hair_resampled" and hair["int_ior"] == pytest.approx(1.5639)
     assert hair["scale_tilt"] == TILT and hair["sigma_a"]["value"] == 0.0
     with pytest.raises(ValueError, match="mono variant"):
         closure.explicit_fiber(path, "curve", None)
@@ -127,3 +127,37 @@ def test_the_adjoint_is_the_light_transport_model_with_its_sides_swapped():
                            theta_o=to_k[None, :, None], wavelength=550.0).mean(-1)
         got = table.eval(phi_i=0.0, theta_i=t, phi_o=table.phi[:, None], theta_o=to_k[None, :], wavelength=550.0)
         assert np.allclose(got, cell, rtol=2e-3, atol=1e-4 * cell.max()), np.abs(got - cell).max()
+
+
+HAIR_XML = ("<float name='int_ior' value='1.5639'/><float name='sigma_a' value='0'/>"
+            "<float name='longitudinal_roughness' value='0.2'/><float name='azimuthal_roughness' value='0.3'/>"
+            "<float name='scale_tilt' value='2'/>")
+
+
+@pytest.mark.parametrize("theta,gamma", [(15, 20), (70, -50), (0, 80)])
+def test_hair_resampled_draws_its_samples_from_hairs_density_and_hair_does_not(mono, theta, gamma, tmp_path,
+                                                                                 monkeypatch):
+    """Mitsuba's chi-square test of ``hair``'s sampling against its own density, in hair's
+    local frame (camera side at longitude ``theta``, ``gamma`` from the normal in the
+    cross-section): ``hair_resampled`` passes; Mitsuba 3.9.1's ``hair`` is rejected, and a
+    share of its samples leaves exactly in the normal plane (its residual: ``mitsuba_ext.hair``).
+    Should a newer Mitsuba's ``hair`` pass, ``hair_resampled`` is ``hair`` unchanged (no sample
+    has ``wo.y == 0``) and this test says so."""
+    from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
+
+    mi = mono
+    monkeypatch.chdir(tmp_path)  # a failing test writes chi2_data.py into the working directory
+    t, g = np.radians(theta), np.radians(gamma)
+    wi = [float(-np.sin(g) * np.cos(t)), float(np.sin(t)), float(np.cos(g) * np.cos(t))]
+    passes, in_plane = {}, {}
+    for kind in ("hair", "hair_resampled"):
+        sample, pdf = BSDFAdapter(kind, HAIR_XML, wi=wi)
+        test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample, pdf_func=pdf, sample_dim=3,
+                             res=101, ires=16, sample_count=1_000_000, seed=5)
+        passes[kind] = test.run()
+        wo, _ = sample(mi.Point3f(np.random.default_rng(1).random((3, 200_000))))
+        in_plane[kind] = float(np.mean(np.asarray(wo.y) == 0))
+    assert passes["hair_resampled"], "hair_resampled does not sample its density"
+    assert in_plane["hair_resampled"] == 0.0
+    assert not passes["hair"] and in_plane["hair"] > 1e-3, \
+        f"Mitsuba's hair samples its density here ({in_plane['hair']:.2e} in the normal plane): hair_resampled is not needed"

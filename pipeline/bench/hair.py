@@ -1,12 +1,13 @@
 """The bake against Mitsuba's own ``hair`` fibers on curves, in a ply (docs/DESIGN.md,
 "The ray fiber and Mitsuba's hair").
 
-Explicit plies of ``hair`` fibers (``bsplinecurve``, straight or helical) rendered by
+Explicit plies of ``hair`` fibers (``bsplinecurve``, straight or helical; ``hair_resampled``,
+Mitsuba's ``hair`` sampled as its density says: ``mitsuba_ext.hair``) rendered by
 Mitsuba's ``path`` in the closure scene (``pipeline.closure``: orthographic, the whole
 width, 16 turns of the ply, 2 x 8 directions per table bin, in independent passes whose turns
 and directions are moved by a random share of their strata: ``closure.replicated_bins``)
 against three bakes of the same ply with the mapped ray fiber
-(``models.fiber.ray.mitsuba_hair``):
+(``models.fiber.ray.mitsuba_hair``, ``closure.hair_bsdf``):
 
 ``light / lobe``       the default: the model in light transport (conserves energy), each
                        path leaving where it really leaves (agrees with exact geometry);
@@ -35,11 +36,12 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
+import mitsuba_ext
 from models.bake import BakeSpec, bake_unreduced, tally_to_table
 from models.bake.twisted import TwistedBaker
 from models.bake.twisted_camera import TwistedCameraBaker
 from models.bundle import Bundle, TwistedBundle, poisson
-from models.fiber.ray import RayFiber, mitsuba_hair
+from models.fiber.ray import RayFiber
 from pipeline import closure
 
 from . import results
@@ -114,10 +116,11 @@ def explicit_hair(ply, fiber, tables, spp: int = 16, replicates: int = 0, seed: 
     degree of freedom, and the midpoints' own bias where a bin's light falls steeply)."""
 
     mi.set_variant("llvm_ad_mono")
+    mitsuba_ext.register()   # hair_resampled
     lam = list(WL).index(LAM)
     t = tables[0]
     cases = cases_of(t)
-    hair = mitsuba_hair(fiber.meta, fiber.wavelength, LAM)
+    hair = closure.hair_bsdf(fiber.meta, fiber.wavelength, LAM)
     options = {"spp": spp, "resolution": 32, "curves": True, "integrator": "path"}
     measured = (closure.replicated_bins(mi, ply, hair, t, cases, replicates, seed=seed, **options) if replicates
                 else closure.explicit_intensities(mi, ply, hair, closure.bin_requests(t, cases), **options))
