@@ -1,5 +1,6 @@
 """The bake against Mitsuba's own ``hair`` BSDF on curves: one fiber and plies of them,
-rendered by Mitsuba's ``path`` (docs/DESIGN.md, "The ray fiber and Mitsuba's hair";
+rendered by Mitsuba's ``path`` as ``hair_resampled`` (``hair`` sampled as its own density
+says: the last test here shows why; docs/DESIGN.md, "The ray fiber and Mitsuba's hair";
 the full-size comparison: ``python -m pipeline.bench.hair``).
 
 Mitsuba's path tracer evaluates ``hair`` with the camera side as incident, and the model is
