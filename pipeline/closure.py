@@ -207,8 +207,8 @@ def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float | None) ->
     """The BSDF of one explicit fiber that leaves as a bake with ``exit_model`` does:
     ``fiber_ray`` (each path from its own exit) for the h-resolved ``lobe`` exit, Mitsuba's
     own ``hair`` for the ``curve`` exit of a ray fiber of camera transport (what ``hair`` on
-    curves renders, through :func:`hair_bsdf`; one wavelength), ``fiber_table`` (the displaced exit of ``bundle_path``,
-    h uniform) otherwise. The ``entry`` exit has no explicit counterpart yet; it is compared
+    curves renders, through :func:`hair_bsdf`; one wavelength), ``fiber_table`` (the displaced
+    exit of ``bundle_path``, h uniform) otherwise. The ``entry`` exit has no explicit counterpart yet; it is compared
     with ``fiber_table``. ``wavelength_nm``: what a mono variant renders; ``None`` for a
     spectral variant."""
     if exit_model == "curve":
@@ -491,13 +491,13 @@ def bin_views(table, phi_i, k_phi, k_theta, n=4, jitter=(0.5, 0.5)) -> list:
     return [views[k % n_phi, (k // n_phi + k % n_phi) % n_theta] for k in range(n_phi * n_theta)]
 
 
-
 def bin_requests(table, cases, phi_i: float = 0.0, n=4, jitter=(0.5, 0.5)) -> list:
     """The ``(w_i, views)`` requests of :func:`explicit_intensities` for each bin ``(theta_i
     index, phi bin, theta bin)`` of ``cases``: light from ``(phi_i, theta_i)``, seen over the
     bin's :func:`bin_views` (``n``, ``jitter``: theirs)."""
     return [(direction(phi_i, table.theta_i[j]), bin_views(table, phi_i, k_phi, k_theta, n, jitter))
             for j, k_phi, k_theta in cases]
+
 
 # -- measurements over many directions (the render stage and bench_closure) ------------
 def evaluator(mi, kind: str, path, wavelength_nm: float | None):

@@ -161,4 +161,5 @@ def test_hair_resampled_draws_its_samples_from_hairs_density_and_hair_does_not(m
     assert passes["hair_resampled"], "hair_resampled does not sample its density"
     assert in_plane["hair_resampled"] == 0.0
     assert not passes["hair"] and in_plane["hair"] > 1e-3, \
-        f"Mitsuba's hair samples its density here ({in_plane['hair']:.2e} in the normal plane): hair_resampled is not needed"
+        (f"Mitsuba's hair samples its density here ({in_plane['hair']:.2e} in the normal plane): "
+         "hair_resampled is not needed")
