@@ -25,6 +25,7 @@ import json
 import os
 
 import numpy as np
+from distributed.diagnostics.plugin import WorkerPlugin
 
 from . import graph
 from .config import FIBER_SECTIONS, Config
@@ -46,12 +47,40 @@ def trace_batches(cfg_json: str, fiber, items, code: str, threads: int = 0) -> l
     return [trace_batch(cfg_json, fiber, a, k, size, code, threads) for a, k, size in items]
 
 
+def warm_up(variants) -> None:
+    """Import everything a batch runs and set up each Mitsuba variant in ``variants``.
+
+    These imports run Dr.Jit's ``@dr.syntax`` (Mitsuba's own integrators too), i.e.
+    ``ast.parse``, which CPython 3.11 cannot run in two threads at once (gh-106905: "AST
+    constructor recursion depth mismatch"), and a worker's event loop parses too (e.g.
+    ``inspect.signature`` of a builtin while it unpickles a task). :class:`WarmUp` runs
+    this on every worker before it takes a task, so a batch parses no source.
+    """
+    import mitsuba as mi
+
+    from . import build  # noqa: F401  (the bakers' @dr.syntax loops)
+
+    for variant in variants:
+        mi.set_variant(variant)
+
+
+class WarmUp(WorkerPlugin):
+    """A Dask worker plugin: :func:`warm_up` when a worker joins, restarted ones included
+    (a worker sets its plugins up before it reads its first task)."""
+
+    name = "bcsdf-warm-up"
+
+    def __init__(self, variants):
+        self.variants = tuple(sorted(set(variants)))
+
+    def setup(self, worker):
+        warm_up(self.variants)
+
+
 def trace_batch(cfg_json: str, fiber, a: int, k: int, size: int, code: str, threads: int = 0):
     """One batch on a worker: ``Baker.trace`` with the serial bake's seed, on ``threads``
     Dr.Jit threads (the client's). Returns the tally, packed."""
-    # imported here, on the worker's executor thread, not when the task is unpickled on its
-    # event loop: these imports run Dr.Jit's @dr.syntax, i.e. ast.parse, which CPython 3.11
-    # cannot run in two threads at once (gh-106905: "AST constructor recursion depth mismatch")
+    # imported here, not when the task is unpickled: see warm_up (which made these imports cheap)
     import mitsuba as mi
 
     from .build import batch_seed, build_ply, make_spec, tracer
@@ -122,10 +151,7 @@ def client(workers: int | None = None, scheduler: str | None = None):
     if not workers and not scheduler:
         yield None
         return
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
-        raise ValueError("--workers and --scheduler need Dask's `distributed` (run `make setup`)") from None
+    from distributed import Client, LocalCluster
     if scheduler:
         try:
             c = Client(scheduler, timeout=CONNECT_TIMEOUT)
@@ -159,6 +185,7 @@ def ordered_tallies(c, bakes):
     from distributed import as_completed
 
     threads, code = dr.thread_count(), code_digest(bakes[0].cfg)  # one code for every bake
+    c.register_plugin(WarmUp(b.cfg.bake.variant for b in bakes), name=WarmUp.name)
     n_workers = max(1, len(c.scheduler_info().get("workers", {})))
     left = sum(len(b.work) - b.done for b in bakes)
     futures, fibers = {}, {}

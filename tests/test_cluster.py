@@ -126,3 +126,31 @@ def test_a_worker_with_other_code_refuses_its_tasks():
 
     with pytest.raises(RuntimeError, match="same checkout"):
         cluster.trace_batch(Config.model_validate(TINY).model_dump_json(), None, 0, 0, 1, code="another-checkout")
+
+
+WARMED_BATCH = """
+import ast, json, sys
+from pipeline import cluster
+from pipeline.artifacts import load_fiber_table
+from pipeline.loading import load_config
+
+cfg = load_config(sys.argv[1])
+fiber = load_fiber_table(cfg, sys.argv[2])
+cluster.warm_up([cfg.bake.variant])
+parsed, parse = [], ast.parse
+ast.parse = lambda *a, **k: parsed.append(1) or parse(*a, **k)
+cluster.trace_batch(cfg.model_dump_json(), fiber, 0, 0, 64, cluster.code_digest(cfg))
+print(json.dumps(len(parsed)))
+"""
+
+
+def test_a_warmed_up_worker_traces_a_batch_without_parsing_python_source(serial):
+    """CPython 3.11 cannot build ASTs in two threads at once (gh-106905), and a Dask worker's
+    event loop parses too: once :func:`pipeline.cluster.warm_up` has run (the worker plugin
+    does, before a worker's first task), a batch must parse nothing (a fresh interpreter, so
+    that no import is already cached)."""
+    cfg, path, tmp = serial
+    out = subprocess.run([sys.executable, "-c", WARMED_BATCH, str(path), str(tmp / "serial")], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split()[-1] == "0", "a warmed-up worker's batch still parsed Python source"
