@@ -42,8 +42,9 @@ def load_weights(path):
         with np.load(path, allow_pickle=False) as z:
             text = z["spec"]  # UTF-8 bytes; an older export's numpy str
             meta = json.loads(text.item().decode("utf-8") if text.dtype.kind == "S" else str(text))
-            if "azimuth_gain" in z:   # an array beside the metadata (models.neural.save_weights)
-                meta["azimuth_gain"] = z["azimuth_gain"].astype(np.float64).tolist()
+            for name in ("azimuth_gain", "azimuth_gain_basis"):   # arrays beside the metadata (save_weights)
+                if name in z:
+                    meta[name] = z[name].astype(np.float64).tolist()
             spec = NeuralSpec.from_dict(meta)
             layers = []
             while f"W{len(layers)}" in z:
@@ -268,4 +269,4 @@ class DrJitMLP:
     @property
     def nbytes(self) -> int:
         return sum(W.nbytes + b.nbytes for W, b in self.layers) + sum(L.nbytes for L in self.lines) + \
-            4 * int(np.size(self.spec.azimuth_gain))
+            4 * self.spec.azimuth_gain_values

@@ -381,7 +381,8 @@ def fit(spec: NeuralSpec, problem: Problem, c, name, on_epoch=None):
     history, best = fit_bins(model, p, c, name, on_epoch, t0)
     t1 = time.perf_counter()
     bins = getattr(c, "gain_azimuth_bins", 0)
-    calibration = energy_gain(model, spec, p, azimuth_bins=bins) if c.energy_gain else {}
+    calibration = energy_gain(model, spec, p, azimuth_bins=bins, rank=getattr(c, "gain_rank", 0)) \
+        if c.energy_gain else {}
     if calibration:
         calibration["calibration_seconds"] = time.perf_counter() - t1
     elif problem.scale is not None:   # no gain computed: the outputs' scales alone, at one node
@@ -489,17 +490,42 @@ def azimuth_bin(cell: np.ndarray, bins: int) -> np.ndarray:
     return np.clip(np.floor(np.abs(np.angle(np.exp(1j * d))) * (bins / np.pi)), 0, bins - 1).astype(int)
 
 
-def azimuth_ratio(p: BinFit, S_model: np.ndarray, at: np.ndarray, n_nodes: int, bins: int) -> np.ndarray:
-    """``[bins, node, lambda]``: the table's energy over the model's in each class of (azimuth
-    bin, gain node), summed over the *training* samples (a held-out bin's value is never a
-    target), held within :data:`GAIN_LIMIT` either way; 1 where a class holds no energy."""
+def azimuth_energies(p: BinFit, S_model: np.ndarray, at: np.ndarray, n_nodes: int, bins: int) -> tuple:
+    """``(table, model)``, each ``[bins, node, lambda]``: the table's energy and the model's in
+    each class of (azimuth bin, gain node), summed over the *training* samples (a held-out
+    bin's value is never a target)."""
     tr = p.tr.numpy()
     cls = azimuth_bin(p.data.cell[tr], bins) * n_nodes + at[p.data.group[tr]]
     w = p.data.omega[tr, None]
     num, den = np.zeros((bins * n_nodes, S_model.shape[1])), np.zeros((bins * n_nodes, S_model.shape[1]))
     np.add.at(num, cls, p.data.S[tr] * w)
     np.add.at(den, cls, S_model[tr] * w)
-    return held_ratio(num, den).reshape(bins, n_nodes, -1)
+    return num.reshape(bins, n_nodes, -1), den.reshape(bins, n_nodes, -1)
+
+
+def azimuth_ratio(p: BinFit, S_model: np.ndarray, at: np.ndarray, n_nodes: int, bins: int) -> np.ndarray:
+    """``[bins, node, lambda]``: the table's energy over the model's in each class of
+    :func:`azimuth_energies`, held within :data:`GAIN_LIMIT` either way; 1 where a class holds
+    no energy."""
+    return held_ratio(*azimuth_energies(p, S_model, at, n_nodes, bins))
+
+
+def low_rank_log(ratio: np.ndarray, weight: np.ndarray, rank: int) -> tuple:
+    """``(coefficients [..., rank], basis [rank, lambda])``, float32 values: the product
+    closest to ``log(ratio)`` (``[..., lambda]``) in the least squares weighted by each
+    class's ``weight`` (``[...]``, its energy: a class that holds little light fixes little).
+
+    The classes' spectra ripple with the fiber's resonances, and the ripples of neighbouring
+    azimuths and incidences share their shapes: a few spectral shapes, each class a mix of
+    them, hold most of the ripple in a fraction of the numbers. Weighted by rows, the problem
+    is the truncated SVD of the rows scaled by ``sqrt(weight)`` (Eckart-Young); each row's
+    coefficients are then its projection on the basis, so a class of no weight still gets
+    the closest mix of the shapes."""
+    L = np.log(ratio).reshape(-1, ratio.shape[-1])
+    w = np.sqrt(np.maximum(weight.reshape(-1), 0.0))
+    basis = np.linalg.svd(w[:, None] * L, full_matrices=False)[2][:rank].astype(np.float32)
+    coefficients = (L @ basis.T.astype(np.float64)).astype(np.float32)
+    return coefficients.reshape(*ratio.shape[:-1], rank), basis
 
 
 def along_packing(packings, values, at) -> np.ndarray:
@@ -550,7 +576,8 @@ def packing_gains(model, p: BinFit, spec: NeuralSpec, albedo: np.ndarray, at: np
     return nodes, np.array(gains)
 
 
-def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, azimuth_bins: int = 0) -> dict:
+def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, azimuth_bins: int = 0,
+                rank: int = 0) -> dict:
     """Phase 2: the energy gain, in closed form.
 
     Log-space errors alone bias the albedo (worst at grazing incidence). The gain
@@ -575,6 +602,8 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, a
     the next, which a small network smooths), then the gain above holds each row's albedo.
     The bins should be the table's own (or unions of them): a bin of the table split between
     two of the gain's would be read with each half's factor, though its ratio is of the whole.
+    With ``rank``, the classes' ratios are stored as a product of that rank in log space
+    (:func:`low_rank_log`), and the row gain holds each row's albedo with that product.
 
     Sets ``spec.gain`` and ``spec.gain_theta_i``; returns the worst albedo error over the
     scattering rows before and after (after: integrated at ``strata + 1`` x ``strata + 1``
@@ -592,8 +621,14 @@ def energy_gain(model, spec: NeuralSpec, p: BinFit, strata: int = GAIN_STRATA, a
     S_model = _midpoint_means(model, p, strata)
     azimuthal = 1.0   # each sample's factor of its class ([samples, lambda] where resolved)
     if azimuth_bins:   # each class's energy first, the row's below
-        ratio = azimuth_ratio(p, S_model, at, len(nodes), azimuth_bins)
-        spec.azimuth_gain = ratio.tolist()
+        num, den = azimuth_energies(p, S_model, at, len(nodes), azimuth_bins)
+        ratio = held_ratio(num, den)
+        if rank:
+            coefficients, basis = low_rank_log(ratio, num.sum(-1), rank)
+            spec.azimuth_gain, spec.azimuth_gain_basis = coefficients.tolist(), basis.tolist()
+            ratio = spec.azimuth_gains()   # what every backend reads
+        else:
+            spec.azimuth_gain = ratio.tolist()
         azimuthal = ratio[azimuth_bin(p.data.cell, azimuth_bins), at[p.data.group]]
         S_model = S_model * azimuthal
     model_albedo = p.model_albedo(S_model)

@@ -125,8 +125,11 @@ class NeuralSpec:
     gain: list = field(default_factory=list)
     gain_theta_i: list = field(default_factory=list)
     # its azimuthal part (:func:`azimuth_gain`): [azimuth bin][gain_theta_i node][output], the bins
-    # equal over |phi_o - phi_i| in [0, pi]; empty: none
+    # equal over |phi_o - phi_i| in [0, pi]; empty: none. Stored as a product of rank r in log
+    # space (train.gain_rank) it holds the coefficients [azimuth bin][node][r] and the basis
+    # [r][output], and the gain is exp(coefficients @ basis) (:meth:`azimuth_gains`)
     azimuth_gain: list = field(default_factory=list)
+    azimuth_gain_basis: list = field(default_factory=list)
     # extra scalar inputs after the four angles (INPUTS, above); with ``offset``: the near
     # field's cells (the ``h`` midpoints of the far field's mean) and the passthrough of a
     # ray by its entry cell, [passthrough_theta_i node][cell] at one phi_i (a circle)
@@ -185,8 +188,15 @@ class NeuralSpec:
                     not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0) or np.any(np.abs(t) > np.pi / 2):
                 raise ValueError("model metadata: gain must hold a positive finite value per ([packing node,] "
                                  "gain_theta_i node, output), the nodes increasing longitudes within +-pi/2")
+        if self.azimuth_gain_basis:
+            a, v = np.asarray(self.azimuth_gain, float), np.asarray(self.azimuth_gain_basis, float)
+            if v.ndim != 2 or v.shape[1] != self.n_outputs or a.ndim != 3 or a.shape[2] != v.shape[0] or \
+                    not (np.all(np.isfinite(a)) and np.all(np.isfinite(v))):
+                raise ValueError("model metadata: azimuth_gain_basis must hold finite values [rank][output], and "
+                                 "azimuth_gain finite coefficients [azimuth bin][gain_theta_i node][rank]")
         if self.azimuth_gain:
-            a = np.asarray(self.azimuth_gain, float)
+            with np.errstate(over="ignore"):
+                a = self.azimuth_gains()
             if a.ndim != 3 or a.shape[1:] != (len(self.gain_theta_i), self.n_outputs) or not self.gain or \
                     not (np.all(np.isfinite(a)) and np.all(a > 0)) or not self.relative_phi or self.inputs or \
                     self.orders:
@@ -258,6 +268,19 @@ class NeuralSpec:
     def n_outputs(self) -> int:
         """The network's outputs: a spectrum, or one per order of scattering (``orders``)."""
         return len(self.wavelength) * max(1, self.orders)
+
+    def azimuth_gains(self) -> np.ndarray:
+        """The azimuthal gain ``[azimuth bin, gain_theta_i node, output]`` (float64), expanded
+        from its product where it is stored as one; empty without one."""
+        a = np.asarray(self.azimuth_gain, np.float64)
+        if not self.azimuth_gain_basis:
+            return a
+        return np.exp(a @ np.asarray(self.azimuth_gain_basis, np.float64))
+
+    @property
+    def azimuth_gain_values(self) -> int:
+        """How many numbers the azimuthal gain stores (its product's factors, where it is one)."""
+        return int(np.size(self.azimuth_gain) + np.size(self.azimuth_gain_basis))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -662,7 +685,7 @@ def azimuth_gain(lib, spec: NeuralSpec, theta_i, phi_i, phi_o):
     outputs for Dr.Jit and bounded arithmetic."""
     if not spec.azimuth_gain:
         return None
-    G = np.asarray(spec.azimuth_gain, np.float64)   # [A, T, L]
+    G = spec.azimuth_gains()   # [A, T, L]
     A, T, L = G.shape
     nodes = np.asarray(spec.gain_theta_i, np.float64)
     inv = 1.0 / np.diff(nodes) if T > 1 else np.ones(1)
@@ -820,7 +843,8 @@ def make_torch_model(spec: NeuralSpec):
 
 def save_weights(path, spec: NeuralSpec, mlp) -> int:
     """Write the PyTorch model ``mlp`` of ``spec`` as ``weights.npz`` (``W0, b0, ...``, the
-    feature lines ``L0, L1, L2``, the azimuthal gain ``azimuth_gain``, the metadata),
+    feature lines ``L0, L1, L2``, the azimuthal gain ``azimuth_gain`` [and its product's basis
+    ``azimuth_gain_basis``], the metadata),
     atomically; returns the bytes of its float32 arrays."""
     import torch
 
@@ -830,8 +854,9 @@ def save_weights(path, spec: NeuralSpec, mlp) -> int:
         arrays[f"W{k}"] = lin.weight.detach().numpy().astype(np.float32)
         arrays[f"b{k}"] = lin.bias.detach().numpy().astype(np.float32)
     meta = spec.to_dict()
-    if spec.azimuth_gain:   # thousands of numbers: an array, not text in the metadata
-        arrays["azimuth_gain"] = np.asarray(meta.pop("azimuth_gain"), np.float32)
+    for name in ("azimuth_gain", "azimuth_gain_basis"):   # thousands of numbers: arrays, not text in the metadata
+        if meta[name]:
+            arrays[name] = np.asarray(meta.pop(name), np.float32)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             # the metadata as UTF-8 bytes (a numpy str array is UTF-32: 4 bytes a character),

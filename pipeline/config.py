@@ -438,6 +438,10 @@ class TrainCfg(Strict):
         0, ge=0, le=720, description="resolve the energy gain by azimuth too: this many equal bins of |phi_o - phi_i| "
                                      "over [0, pi] (dividing the table's; 0: none; models.neural.azimuth_gain), so "
                                      "the model keeps the spectra's ripple from one azimuth bin to the next")
+    gain_rank: int = Field(
+        0, ge=0, le=64, description="store the azimuthal gain (train.gain_azimuth_bins) as a product of this rank in "
+                                    "log space: a few spectral shapes and each class's mix of them "
+                                    "(models.fit.low_rank_log); 0: every value")
     seed: int = Field(0, ge=0, le=2**32 - 1)
     threads: int = Field(2, ge=1, le=256)
     line_nodes: list[Annotated[int, Field(ge=2, le=4096)]] = Field(
@@ -780,6 +784,10 @@ class Config(Strict):
             raise ValueError("train.gain_azimuth_bins resolves the energy gain of a circular ply's model by azimuth: "
                              "with train.energy_gain, the cone encoding, and without train.inputs or train.orders; "
                              "set it to 0")
+        if t.gain_rank and not (t.gain_azimuth_bins and t.gain_rank < self.wavelengths.count):
+            raise ValueError(f"train.gain_rank {t.gain_rank} factors the azimuthal gain: it needs "
+                             f"train.gain_azimuth_bins and a rank below the {self.wavelengths.count} wavelengths "
+                             "(e.g. 4); or set it to 0")
         if b.offsets and self.bundle is not None and self.bundle.shape != "circle":
             raise ValueError("bake.offsets: the near field is baked for circular plies (an ellipse's offset goes "
                              "with its orientation: not tallied yet)")

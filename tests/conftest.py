@@ -95,13 +95,14 @@ def trained_lines(tmp_path_factory):
 def trained_azimuth(tmp_path_factory):
     """The same two sizes on the synthetic table with a spectral ripple by azimuth bin
     (``tests.synthetic.with_ripple``), the energy gain resolved in its 18 bins of
-    ``|phi_o - phi_i|`` (``train.gain_azimuth_bins``), trained and exported."""
+    ``|phi_o - phi_i|`` (``train.gain_azimuth_bins``) and stored as a product of rank 2
+    (``train.gain_rank``: the backends read it expanded), trained and exported."""
     from pipeline.stages import export as export_stage
     from pipeline.stages import train as train_stage
     from tests.synthetic import make_config, synthetic_table, with_ripple
 
     tmp = tmp_path_factory.mktemp("azimuth")
-    cfg = make_config(tmp, gain_azimuth_bins=18)
+    cfg = make_config(tmp, gain_azimuth_bins=18, gain_rank=2)
     path = tmp / "n" / "bake" / "bundle_table.npz"
     with_ripple(synthetic_table(cfg, path, passthrough=0.3), 18).save(path)
     train_stage.run(cfg, tmp)

@@ -6,7 +6,8 @@ seed, in one run: the plain MLP of the config's first model size, the same netwo
 feature lines (models/lines.py) of the node counts and channels in :data:`LINES` (and one
 with a narrower network behind the lines), the energy gain resolved by azimuth
 (``train.gain_azimuth_bins``: the table's 36 bins and 18, plain and with lines; its bytes
-counted with the weights), and the baselines: a neural yarn model's MLP (the Cartesian
+counted with the weights; and the 36 bins' stored as products of rank 2, 4 and 8 in log
+space, ``train.gain_rank``), and the baselines: a neural yarn model's MLP (the Cartesian
 ``w_i, w_o``, three hidden layers of 21) and NBRDF's (Rusinkiewicz's half and difference
 vectors, two of 21), both without the symmetry folds, as their papers have them. Each is trained by :func:`models.fit.fit`, the code ``bcsdf train`` runs (so all
 share the loss, the bin averages and the energy gain: what differs is the encoding and the
@@ -59,7 +60,7 @@ from pipeline.plots import pareto
 from . import results
 
 # (label, line nodes [theta_i, cone distance, azimuth], channels, hidden widths or None: the config's,
-# encoding of the directions[, bins of the azimuthal gain])
+# encoding of the directions[, bins of the azimuthal gain[, its rank]])
 LINES = [("plain", [], 0, None, "cone"),
          ("lines 12/32/24 x 8", [12, 32, 24], 8, None, "cone"),
          ("lines 12/64/72 x 16", [12, 64, 72], 16, None, "cone"),
@@ -67,6 +68,8 @@ LINES = [("plain", [], 0, None, "cone"),
          # the energy gain resolved by azimuth (train.gain_azimuth_bins): the table's 36 bins and 18
          ("plain, gain in 36 azimuth bins", [], 0, None, "cone", 36),
          ("plain, gain in 18 azimuth bins", [], 0, None, "cone", 18),
+         # and stored as a product of rank 2, 4, 8 in log space (train.gain_rank)
+         *((f"plain, gain in 36 azimuth bins, rank {r}", [], 0, None, "cone", 36, r) for r in (2, 4, 8)),
          ("lines 12/32/24 x 8, gain in 36 azimuth bins", [12, 32, 24], 8, None, "cone", 36),
          # the baselines: a neural yarn model's MLP (Cartesian w_i, w_o; 6-21-21-21) and NBRDF's
          # (Rusinkiewicz half and difference vectors; 6-21-21), trained as ours are
@@ -115,10 +118,10 @@ def shared_spectra(table, reference, n_azimuth: int) -> dict:
                                             reference.solid_angle.ravel())}
 
 
-def measure(cfg, table, table_path, label, nodes, channels, hidden, encoding="cone", azimuth_bins=0, quick=False,
-            reference=None) -> dict:
+def measure(cfg, table, table_path, label, nodes, channels, hidden, encoding="cone", azimuth_bins=0, rank=0,
+            quick=False, reference=None) -> dict:
     update = {"line_nodes": nodes, "line_channels": max(channels, 1), "encoding": encoding,
-              "gain_azimuth_bins": azimuth_bins}
+              "gain_azimuth_bins": azimuth_bins, "gain_rank": rank}
     if quick:
         update.update(epochs=max(2, cfg.train.epochs // 10))
     c = cfg.train.model_copy(update=update)
@@ -130,7 +133,7 @@ def measure(cfg, table, table_path, label, nodes, channels, hidden, encoding="co
     parameters = int(sum(p.numel() for p in model.parameters()))
     truth = ({} if reference is None else
              against(reference, model_bin_averages(spec, model, table_cells(table), k=12).reshape(table.values.shape)))
-    nbytes = 4 * (parameters + int(np.size(spec.azimuth_gain)))   # float32 weights and the azimuthal gain
+    nbytes = 4 * (parameters + spec.azimuth_gain_values)   # float32 weights and the azimuthal gain
     return {**{"encoding": label, "hidden": str(list(hidden)), "parameters": parameters, "bytes": nbytes,
             "epochs": len(history), "train_s": seconds, "relative_l1": m["relative_l1"],
             "error_over_noise": m["noise_ratio"], "table_noise_l1": m["table_noise_l1"],

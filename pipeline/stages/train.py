@@ -53,7 +53,7 @@ def run(cfg, out_root="artifacts") -> Path:
             val_weighted_loss=best, **held_out_metrics(spec, model, data, problem.val_idx),
             folds=base.folds, fold_chi2_per_dof=data.chi2_per_dof, samples=len(data.x),
             epochs=len(history), train_seconds=seconds, parameters=int(sum(p.numel() for p in model.parameters())),
-            gain_values=int(np.size(spec.azimuth_gain)), **calibration)
+            gain_values=spec.azimuth_gain_values, **calibration)
         d = out / name
         with atomic_path(d / "model.pt") as tmp:
             torch.save({"spec": spec.to_dict(), "state": model.state_dict(), "metrics": summary.model_dump()}, tmp)
