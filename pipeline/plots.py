@@ -125,10 +125,11 @@ def pareto(models: list[dict], path: Path, ylabel: str, title: str, line: tuple[
     """Each model's ``error`` against its float32 parameter ``bytes`` and its training
     seconds ``train_s``, one marker per ``label``; ``line``: ``(value, text)`` drawn across
     both panels (the table's noise, or the training table's own error against the truth)."""
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), dpi=110, sharey=True)
-    for k, m in enumerate(models):
+    legend_in = 0.2 + 0.22 * ((len(models) + 1) // 2)   # the legend below the panels: two columns
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6 + legend_in), dpi=110, sharey=True)
+    for k, m in enumerate(models):   # a colour and a marker each: no two models look alike
         for ax, x in zip(axes, ("bytes", "train_s")):
-            ax.scatter(m[x], m["error"], s=60, color=plt.get_cmap("tab10")(k % 10),
+            ax.scatter(m[x], m["error"], s=60, color=plt.get_cmap("tab10")(k % 10), marker="os^Dv"[k // 10 % 5],
                        label=m["label"] if ax is axes[0] else None)
     for ax, xlabel in zip(axes, ("float32 bytes of the model (weights and gain tables)", "training seconds")):
         ax.set_xscale("log")
@@ -140,6 +141,7 @@ def pareto(models: list[dict], path: Path, ylabel: str, title: str, line: tuple[
     top = max([m["error"] for m in models] + ([line[0]] if line is not None else []) + [1e-12])
     axes[0].set_ylim(0, 1.15 * top)
     axes[0].set_ylabel(ylabel)
-    axes[0].legend(fontsize=7, loc="upper right")
+    fig.legend(fontsize=8, loc="lower center", ncol=2, frameon=False)   # below the panels: it hides no model
     fig.suptitle(title)
+    fig.tight_layout(rect=(0, legend_in / (4.6 + legend_in), 1, 1))
     save_figure(fig, path)
