@@ -74,7 +74,9 @@ def test_the_classes_ratios_read_no_held_out_bin(ripple):
 
 def test_bins_that_split_the_tables_are_refused(ripple, tmp_path):
     """Bins that do not divide the table's 18 are refused naming the table's count; so is
-    the gain by azimuth with orders or extra inputs (config), and metadata of the wrong shape."""
+    the gain by azimuth with orders or extra inputs (config), a rank without bins or not below
+    the wavelengths' count (config), and metadata of the wrong shape, non-finite, or whose
+    product overflows."""
     cfg, table, path = ripple
     with pytest.raises(ValueError, match="must divide the table's 18 bins"):
         prepare(table, path, cfg.train.model_copy(update={"gain_azimuth_bins": 7}), "")
@@ -86,6 +88,17 @@ def test_bins_that_split_the_tables_are_refused(ripple, tmp_path):
     for bad in (np.ones((BINS, 6, 3)), -np.ones((BINS, 7, 3)), np.ones((BINS, 7))):
         with pytest.raises(ValueError, match="azimuth_gain"):
             NeuralSpec.from_dict(dict(good, azimuth_gain=bad.tolist()))
+    # a product: coefficients [bin][node][rank] and a basis [rank][output], finite, of matching rank
+    NeuralSpec.from_dict(dict(good, azimuth_gain=np.zeros((BINS, 7, 2)).tolist(),
+                              azimuth_gain_basis=np.ones((2, 3)).tolist()))
+    for coefficients, basis in ((np.zeros((BINS, 7, 2)), np.ones((3, 3))), (np.zeros((BINS, 7, 2)), np.ones((2, 4))),
+                                (np.full((BINS, 7, 2), np.nan), np.ones((2, 3))),
+                                (np.full((BINS, 7, 2), 400.0), np.ones((2, 3)))):   # exp overflows
+        with pytest.raises(ValueError, match="azimuth_gain"):
+            NeuralSpec.from_dict(dict(good, azimuth_gain=coefficients.tolist(), azimuth_gain_basis=basis.tolist()))
+    for rank in (2, 3):   # without bins; not below the 3 wavelengths
+        with pytest.raises(ValueError, match="gain_rank"):
+            make_config(tmp_path, gain_azimuth_bins=6 if rank == 3 else 0, gain_rank=rank)
 
 
 def test_a_log_space_product_of_low_rank_is_recovered_to_float32_rounding():
