@@ -52,9 +52,9 @@ def warm_up(variants) -> None:
 
     These imports run Dr.Jit's ``@dr.syntax`` (Mitsuba's own integrators too), i.e.
     ``ast.parse``, which CPython 3.11 cannot run in two threads at once (gh-106905: "AST
-    constructor recursion depth mismatch"), and a worker's event loop parses too (e.g.
-    ``inspect.signature`` of a builtin while it unpickles a task). :class:`WarmUp` runs
-    this on every worker before it takes a task, so a batch parses no source.
+    constructor recursion depth mismatch"), and a worker's other threads parse too
+    (``inspect.signature`` of a builtin does, for one). :class:`WarmUp` runs this on every
+    worker before it takes a task, so a batch parses no source.
     """
     import mitsuba as mi
 
