@@ -208,9 +208,9 @@ def explicit_fiber(fiber_table, exit_model: str, wavelength_nm: float | None) ->
     ``fiber_ray`` (each path from its own exit) for the h-resolved ``lobe`` exit, Mitsuba's
     own ``hair`` for the ``curve`` exit of a ray fiber of camera transport (what ``hair`` on
     curves renders, through :func:`hair_bsdf`; one wavelength), ``fiber_table`` (the displaced
-    exit of ``bundle_path``, h uniform) otherwise. The ``entry`` exit has no explicit counterpart yet; it is compared
-    with ``fiber_table``. ``wavelength_nm``: what a mono variant renders; ``None`` for a
-    spectral variant."""
+    exit of ``bundle_path``, h uniform) otherwise. The ``entry`` exit has no explicit
+    counterpart yet; it is compared with ``fiber_table``. ``wavelength_nm``: what a mono
+    variant renders; ``None`` for a spectral variant."""
     if exit_model == "curve":
         table = FiberTable.load(fiber_table)
         if table.meta.get("model") == "ray" and table.meta.get("transport") == "camera":

@@ -100,9 +100,9 @@ LAZY = {
     # the CLI runs every stage: it loads render-scene's code (Mitsuba scenes, images) for that
     # command alone, so that no stage runs it (dvc.yaml lists each stage's code)
     ("pipeline/cli.py", "pipeline.render_scene"): "render-scene command",
-    # a Dask task imports the baker on the worker's executor thread, not when it is unpickled
-    # on the worker's event loop: @dr.syntax runs ast.parse, which CPython 3.11 cannot run in
-    # two threads at once (gh-106905)
+    # a Dask worker imports the baker in cluster.warm_up (its plugin, before its first task),
+    # not whenever the module is unpickled on its event loop: @dr.syntax runs ast.parse, which
+    # CPython 3.11 cannot run in two threads at once (gh-106905)
     ("pipeline/cluster.py", "pipeline.build"): "Dask worker thread",
     ("pipeline/cluster.py", "models.bake"): "Dask worker thread",
     # mpmath is in the test extra only

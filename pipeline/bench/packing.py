@@ -102,7 +102,6 @@ def render_checks(cfg, out: Path, summary, plain_path: Path) -> list[dict]:
     return rows
 
 
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--artifacts", default="artifacts")
